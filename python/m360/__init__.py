@@ -1,0 +1,38 @@
+"""m360: high-resolution 360° monocular depth estimation (360MonoDepth, CVPR 2022).
+
+An equirectangular panorama is projected onto tangent images (icosahedron faces), a perspective
+depth network predicts disparity on each, and the per-tangent disparities are aligned and blended
+back into one seamless ERP disparity map. The heavy lifting runs in a Rust core (``m360._core``).
+
+>>> import m360
+>>> layout = m360.Layout.icosahedron(erp_width=2048)
+>>> tiles = m360.erp_to_tangents(erp, layout)             # (20, 346, 400[, C])
+>>> disp = m360.stitch(tangent_disparity, layout, align="none", blend="mean")
+"""
+
+from __future__ import annotations
+
+from . import eval, synthetic
+from ._core import __version__, get_num_threads, set_num_threads
+from .errors import InputError, M360Error, ModelError, SolverError
+from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
+from .stitch import StitchResult, stitch
+
+__all__ = [
+    "InputError",
+    "Layout",
+    "M360Error",
+    "ModelError",
+    "SolverError",
+    "StitchResult",
+    "TangentCamera",
+    "__version__",
+    "clear_plan_cache",
+    "erp_to_tangents",
+    "eval",
+    "get_num_threads",
+    "set_num_threads",
+    "stitch",
+    "synthetic",
+    "tangents_to_erp",
+]

@@ -1,0 +1,228 @@
+"""The paper's depth metrics on ERP maps (DESIGN.md §5).
+
+The prediction is a disparity known up to scale and shift: fit both by least squares against the
+ground-truth disparity 1/depth over the valid pixels, convert the fitted disparity to depth, then
+compute AbsRel, MAE, RMSE, RMSE-log (base 10, as the paper), δ<1.25, δ<1.25², δ<1.25³.
+Optionally exclude a cap around each pole and weight pixels by solid angle (cos latitude).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+
+import numpy as np
+
+from m360.errors import InputError
+
+__all__ = ["depth_metrics", "fit_scale_shift", "format_metrics"]
+
+WEIGHTINGS = ("uniform", "solid_angle")
+DISPARITY_FLOOR = 1e-3
+"""Fitted disparities are clamped below at ``DISPARITY_FLOOR x min(GT disparity over valid)``."""
+
+
+def fit_scale_shift(
+    pred_disparity: np.ndarray,
+    gt_disparity: np.ndarray,
+    weights: np.ndarray | None = None,
+) -> tuple[float, float]:
+    """Weighted least-squares scale and shift mapping a prediction onto ground truth.
+
+    Minimises ``Σ w (s·pred + o - gt)²`` with float64 accumulation (centred normal equations).
+
+    Parameters
+    ----------
+    pred_disparity, gt_disparity : np.ndarray
+        Arrays of one shape, finite (mask invalid pixels out before calling).
+    weights : np.ndarray, optional
+        Same shape, finite and ≥ 0 with a positive sum; 1 everywhere when omitted.
+
+    Returns
+    -------
+    scale, shift : float
+        The minimiser. When the prediction is constant over the positive-weight pixels the
+        problem is degenerate; the minimum-norm solution ``scale = 0``, ``shift = weighted mean of
+        gt`` is returned.
+    """
+    p = np.asarray(pred_disparity, dtype=np.float64)
+    g = np.asarray(gt_disparity, dtype=np.float64)
+    if p.shape != g.shape:
+        raise InputError(
+            f"pred_disparity and gt_disparity must have the same shape, got {p.shape} and {g.shape}"
+        )
+    if p.size == 0:
+        raise InputError("cannot fit scale and shift on empty arrays: expected at least 1 value")
+    if not (np.all(np.isfinite(p)) and np.all(np.isfinite(g))):
+        raise InputError("pred_disparity and gt_disparity must be finite: mask invalid pixels out")
+    if weights is None:
+        w = np.ones_like(p)
+    else:
+        w = np.asarray(weights, dtype=np.float64)
+        if w.shape != p.shape:
+            raise InputError(f"weights must have shape {p.shape}, got {w.shape}")
+        if not np.all(np.isfinite(w)) or np.any(w < 0):
+            raise InputError("weights must be finite and >= 0")
+    wsum = w.sum()
+    if not wsum > 0:
+        raise InputError("weights must have a positive sum, got 0")
+    p_mean = (w * p).sum() / wsum
+    g_mean = (w * g).sum() / wsum
+    dp = p - p_mean
+    var = (w * dp * dp).sum()
+    if var <= 0 or var <= 1e-300 * wsum:
+        return 0.0, float(g_mean)
+    scale = (w * dp * (g - g_mean)).sum() / var
+    return float(scale), float(g_mean - scale * p_mean)
+
+
+def _row_latitudes_deg(height: int) -> np.ndarray:
+    return 90.0 - 180.0 * (np.arange(height, dtype=np.float64) + 0.5) / height
+
+
+def depth_metrics(
+    pred_disparity: np.ndarray,
+    gt_depth: np.ndarray,
+    *,
+    valid: np.ndarray | None = None,
+    pole_cap_deg: float = 0.0,
+    weighting: str = "uniform",
+) -> dict[str, float]:
+    """Scale/shift-aligned depth metrics of an ERP disparity prediction, as in the paper.
+
+    Valid pixels: ground-truth depth finite and > 0, prediction finite, ``valid`` true (if given),
+    and row-centre latitude within ``±(90° - pole_cap_deg)`` (rows follow the ERP convention of
+    DESIGN.md §1: row i has latitude ``90° - 180° (i + 0.5) / H``). Scale s and shift o are fitted
+    by weighted least squares of ``s·pred + o`` against ``1/gt_depth`` over the valid pixels; the
+    fitted disparity is clamped below at ``1e-3 x min(1/gt_depth)`` over the valid pixels (so a
+    fitted value ≤ 0 becomes a very far but finite depth) and inverted to depth. Every metric then
+    averages over the valid pixels with weights 1 (``"uniform"``) or cos(latitude)
+    (``"solid_angle"``, each pixel weighted by the solid angle it covers).
+
+    Parameters
+    ----------
+    pred_disparity : np.ndarray
+        (H, W) float prediction, disparity up to an unknown scale and shift; NaN = no prediction.
+    gt_depth : np.ndarray
+        (H, W) float ground-truth radial depth; NaN, inf or ≤ 0 = invalid. W must equal 2H.
+    valid : np.ndarray, optional
+        (H, W) bool, extra mask (True = evaluate).
+    pole_cap_deg : float
+        Radius in degrees of latitude of the cap excluded around each pole, in [0, 90).
+    weighting : str
+        ``"uniform"`` (the paper) or ``"solid_angle"``.
+
+    Returns
+    -------
+    dict[str, float]
+        ``abs_rel`` mean |D-G|/G; ``mae`` mean |D-G|; ``rmse`` sqrt(mean (D-G)²); ``rmse_log10``
+        sqrt(mean (log10 D - log10 G)²) (base 10 as the paper, ≈ ln-based value / 2.303);
+        ``delta1``/``delta2``/``delta3`` fraction with max(D/G, G/D) < 1.25, 1.25², 1.25³;
+        ``scale``, ``shift`` of the fit; ``n_valid`` (int) pixels evaluated; ``coverage`` fraction
+        of ground-truth-valid pixels (valid GT, mask, outside the caps) with a finite prediction.
+    """
+    pred = np.asarray(pred_disparity)
+    gt = np.asarray(gt_depth)
+    if pred.ndim != 2 or gt.ndim != 2:
+        raise InputError(
+            f"pred_disparity and gt_depth must be 2-D (H, W) ERP maps, got {pred.shape} and "
+            f"{gt.shape}"
+        )
+    if pred.shape != gt.shape:
+        raise InputError(f"shape mismatch: pred_disparity {pred.shape} vs gt_depth {gt.shape}")
+    h, w = gt.shape
+    if h < 1 or w != 2 * h:
+        raise InputError(f"ERP maps must have W == 2H, got (H, W) = {gt.shape}")
+    for name, arr in (("pred_disparity", pred), ("gt_depth", gt)):
+        if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
+            raise InputError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
+    if weighting not in WEIGHTINGS:
+        raise InputError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
+    cap = float(pole_cap_deg)
+    if not (np.isfinite(cap) and 0.0 <= cap < 90.0):
+        raise InputError(f"pole_cap_deg must be in [0, 90) degrees, got {pole_cap_deg!r}")
+
+    pred = pred.astype(np.float64, copy=False)
+    gt = gt.astype(np.float64, copy=False)
+    lat = _row_latitudes_deg(h)
+    rows_in = np.abs(lat) <= 90.0 - cap
+    with np.errstate(invalid="ignore"):
+        gt_ok = np.isfinite(gt) & (gt > 0) & rows_in[:, None]
+    if valid is not None:
+        m = np.asarray(valid)
+        if m.shape != gt.shape:
+            raise InputError(f"valid must have shape {gt.shape}, got {m.shape}")
+        if m.dtype != np.bool_:
+            raise InputError(f"valid must be a bool array, got dtype {m.dtype}")
+        gt_ok &= m
+    n_gt = int(gt_ok.sum())
+    if n_gt == 0:
+        raise InputError("no valid ground-truth pixel: expected at least 1 (check mask and caps)")
+    sel = gt_ok & np.isfinite(pred)
+    n_valid = int(sel.sum())
+    if n_valid == 0:
+        raise InputError("no valid pixel: the prediction is NaN/inf wherever ground truth is valid")
+
+    g = gt[sel]
+    p = pred[sel]
+    if weighting == "solid_angle":
+        wts = np.broadcast_to(np.cos(np.deg2rad(lat))[:, None], gt.shape)[sel]
+    else:
+        wts = np.ones(n_valid)
+    gd = 1.0 / g
+    scale, shift = fit_scale_shift(p, gd, wts)
+    fitted = np.maximum(scale * p + shift, DISPARITY_FLOOR * gd.min())
+    d = 1.0 / fitted
+
+    wsum = wts.sum()
+
+    def mean(x: np.ndarray) -> float:
+        return float((wts * x).sum() / wsum)
+
+    err = d - g
+    ratio = np.maximum(d / g, g / d)
+    return {
+        "abs_rel": mean(np.abs(err) / g),
+        "mae": mean(np.abs(err)),
+        "rmse": float(np.sqrt(mean(err * err))),
+        "rmse_log10": float(np.sqrt(mean((np.log10(d) - np.log10(g)) ** 2))),
+        "delta1": mean(ratio < 1.25),
+        "delta2": mean(ratio < 1.25**2),
+        "delta3": mean(ratio < 1.25**3),
+        "scale": scale,
+        "shift": shift,
+        "n_valid": n_valid,
+        "coverage": n_valid / n_gt,
+    }
+
+
+_FORMAT = (
+    ("abs_rel", "AbsRel", "{:.4f}"),
+    ("mae", "MAE", "{:.4f}"),
+    ("rmse", "RMSE", "{:.4f}"),
+    ("rmse_log10", "RMSElog10", "{:.4f}"),
+    ("delta1", "d1", "{:.4f}"),
+    ("delta2", "d2", "{:.4f}"),
+    ("delta3", "d3", "{:.4f}"),
+    ("n_valid", "n", "{:d}"),
+    ("coverage", "cov", "{:.2%}"),
+)
+
+
+def format_metrics(metrics: Mapping[str, float]) -> str:
+    """One-line summary of :func:`depth_metrics` output (keys that are absent are skipped).
+
+    Parameters
+    ----------
+    metrics : Mapping[str, float]
+
+    Returns
+    -------
+    str
+        e.g. ``"AbsRel 0.0512  MAE 0.1200  RMSE 0.2100  RMSElog10 0.0300  d1 0.9600 ..."``.
+    """
+    parts = []
+    for key, label, fmt in _FORMAT:
+        if key in metrics:
+            value = metrics[key]
+            parts.append(f"{label} {fmt.format(int(value) if fmt == '{:d}' else float(value))}")
+    return "  ".join(parts)

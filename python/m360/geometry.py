@@ -1,0 +1,322 @@
+"""Tangent layouts and resampling between the equirectangular image and its tangent images.
+
+Conventions (``DESIGN.md`` §1): world frame x right, y down, z forward. ERP pixel (row i, column j)
+of an H x 2H image looks at longitude 2π(j+0.5)/W − π and latitude π/2 − π(i+0.5)/H. A tangent
+camera maps a world direction d to X = R d and, when X_z > 0, to pixel x = fx X_x/X_z + cx,
+y = fy X_y/X_z + cy, pixel centres at integer coordinates.
+"""
+
+from __future__ import annotations
+
+import hashlib
+import threading
+from collections import OrderedDict
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from . import _core
+from ._validate import as_array, check_erp_shape, check_shape, float32_array
+from .errors import InputError
+
+__all__ = ["Layout", "TangentCamera", "clear_plan_cache", "erp_to_tangents", "tangents_to_erp"]
+
+#: Smallest ERP width for which the icosahedron tangents are still a usable size (≥ 12 px wide).
+MIN_ERP_WIDTH = 64
+
+
+@dataclass(frozen=True, eq=False)
+class TangentCamera:
+    """A pinhole tangent camera.
+
+    Attributes
+    ----------
+    rotation : (3, 3) float64
+        World → camera rotation (rows: camera x, y, z axes in world coordinates).
+    fx, fy, cx, cy : float
+        Focal lengths and principal point in pixels (the principal point is where the tangent
+        point falls; for the icosahedron it is off the image centre vertically).
+    width, height : int
+        Image size in pixels.
+    face : (K, 2) float64 or None
+        The polygon this camera is responsible for, in gnomonic coordinates (the un-padded
+        icosahedron face triangle), or None.
+    """
+
+    rotation: np.ndarray
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    width: int
+    height: int
+    face: np.ndarray | None = None
+
+    @property
+    def axis(self) -> np.ndarray:
+        """(3,) world direction of the optical axis."""
+        return self.rotation[2].copy()
+
+    def project(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Pixel positions ``(x, y)`` of world directions (..., 3), and whether each is in front."""
+        cam = np.asarray(directions, dtype=np.float64) @ self.rotation.T
+        z = cam[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            x = self.fx * cam[..., 0] / z + self.cx
+            y = self.fy * cam[..., 1] / z + self.cy
+        return x, y, z > 0
+
+
+@dataclass(frozen=True, eq=False)
+class Layout:
+    """Tangent cameras covering the sphere, for one ERP size.
+
+    Build the paper's layout with :meth:`icosahedron`, or any other with :meth:`from_cameras`.
+    Layouts are immutable; two layouts with the same cameras and ERP size share one cached plan
+    (the precomputed sampling maps).
+
+    Attributes
+    ----------
+    erp_shape : (int, int)
+        (H, W) of the ERP images this layout serves, W == 2H.
+    cameras : tuple of TangentCamera
+        All with the same image size.
+    padding : float or None
+        The icosahedron padding in gnomonic units, None for other layouts.
+    """
+
+    erp_shape: tuple[int, int]
+    cameras: tuple[TangentCamera, ...]
+    padding: float | None = None
+    name: str = "custom"
+    key: str = field(default="", repr=False)
+
+    @classmethod
+    def icosahedron(
+        cls, erp_width: int, padding: float = 0.3, tangent_width: int | None = None
+    ) -> Layout:
+        """The paper's layout: 20 cameras, one per icosahedron face.
+
+        Each camera looks at its face centroid with no roll (image x = local east, y = local
+        south); its image is the bounding box of the face triangle with every edge pushed out by
+        ``padding`` gnomonic units (≈ 99.5° x 88° at 0.3), with square pixels.
+
+        Parameters
+        ----------
+        erp_width : int
+            Width W of the ERP images (height W/2); even and ≥ 64.
+        padding : float
+            Edge offset in gnomonic units (the paper's p = 0.3).
+        tangent_width : int, optional
+            Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K).
+        """
+        erp_width = _positive_int(erp_width, "erp_width")
+        if erp_width % 2 or erp_width < MIN_ERP_WIDTH:
+            raise InputError(
+                f"erp_width={erp_width} is unusable: it must be even and at least "
+                f"{MIN_ERP_WIDTH} (ERP images are H x 2H)"
+            )
+        if not (isinstance(padding, (int, float)) and np.isfinite(padding) and 0 <= padding <= 2):
+            raise InputError(f"padding={padding!r} must be a number in [0, 2] (gnomonic units)")
+        if tangent_width is not None:
+            tangent_width = _positive_int(tangent_width, "tangent_width")
+            if tangent_width < 8:
+                raise InputError(f"tangent_width={tangent_width} must be at least 8")
+        rotations, intrinsics, (h, w), faces = _core.icosahedron_cameras(
+            erp_width, float(padding), tangent_width
+        )
+        cameras = tuple(
+            TangentCamera(
+                rotation=_frozen(rotations[k]),
+                fx=float(intrinsics[k, 0]),
+                fy=float(intrinsics[k, 1]),
+                cx=float(intrinsics[k, 2]),
+                cy=float(intrinsics[k, 3]),
+                width=w,
+                height=h,
+                face=_frozen(faces[k]),
+            )
+            for k in range(len(rotations))
+        )
+        return cls._make((erp_width // 2, erp_width), cameras, float(padding), "icosahedron")
+
+    @classmethod
+    def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
+        """A layout of user-given cameras (all the same image size) for ERP images of
+        ``erp_shape`` = (H, W)."""
+        if not cameras:
+            raise InputError("a layout needs at least one camera")
+        height, width = (_positive_int(v, "erp_shape") for v in erp_shape)
+        check_erp_shape(height, width, "erp_shape")
+        size = (cameras[0].width, cameras[0].height)
+        for k, cam in enumerate(cameras):
+            if (cam.width, cam.height) != size:
+                raise InputError(
+                    f"camera {k} is {cam.width}x{cam.height} but camera 0 is {size[0]}x{size[1]}:"
+                    " all tangent images of a layout must have one size"
+                )
+            rotation = np.asarray(cam.rotation, dtype=np.float64)
+            if rotation.shape != (3, 3) or not np.allclose(rotation @ rotation.T, np.eye(3)):
+                raise InputError(f"camera {k}: rotation must be a 3x3 rotation matrix")
+        return cls._make((height, width), tuple(cameras), None, "custom")
+
+    @classmethod
+    def _make(
+        cls,
+        erp_shape: tuple[int, int],
+        cameras: tuple[TangentCamera, ...],
+        padding: float | None,
+        name: str,
+    ) -> Layout:
+        digest = hashlib.sha1(repr(erp_shape).encode())
+        for cam in cameras:
+            digest.update(np.asarray(cam.rotation, dtype=np.float64).tobytes())
+            digest.update(np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height]).tobytes())
+        return cls(erp_shape, cameras, padding, name, digest.hexdigest())
+
+    @property
+    def tangent_shape(self) -> tuple[int, int]:
+        """(h, w) of every tangent image."""
+        return self.cameras[0].height, self.cameras[0].width
+
+    def __len__(self) -> int:
+        return len(self.cameras)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, Layout) and other.key == self.key
+
+    def __hash__(self) -> int:
+        return hash(self.key)
+
+    def __repr__(self) -> str:
+        h, w = self.tangent_shape
+        pad = "" if self.padding is None else f", padding={self.padding}"
+        return (
+            f"Layout.{self.name}(erp_shape={self.erp_shape}, {len(self)} cameras of "
+            f"{w}x{h}{pad})"
+        )
+
+
+# --------------------------------------------------------------------------------------------
+# Plans: the compiled sampling maps, one per layout, reused across images.
+
+_PLAN_CACHE_SIZE = 4
+_plans: OrderedDict[str, _core.Plan] = OrderedDict()
+_plans_lock = threading.Lock()
+
+
+def plan_for(layout: Layout) -> _core.Plan:
+    """The cached compiled plan of ``layout`` (maps are built lazily on first use)."""
+    with _plans_lock:
+        plan = _plans.get(layout.key)
+        if plan is not None:
+            _plans.move_to_end(layout.key)
+            return plan
+        rotations = np.stack([np.asarray(c.rotation, dtype=np.float64) for c in layout.cameras])
+        intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in layout.cameras], dtype=np.float64)
+        plan = _core.Plan(layout.erp_shape, rotations, intrinsics, layout.tangent_shape)
+        _plans[layout.key] = plan
+        while len(_plans) > _PLAN_CACHE_SIZE:
+            _plans.popitem(last=False)
+        return plan
+
+
+def clear_plan_cache() -> None:
+    """Drop every cached plan (frees their sampling maps)."""
+    with _plans_lock:
+        _plans.clear()
+
+
+# --------------------------------------------------------------------------------------------
+# Resampling.
+
+
+def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray:
+    """Sample an ERP image into the tangent images of ``layout``.
+
+    Bilinear, wrapping in longitude and across the poles.
+
+    Parameters
+    ----------
+    erp : (H, W) or (H, W, C) uint8 or float32 array, W == 2H, C in 1..4
+        float64 is converted to float32. NaN propagates to the samples that touch it.
+    layout : Layout, optional
+        Default: ``Layout.icosahedron(W)``. Its ``erp_shape`` must be (H, W).
+
+    Returns
+    -------
+    (N, h, w) or (N, h, w, C) array of the input dtype.
+    """
+    array = as_array(erp, "erp")
+    if array.ndim not in (2, 3):
+        raise InputError(f"erp must be (H, W) or (H, W, C), got shape {array.shape}")
+    if array.ndim == 3 and not 1 <= array.shape[2] <= 4:
+        raise InputError(f"erp has {array.shape[2]} channels, expected 1 to 4 (shape {array.shape})")
+    height, width = array.shape[:2]
+    check_erp_shape(height, width, "erp")
+    layout = _layout_for(layout, height, width)
+    if array.dtype == np.uint8:
+        data = np.ascontiguousarray(array)
+    elif array.dtype.kind == "f":
+        data = float32_array(array, "erp")
+    else:
+        raise InputError(f"erp has dtype {array.dtype}; supported: uint8, float32 (float64 converted)")
+    planar = data.ndim == 2
+    out = plan_for(layout).erp_to_tangents(data[..., None] if planar else data)
+    return out[..., 0] if planar else out
+
+
+def tangents_to_erp(tiles: np.ndarray, layout: Layout) -> np.ndarray:
+    """Map each tangent image onto the ERP grid.
+
+    Every ERP pixel whose ray lands on a tangent image (in front of it) gets that image's value,
+    sampled bilinearly at the exact projected position.
+
+    Parameters
+    ----------
+    tiles : (N, h, w) float32 array
+        One image per camera of ``layout``; NaN marks invalid pixels.
+    layout : Layout
+
+    Returns
+    -------
+    (N, H, W) float32, NaN where a face does not see the pixel or a bilinear neighbour is NaN.
+    """
+    data = check_tiles(tiles, layout, "tiles")
+    return plan_for(layout).tangents_to_erp(data)
+
+
+def check_tiles(tiles: np.ndarray, layout: Layout, name: str) -> np.ndarray:
+    """Validated (N, h, w) float32 C-contiguous tiles for ``layout``."""
+    if not isinstance(layout, Layout):
+        raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    array = as_array(tiles, name)
+    h, w = layout.tangent_shape
+    check_shape(array, name, ("N", "h", "w"), N=len(layout), h=h, w=w)
+    return float32_array(array, name)
+
+
+def _layout_for(layout: Layout | None, height: int, width: int) -> Layout:
+    if layout is None:
+        return Layout.icosahedron(width)
+    if not isinstance(layout, Layout):
+        raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    if layout.erp_shape != (height, width):
+        raise InputError(
+            f"erp is {height}x{width} but the layout was built for {layout.erp_shape[0]}x"
+            f"{layout.erp_shape[1]}; use m360.Layout.icosahedron(erp_width={width})"
+        )
+    return layout
+
+
+def _positive_int(value: object, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value <= 0:
+        raise InputError(f"{name} must be a positive integer, got {value!r}")
+    return int(value)
+
+
+def _frozen(array: np.ndarray) -> np.ndarray:
+    out = np.array(array, dtype=np.float64)
+    out.flags.writeable = False
+    return out

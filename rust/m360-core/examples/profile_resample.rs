@@ -1,0 +1,50 @@
+//! Times the resampling kernels without Python in the way: `cargo run --release --example profile_resample`.
+use m360_core::resample::{erp_to_tangents, tangents_to_erp};
+use m360_core::stitch::{blend, Blend};
+use m360_core::{Layout, Plan};
+use std::time::Instant;
+
+fn median(mut v: Vec<f64>) -> f64 {
+    v.sort_by(f64::total_cmp);
+    v[v.len() / 2]
+}
+
+fn time(label: &str, mut f: impl FnMut()) {
+    f();
+    let runs = (0..7)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64()
+        })
+        .collect();
+    println!("{label:<28} {:8.4} s", median(runs));
+}
+
+fn main() {
+    let width: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(2048);
+    let t = Instant::now();
+    let plan = Plan::new(Layout::icosahedron(width, 0.3, None).expect("layout"));
+    plan.tangent_taps();
+    println!("{:<28} {:8.4} s", "build tangent taps", t.elapsed().as_secs_f64());
+    let t = Instant::now();
+    plan.erp_taps();
+    println!("{:<28} {:8.4} s", "build erp taps", t.elapsed().as_secs_f64());
+    let layout = plan.layout();
+    let erp: Vec<u8> = (0..layout.erp_height * layout.erp_width * 3).map(|i| (i * 7 % 251) as u8).collect();
+    time("erp->tangents u8x3", || {
+        std::hint::black_box(erp_to_tangents(plan.tangent_taps(), layout, &erp, 3));
+    });
+    let erpf: Vec<f32> = erp.iter().step_by(3).map(|&v| v as f32).collect();
+    time("erp->tangents f32x1", || {
+        std::hint::black_box(erp_to_tangents(plan.tangent_taps(), layout, &erpf, 1));
+    });
+    let (h, w) = layout.tangent_shape();
+    let tiles = vec![1.0f32; 20 * h * w];
+    time("tangents->erp", || {
+        std::hint::black_box(tangents_to_erp(plan.erp_taps(), layout, &tiles));
+    });
+    time("blend mean", || {
+        std::hint::black_box(blend(plan.erp_taps(), layout, &tiles, Blend::Mean));
+    });
+}

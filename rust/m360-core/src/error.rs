@@ -1,0 +1,37 @@
+//! Failure kinds of the core that can happen on validated input.
+
+use std::fmt;
+
+/// An error of the core. The bindings map each kind to a specific Python exception.
+#[derive(Debug, Clone, PartialEq)]
+pub enum CoreError {
+    /// A layout or option is unusable (checked again here because layouts can be user-built).
+    InvalidLayout(String),
+    /// Array dimensions do not match the plan they are used with.
+    ShapeMismatch {
+        /// What was being checked.
+        what: &'static str,
+        /// The shape the plan expects.
+        expected: Vec<usize>,
+        /// The shape that was given.
+        actual: Vec<usize>,
+    },
+}
+
+impl fmt::Display for CoreError {
+    fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
+        match self {
+            CoreError::InvalidLayout(msg) => write!(f, "invalid layout: {msg}"),
+            CoreError::ShapeMismatch {
+                what,
+                expected,
+                actual,
+            } => write!(f, "{what} has shape {actual:?}, expected {expected:?}"),
+        }
+    }
+}
+
+impl std::error::Error for CoreError {}
+
+/// Result alias of the core.
+pub type Result<T> = std::result::Result<T, CoreError>;

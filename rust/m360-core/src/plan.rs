@@ -1,0 +1,48 @@
+//! Per-(layout, ERP size) sampling maps, built on first use and shared by every later image.
+
+use crate::layout::Layout;
+use crate::resample::{ErpTaps, TangentTaps};
+use std::sync::OnceLock;
+
+/// Everything that depends only on the layout (and so on the ERP size), not on the image.
+///
+/// Each map is built the first time an operation needs it (in parallel, on the calling thread
+/// pool) and then reused, so a batch of same-size panoramas pays for it once.
+#[derive(Debug)]
+pub struct Plan {
+    layout: Layout,
+    tangent_taps: OnceLock<TangentTaps>,
+    erp_taps: OnceLock<ErpTaps>,
+}
+
+impl Plan {
+    /// A plan for `layout`; no map is built yet.
+    pub fn new(layout: Layout) -> Self {
+        Self {
+            layout,
+            tangent_taps: OnceLock::new(),
+            erp_taps: OnceLock::new(),
+        }
+    }
+
+    /// The layout this plan serves.
+    pub fn layout(&self) -> &Layout {
+        &self.layout
+    }
+
+    /// Where each tangent pixel samples the ERP image (built on first call).
+    pub fn tangent_taps(&self) -> &TangentTaps {
+        self.tangent_taps.get_or_init(|| TangentTaps::build(&self.layout))
+    }
+
+    /// Which tangents, and where, each ERP pixel sees (built on first call).
+    pub fn erp_taps(&self) -> &ErpTaps {
+        self.erp_taps.get_or_init(|| ErpTaps::build(&self.layout))
+    }
+
+    /// Bytes held by the maps built so far.
+    pub fn memory_bytes(&self) -> usize {
+        self.tangent_taps.get().map_or(0, TangentTaps::memory_bytes)
+            + self.erp_taps.get().map_or(0, ErpTaps::memory_bytes)
+    }
+}

@@ -1,0 +1,392 @@
+//! Bilinear resampling between the ERP image and the tangent images, both ways.
+//!
+//! Both directions use precomputed taps (see [`crate::plan::Plan`]): the position of every output
+//! pixel in the source image, stored as the index of its top-left source pixel and two fixed-point
+//! fractions (8 bytes a pixel). Nothing is rounded to whole pixels (reference bug B8).
+
+use crate::camera::TangentCamera;
+use crate::layout::Layout;
+use crate::sphere::{direction_to_pixel, ErpGrid};
+use rayon::prelude::*;
+
+/// Fixed-point scale of bilinear fractions: 2⁻¹⁵ pixel resolution.
+const FRAC_SCALE: f32 = 32768.0;
+/// Flag on [`Tap::index`] of a tangent tap whose four ERP neighbours are not in the plain
+/// 2×2 arrangement (longitude wrap or across a pole); the rest of the index points into
+/// [`TangentTaps::wrapped`].
+const WRAPPED: u32 = 1 << 31;
+
+/// A bilinear sampling position: top-left source index and fractions in units of 2⁻¹⁵.
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Tap {
+    /// Flat index of the top-left source pixel (meaning depends on the map).
+    pub index: u32,
+    fx: u16,
+    fy: u16,
+}
+
+impl Tap {
+    fn new(index: u32, fx: f64, fy: f64) -> Self {
+        debug_assert!((0.0..=1.0).contains(&fx) && (0.0..=1.0).contains(&fy));
+        // `as` truncates; for f ≥ 0 this rounds without a libm call (no SSE4.1 in baseline x86-64).
+        let q = |f: f64| (f * FRAC_SCALE as f64 + 0.5) as u16;
+        Self {
+            index,
+            fx: q(fx),
+            fy: q(fy),
+        }
+    }
+
+    /// Weights of the top-left, top-right, bottom-left and bottom-right neighbours.
+    #[inline(always)]
+    fn weights(self) -> [f32; 4] {
+        let fx = self.fx as f32 * (1.0 / FRAC_SCALE);
+        let fy = self.fy as f32 * (1.0 / FRAC_SCALE);
+        let (gx, gy) = (1.0 - fx, 1.0 - fy);
+        [gx * gy, fx * gy, gx * fy, fx * fy]
+    }
+}
+
+/// A pixel type that can be resampled.
+pub trait Texel: Copy + Send + Sync + 'static {
+    /// Bilinear combination of the top-left, top-right, bottom-left and bottom-right values at
+    /// the fractions of `tap`.
+    fn bilinear(p: [Self; 4], tap: Tap) -> Self;
+}
+
+impl Texel for u8 {
+    /// Fixed-point arithmetic: the four weights are integers summing exactly to 2¹⁵.
+    #[inline(always)]
+    fn bilinear(p: [Self; 4], tap: Tap) -> Self {
+        const ONE: u32 = FRAC_SCALE as u32;
+        let (fx, fy) = (tap.fx as u32, tap.fy as u32);
+        let w11 = (fx * fy) >> 15;
+        let (w01, w10) = (fx - w11, fy - w11);
+        let w00 = ONE - fx - fy + w11;
+        let v = w00 * p[0] as u32 + w01 * p[1] as u32 + w10 * p[2] as u32 + w11 * p[3] as u32;
+        ((v + ONE / 2) >> 15) as u8
+    }
+}
+
+impl Texel for f32 {
+    #[inline(always)]
+    fn bilinear(p: [Self; 4], tap: Tap) -> Self {
+        let w = tap.weights();
+        w[0] * p[0] + w[1] * p[1] + w[2] * p[2] + w[3] * p[3]
+    }
+}
+
+/// ERP → tangent map: one tap into the ERP image per tangent pixel, in (face, row, column) order.
+#[derive(Debug, Clone)]
+pub struct TangentTaps {
+    taps: Vec<Tap>,
+    /// ERP pixel indices (top-left, top-right, bottom-left, bottom-right) of wrapped taps.
+    wrapped: Vec<[u32; 4]>,
+    erp_width: usize,
+    erp_pixels: usize,
+}
+
+impl TangentTaps {
+    /// Taps for every pixel of every camera of `layout`.
+    pub fn build(layout: &Layout) -> Self {
+        let (h, w) = layout.tangent_shape();
+        let (eh, ew) = (layout.erp_height, layout.erp_width);
+        let rows: Vec<(Vec<Tap>, Vec<[u32; 4]>)> = (0..layout.cameras.len() * h)
+            .into_par_iter()
+            .map(|face_row| {
+                let cam = &layout.cameras[face_row / h];
+                let r = (face_row % h) as f64;
+                let mut taps = Vec::with_capacity(w);
+                let mut wrapped = Vec::new();
+                for c in 0..w {
+                    let d = cam.pixel_direction(c as f64, r);
+                    let (u, v) = direction_to_pixel(&d, eh, ew);
+                    // u, v ≥ −0.5, so truncating u + 1 is floor(u) + 1 without a libm call.
+                    let (j0, i0) = ((u + 1.0) as i64 - 1, (v + 1.0) as i64 - 1);
+                    let (fx, fy) = (u - j0 as f64, v - i0 as f64);
+                    if j0 >= 0 && i0 >= 0 && j0 + 1 < ew as i64 && i0 + 1 < eh as i64 {
+                        taps.push(Tap::new((i0 as usize * ew + j0 as usize) as u32, fx, fy));
+                    } else {
+                        let at = |i: i64, j: i64| erp_index_wrapped(i, j, eh, ew);
+                        let corners = [at(i0, j0), at(i0, j0 + 1), at(i0 + 1, j0), at(i0 + 1, j0 + 1)];
+                        taps.push(Tap::new(WRAPPED | wrapped.len() as u32, fx, fy));
+                        wrapped.push(corners);
+                    }
+                }
+                (taps, wrapped)
+            })
+            .collect();
+        let mut taps = Vec::with_capacity(layout.cameras.len() * h * w);
+        let mut wrapped = Vec::new();
+        for (row_taps, row_wrapped) in rows {
+            let offset = wrapped.len() as u32;
+            taps.extend(row_taps.into_iter().map(|t| {
+                if t.index & WRAPPED != 0 {
+                    Tap { index: WRAPPED | ((t.index & !WRAPPED) + offset), ..t }
+                } else {
+                    t
+                }
+            }));
+            wrapped.extend(row_wrapped);
+        }
+        Self {
+            taps,
+            wrapped,
+            erp_width: ew,
+            erp_pixels: eh * ew,
+        }
+    }
+
+    /// Bytes held by the map.
+    pub fn memory_bytes(&self) -> usize {
+        self.taps.len() * std::mem::size_of::<Tap>() + self.wrapped.len() * 16
+    }
+
+    /// Sample an ERP image of `C` interleaved channels into `out` ((N·h·w·C), same order as taps).
+    ///
+    /// # Panics
+    /// If `erp` is not the size the taps were built for (the bindings check shapes first).
+    pub fn sample<T: Texel, const C: usize>(&self, erp: &[T], out: &mut [T], tangent_width: usize) {
+        let ew = self.erp_width;
+        assert_eq!(erp.len(), self.erp_pixels * C, "ERP size does not match the plan");
+        assert_eq!(out.len(), self.taps.len() * C, "output size does not match the plan");
+        out.par_chunks_mut(tangent_width * C)
+            .zip(self.taps.par_chunks(tangent_width))
+            .for_each(|(row, taps)| {
+                for (px, &tap) in row.chunks_exact_mut(C).zip(taps) {
+                    let corners = if tap.index & WRAPPED == 0 {
+                        let i = tap.index as usize;
+                        [i, i + 1, i + ew, i + ew + 1]
+                    } else {
+                        self.wrapped[(tap.index & !WRAPPED) as usize].map(|i| i as usize)
+                    };
+                    for (ch, o) in px.iter_mut().enumerate() {
+                        // SAFETY: every corner index is < erp_pixels by construction of the taps
+                        // (plain taps have i0 + 1 < H and j0 + 1 < W; wrapped ones are reduced
+                        // modulo the grid), ch < C, and erp.len() == erp_pixels·C was asserted.
+                        let p = corners.map(|k| unsafe { *erp.get_unchecked(k * C + ch) });
+                        *o = T::bilinear(p, tap);
+                    }
+                }
+            });
+    }
+}
+
+/// Flat index of ERP pixel (i, j) where i may be −1 or H and j any integer: longitude wraps, and
+/// a row beyond a pole is the pole row on the opposite meridian.
+fn erp_index_wrapped(i: i64, j: i64, height: usize, width: usize) -> u32 {
+    let (h, w) = (height as i64, width as i64);
+    let (i, j) = if i < 0 {
+        (-1 - i, j + w / 2)
+    } else if i >= h {
+        (2 * h - 1 - i, j + w / 2)
+    } else {
+        (i, j)
+    };
+    (i * w + j.rem_euclid(w)) as u32
+}
+
+/// Tangents → ERP map: for every ERP pixel, the tangent images that see it and where.
+///
+/// Stored per ERP pixel (a compressed-row layout), so blending runs over ERP rows in parallel
+/// without write conflicts and per-face data is never expanded to ERP size. Each pixel's taps are
+/// ordered by angular distance from the camera axis, nearest first: the first valid tap is the
+/// nearest face (for the icosahedron, the face whose triangle contains the pixel).
+#[derive(Debug, Clone)]
+pub struct ErpTaps {
+    /// Index into `taps` of the first tap of each ERP row; H + 1 entries.
+    row_start: Vec<usize>,
+    /// Number of taps of each ERP pixel.
+    counts: Vec<u8>,
+    /// Taps into the flat tangent stack (face·h·w + y·w + x of the top-left neighbour).
+    taps: Vec<Tap>,
+    tangent_width: usize,
+    tangent_pixels: usize,
+    faces: usize,
+    erp_width: usize,
+}
+
+impl ErpTaps {
+    /// Taps for every ERP pixel of `layout`.
+    pub fn build(layout: &Layout) -> Self {
+        let (h, w) = layout.tangent_shape();
+        let (eh, ew) = (layout.erp_height, layout.erp_width);
+        let grid = ErpGrid::new(eh, ew);
+        // A direction outside a camera's bounding cone cannot land on its image: one dot
+        // product rejects most of the 20 cameras before any projection.
+        let cones: Vec<(nalgebra::Vector3<f64>, f64)> =
+            layout.cameras.iter().map(|cam| (cam.axis(), cone_cosine(cam))).collect();
+        let rows: Vec<(Vec<u8>, Vec<Tap>)> = (0..eh)
+            .into_par_iter()
+            .map(|i| {
+                let mut counts = Vec::with_capacity(ew);
+                let mut taps = Vec::with_capacity(ew * 2);
+                for j in 0..ew {
+                    let d = grid.direction(i, j);
+                    let first = taps.len();
+                    for (k, (cam, (axis, min_cos))) in layout.cameras.iter().zip(&cones).enumerate() {
+                        let cos = axis.dot(&d);
+                        if cos < *min_cos {
+                            continue;
+                        }
+                        if let Some(tap) = tangent_tap(cam, &d, k * h * w) {
+                            // Insertion keeps the pixel's taps nearest-axis first.
+                            let mut at = taps.len();
+                            taps.push((cos, tap));
+                            while at > first && taps[at - 1].0 < cos {
+                                taps.swap(at - 1, at);
+                                at -= 1;
+                            }
+                        }
+                    }
+                    counts.push((taps.len() - first) as u8);
+                }
+                let taps: Vec<Tap> = taps.into_iter().map(|(_, tap)| tap).collect();
+                (counts, taps)
+            })
+            .collect();
+        let mut row_start = Vec::with_capacity(eh + 1);
+        row_start.push(0);
+        for (_, taps) in &rows {
+            row_start.push(row_start.last().copied().unwrap_or(0) + taps.len());
+        }
+        let mut counts = Vec::with_capacity(eh * ew);
+        let mut taps = Vec::with_capacity(row_start[eh]);
+        for (row_counts, row_taps) in rows {
+            counts.extend(row_counts);
+            taps.extend(row_taps);
+        }
+        Self {
+            row_start,
+            counts,
+            taps,
+            tangent_width: w,
+            tangent_pixels: h * w,
+            faces: layout.cameras.len(),
+            erp_width: ew,
+        }
+    }
+
+    /// Bytes held by the map.
+    pub fn memory_bytes(&self) -> usize {
+        self.taps.len() * std::mem::size_of::<Tap>() + self.counts.len() + self.row_start.len() * 8
+    }
+
+    /// Total number of (ERP pixel, tangent) pairs.
+    pub fn len(&self) -> usize {
+        self.taps.len()
+    }
+
+    /// Whether no ERP pixel is seen by any tangent.
+    pub fn is_empty(&self) -> bool {
+        self.taps.is_empty()
+    }
+
+    /// Number of tangents that see each ERP pixel (H·W, row-major).
+    pub fn counts(&self) -> &[u8] {
+        &self.counts
+    }
+
+    /// The (face, bilinear value) samples of every pixel of ERP row `i`, in pixel order: calls
+    /// `visit(j, samples)` with the samples of pixel (i, j), nearest face first. A sample is NaN
+    /// when any of its four tangent neighbours is NaN.
+    ///
+    /// # Panics
+    /// If `tangents` is not the size the taps were built for (the bindings check shapes first).
+    #[inline]
+    pub fn visit_row(&self, tangents: &[f32], i: usize, mut visit: impl FnMut(usize, &[(usize, f32)])) {
+        assert_eq!(tangents.len(), self.tangent_pixels * self.faces, "tangent stack size mismatch");
+        let w = self.tangent_width;
+        let row = &self.taps[self.row_start[i]..self.row_start[i + 1]];
+        let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
+        let mut at = 0;
+        let mut samples: Vec<(usize, f32)> = Vec::with_capacity(8);
+        for (j, &n) in counts.iter().enumerate() {
+            let n = n as usize;
+            samples.clear();
+            for &tap in &row[at..at + n] {
+                let k = tap.index as usize;
+                let wts = tap.weights();
+                // SAFETY: taps point at a top-left neighbour with x0 <= w − 2 and y0 <= h − 2 of
+                // a face < faces, so k + w + 1 < faces·h·w == tangents.len() (asserted above).
+                let v = unsafe {
+                    wts[0] * tangents.get_unchecked(k)
+                        + wts[1] * tangents.get_unchecked(k + 1)
+                        + wts[2] * tangents.get_unchecked(k + w)
+                        + wts[3] * tangents.get_unchecked(k + w + 1)
+                };
+                samples.push((k / self.tangent_pixels, v));
+            }
+            at += n;
+            visit(j, &samples);
+        }
+    }
+}
+
+/// Cosine of the widest angle between the axis of `cam` and a ray through its image (a corner),
+/// lowered slightly so rounding can never reject a visible direction.
+fn cone_cosine(cam: &TangentCamera) -> f64 {
+    let (w, h) = (cam.width as f64 - 0.5, cam.height as f64 - 0.5);
+    [(-0.5, -0.5), (w, -0.5), (-0.5, h), (w, h)]
+        .iter()
+        .map(|&(x, y)| cam.spherical_factor(x, y))
+        .fold(1.0, f64::min)
+        - 1e-9
+}
+
+/// Tap of the tangent pixel grid of `cam` (flat offset `base`) seen by direction `d`, if any.
+/// Positions within half a pixel of the border are clamped onto the outermost pixel centres.
+fn tangent_tap(cam: &TangentCamera, d: &nalgebra::Vector3<f64>, base: usize) -> Option<Tap> {
+    let (x, y) = cam.project(d)?;
+    if !cam.contains(x, y) {
+        return None;
+    }
+    let (w, h) = (cam.width, cam.height);
+    let x = x.clamp(0.0, (w - 1) as f64);
+    let y = y.clamp(0.0, (h - 1) as f64);
+    let x0 = (x as usize).min(w - 2); // x ≥ 0: truncation is floor
+    let y0 = (y as usize).min(h - 2);
+    Some(Tap::new((base + y0 * w + x0) as u32, x - x0 as f64, y - y0 as f64))
+}
+
+/// Sample an ERP image into the tangent images of `layout` through `taps`.
+/// `erp` is (H, W, C) interleaved; the result is (N, h, w, C).
+pub fn erp_to_tangents<T: Texel>(taps: &TangentTaps, layout: &Layout, erp: &[T], channels: usize) -> Vec<T> {
+    let (h, w) = layout.tangent_shape();
+    let mut out = vec![erp[0]; layout.cameras.len() * h * w * channels];
+    debug_assert_eq!(erp.len(), layout.erp_height * layout.erp_width * channels);
+    match channels {
+        1 => taps.sample::<T, 1>(erp, &mut out, w),
+        2 => taps.sample::<T, 2>(erp, &mut out, w),
+        3 => taps.sample::<T, 3>(erp, &mut out, w),
+        4 => taps.sample::<T, 4>(erp, &mut out, w),
+        _ => unreachable!("channels are validated to be 1..=4"),
+    }
+    out
+}
+
+/// Each tangent image mapped onto the ERP grid: (N, H, W), NaN where a face does not see the
+/// pixel (or a bilinear neighbour is NaN).
+pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32]) -> Vec<f32> {
+    let (eh, ew) = (layout.erp_height, layout.erp_width);
+    let plane = eh * ew;
+    let mut out = vec![f32::NAN; layout.cameras.len() * plane];
+    let ptr = SharedMut(out.as_mut_ptr());
+    (0..eh).into_par_iter().for_each(|i| {
+        let ptr = &ptr;
+        taps.visit_row(tangents, i, |j, samples| {
+            for &(face, v) in samples {
+                // SAFETY: each (face, i, j) element is written by exactly one iteration (rows are
+                // disjoint across threads, a face appears once per pixel), and `out` outlives the
+                // parallel loop.
+                unsafe { *ptr.0.add(face * plane + i * ew + j) = v };
+            }
+        });
+    });
+    out
+}
+
+/// A raw pointer that may be shared between threads for provably disjoint writes.
+struct SharedMut<T>(*mut T);
+// SAFETY: only used for writes to disjoint elements, see the call sites.
+unsafe impl<T> Sync for SharedMut<T> {}

@@ -1,0 +1,200 @@
+//! From per-tangent perspective disparity to one ERP spherical disparity map: the simple blends.
+
+use crate::layout::Layout;
+use crate::resample::ErpTaps;
+use rayon::prelude::*;
+
+/// How the tangents that see an ERP pixel are combined.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Blend {
+    /// Unweighted mean of every valid sample.
+    Mean,
+    /// The valid sample of the face whose axis is nearest the pixel (for the icosahedron: the face
+    /// whose un-padded triangle contains the pixel, falling back to the next nearest when that
+    /// face has no valid sample there).
+    Nearest,
+}
+
+/// Spherical disparity (1/distance) of every tangent pixel from perspective disparity (1/z):
+/// each pixel divided by the length of its own ray `(gx, gy, 1)`, computed from its own camera,
+/// so no face can use another's factor (reference bug B1). Pixels whose `mask` is false become NaN.
+pub fn spherical_disparity(layout: &Layout, perspective: &[f32], mask: Option<&[bool]>) -> Vec<f32> {
+    let (h, w) = layout.tangent_shape();
+    debug_assert_eq!(perspective.len(), layout.cameras.len() * h * w);
+    let mut out = vec![0.0f32; perspective.len()];
+    out.par_chunks_mut(w)
+        .zip(perspective.par_chunks(w))
+        .enumerate()
+        .for_each(|(face_row, (dst, src))| {
+            let cam = &layout.cameras[face_row / h];
+            let r = (face_row % h) as f64;
+            let keep = mask.map(|m| &m[face_row * w..(face_row + 1) * w]);
+            for (c, (d, &s)) in dst.iter_mut().zip(src).enumerate() {
+                let valid = keep.is_none_or(|k| k[c]);
+                *d = if valid {
+                    s * cam.spherical_factor(c as f64, r) as f32
+                } else {
+                    f32::NAN
+                };
+            }
+        });
+    out
+}
+
+/// A blended ERP map and how much the contributing tangents disagreed.
+#[derive(Debug, Clone)]
+pub struct Blended {
+    /// (H·W) blended values, NaN where no tangent has a valid sample.
+    pub disparity: Vec<f32>,
+    /// (H·W) population standard deviation of the valid samples (0 with one, NaN with none).
+    pub spread: Vec<f32>,
+}
+
+/// Blend per-tangent maps (N·h·w, NaN = invalid) onto the ERP grid of `layout`.
+pub fn blend(taps: &ErpTaps, layout: &Layout, tangents: &[f32], mode: Blend) -> Blended {
+    let (eh, ew) = (layout.erp_height, layout.erp_width);
+    let mut disparity = vec![f32::NAN; eh * ew];
+    let mut spread = vec![f32::NAN; eh * ew];
+    disparity
+        .par_chunks_mut(ew)
+        .zip(spread.par_chunks_mut(ew))
+        .enumerate()
+        .for_each(|(i, (out, out_spread))| {
+            taps.visit_row(tangents, i, |j, samples| {
+                let (mut n, mut sum, mut sum_sq) = (0usize, 0.0f64, 0.0f64);
+                let mut nearest = f32::NAN;
+                for &(_, v) in samples {
+                    if v.is_finite() {
+                        if n == 0 {
+                            nearest = v;
+                        }
+                        n += 1;
+                        sum += v as f64;
+                        sum_sq += (v as f64) * (v as f64);
+                    }
+                }
+                if n > 0 {
+                    let mean = sum / n as f64;
+                    out[j] = match mode {
+                        Blend::Mean => mean as f32,
+                        Blend::Nearest => nearest,
+                    };
+                    out_spread[j] = (sum_sq / n as f64 - mean * mean).max(0.0).sqrt() as f32;
+                }
+            });
+        });
+    Blended { disparity, spread }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::plan::Plan;
+    use crate::resample::{erp_to_tangents, tangents_to_erp};
+    use crate::sphere::ErpGrid;
+
+    /// A smooth function of direction, so bilinear resampling of it is nearly exact.
+    fn field(d: &nalgebra::Vector3<f64>) -> f64 {
+        2.0 + 0.5 * d.x + 0.3 * d.y * d.z + 0.2 * d.z
+    }
+
+    fn plan(erp_width: usize) -> Plan {
+        Plan::new(Layout::icosahedron(erp_width, 0.3, None).expect("layout"))
+    }
+
+    fn tangent_field(plan: &Plan) -> Vec<f32> {
+        let layout = plan.layout();
+        let (h, w) = layout.tangent_shape();
+        let mut t = Vec::with_capacity(layout.cameras.len() * h * w);
+        for cam in &layout.cameras {
+            for r in 0..h {
+                for c in 0..w {
+                    t.push(field(&cam.pixel_direction(c as f64, r as f64)) as f32);
+                }
+            }
+        }
+        t
+    }
+
+    #[test]
+    fn erp_to_tangents_matches_direct_evaluation() {
+        let plan = plan(512);
+        let layout = plan.layout();
+        let grid = ErpGrid::new(layout.erp_height, layout.erp_width);
+        let erp: Vec<f32> = (0..layout.erp_height)
+            .flat_map(|i| (0..layout.erp_width).map(move |j| (i, j)))
+            .map(|(i, j)| field(&grid.direction(i, j)) as f32)
+            .collect();
+        let got = erp_to_tangents(plan.tangent_taps(), layout, &erp, 1);
+        let want = tangent_field(&plan);
+        let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        assert!(worst < 2e-3, "worst error {worst}");
+    }
+
+    #[test]
+    fn every_direction_is_seen_by_two_to_five_faces() {
+        let plan = plan(256);
+        let counts = plan.erp_taps().counts();
+        assert!(counts.iter().all(|&c| (2..=5).contains(&c)), "{:?}", counts.iter().max());
+    }
+
+    #[test]
+    fn mean_and_nearest_reproduce_a_smooth_field() {
+        let plan = plan(512);
+        let layout = plan.layout();
+        let grid = ErpGrid::new(layout.erp_height, layout.erp_width);
+        let tangents = tangent_field(&plan);
+        for mode in [Blend::Mean, Blend::Nearest] {
+            let out = blend(plan.erp_taps(), layout, &tangents, mode);
+            for (p, &v) in out.disparity.iter().enumerate() {
+                let want = field(&grid.direction(p / layout.erp_width, p % layout.erp_width));
+                assert!((v as f64 - want).abs() < 2e-3, "{mode:?} pixel {p}: {v} vs {want}");
+            }
+        }
+    }
+
+    #[test]
+    fn a_nan_neighbour_invalidates_a_sample_and_per_face_maps_agree() {
+        let plan = plan(256);
+        let layout = plan.layout();
+        let mut tangents = tangent_field(&plan);
+        let (h, w) = layout.tangent_shape();
+        tangents[..h * w].fill(f32::NAN); // face 0 has no estimate at all
+        let per_face = tangents_to_erp(plan.erp_taps(), layout, &tangents);
+        let plane = layout.erp_height * layout.erp_width;
+        assert!(per_face[..plane].iter().all(|v| v.is_nan()));
+        assert!(per_face[plane..].iter().any(|v| v.is_finite()));
+        let out = blend(plan.erp_taps(), layout, &tangents, Blend::Nearest);
+        assert!(out.disparity.iter().all(|v| v.is_finite()), "other faces cover face 0");
+    }
+
+    #[test]
+    fn spherical_factor_and_mask() {
+        let plan = plan(256);
+        let layout = plan.layout();
+        let n = layout.cameras.len() * layout.tangent_shape().0 * layout.tangent_shape().1;
+        let ones = vec![1.0f32; n];
+        let mut mask = vec![true; n];
+        mask[5] = false;
+        let s = spherical_disparity(layout, &ones, Some(&mask));
+        assert!(s[5].is_nan());
+        let cam = &layout.cameras[0];
+        let (cx, cy) = (cam.cx.round(), cam.cy.round());
+        let centre = s[cy as usize * cam.width + cx as usize];
+        assert!((centre as f64 - cam.spherical_factor(cx, cy)).abs() < 1e-6 && centre > 0.99);
+        assert!(s[0] < 0.7, "the corner ray is long: {}", s[0]);
+    }
+
+    #[test]
+    fn parallel_equals_sequential() {
+        let plan_a = plan(256);
+        let tangents = tangent_field(&plan_a);
+        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+        let seq = pool.install(|| {
+            let p = self::plan(256);
+            blend(p.erp_taps(), p.layout(), &tangents, Blend::Mean).disparity
+        });
+        let par = blend(plan_a.erp_taps(), plan_a.layout(), &tangents, Blend::Mean).disparity;
+        assert!(seq.iter().zip(&par).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+}

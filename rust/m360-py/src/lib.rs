@@ -1,0 +1,376 @@
+//! `m360._core`: the compiled module. Converts arrays, releases the GIL, maps errors; no algorithm.
+//!
+//! The Python package validates every user argument before calling in here; the checks below
+//! are a second line so that a mistake in that validation still gives a Python exception
+//! (`m360.errors.InputError`), never a panic.
+
+use m360_core::layout::Layout;
+use m360_core::stitch::{self, Blend};
+use m360_core::{CoreError, TangentCamera};
+use numpy::ndarray::{Array, IxDyn};
+use numpy::{
+    IntoPyArray, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
+};
+use pyo3::prelude::*;
+use std::panic::{catch_unwind, AssertUnwindSafe};
+use std::sync::{Arc, RwLock};
+
+pyo3::import_exception!(m360.errors, M360Error);
+pyo3::import_exception!(m360.errors, InputError);
+
+/// A core error on its way to Python (the orphan rule forbids `From<CoreError> for PyErr`).
+struct PyCoreError(CoreError);
+
+impl From<PyCoreError> for PyErr {
+    fn from(err: PyCoreError) -> PyErr {
+        match err.0 {
+            e @ (CoreError::InvalidLayout(_) | CoreError::ShapeMismatch { .. }) => {
+                InputError::new_err(e.to_string())
+            }
+        }
+    }
+}
+
+fn input_error(msg: impl Into<String>) -> PyErr {
+    InputError::new_err(msg.into())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Threads: one explicitly sized rayon pool for every heavy call.
+
+static POOL: RwLock<Option<Arc<rayon::ThreadPool>>> = RwLock::new(None);
+
+fn default_threads() -> usize {
+    std::env::var("M360_NUM_THREADS")
+        .ok()
+        .and_then(|v| v.parse::<usize>().ok())
+        .filter(|&n| n > 0)
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+}
+
+fn build_pool(threads: usize) -> PyResult<Arc<rayon::ThreadPool>> {
+    rayon::ThreadPoolBuilder::new()
+        .num_threads(threads)
+        .thread_name(|i| format!("m360-{i}"))
+        .build()
+        .map(Arc::new)
+        .map_err(|e| M360Error::new_err(format!("cannot start {threads} threads: {e}")))
+}
+
+fn pool() -> PyResult<Arc<rayon::ThreadPool>> {
+    if let Some(pool) = POOL.read().ok().and_then(|g| g.clone()) {
+        return Ok(pool);
+    }
+    let mut guard = POOL
+        .write()
+        .map_err(|_| M360Error::new_err("thread pool lock poisoned"))?;
+    match guard.as_ref() {
+        Some(pool) => Ok(pool.clone()),
+        None => {
+            let pool = build_pool(default_threads())?;
+            *guard = Some(pool.clone());
+            Ok(pool)
+        }
+    }
+}
+
+/// Run heavy work without the GIL on m360's pool; a panic becomes `M360Error`, never a crash.
+fn detached<T: Send>(py: Python<'_>, work: impl FnOnce() -> T + Send) -> PyResult<T> {
+    let pool = pool()?;
+    py.detach(|| catch_unwind(AssertUnwindSafe(|| pool.install(work))))
+        .map_err(|panic| {
+            let msg = panic
+                .downcast_ref::<&str>()
+                .map(|s| s.to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            M360Error::new_err(format!("internal error in m360's core (please report): {msg}"))
+        })
+}
+
+/// Set the number of worker threads of m360's compiled core (None: `M360_NUM_THREADS` or all
+/// cores). Results do not depend on it.
+#[pyfunction]
+#[pyo3(signature = (threads=None))]
+fn set_num_threads(threads: Option<usize>) -> PyResult<()> {
+    let threads = match threads {
+        Some(0) => return Err(input_error("threads must be >= 1")),
+        Some(n) => n,
+        None => default_threads(),
+    };
+    let pool = build_pool(threads)?;
+    *POOL
+        .write()
+        .map_err(|_| M360Error::new_err("thread pool lock poisoned"))? = Some(pool);
+    Ok(())
+}
+
+/// Number of worker threads of m360's compiled core.
+#[pyfunction]
+fn get_num_threads() -> PyResult<usize> {
+    Ok(pool()?.current_num_threads())
+}
+
+// ---------------------------------------------------------------------------------------------
+// Arrays.
+
+fn to_numpy<'py, T: numpy::Element>(
+    py: Python<'py>,
+    data: Vec<T>,
+    shape: &[usize],
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    Array::from_shape_vec(IxDyn(shape), data)
+        .map(|a| a.into_pyarray(py))
+        .map_err(|e| M360Error::new_err(format!("internal shape error: {e}")))
+}
+
+fn contiguous<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
+    array: &'a numpy::PyReadonlyArray<'_, T, D>,
+    name: &str,
+) -> PyResult<&'a [T]> {
+    array
+        .as_slice()
+        .map_err(|_| input_error(format!("{name} must be a C-contiguous array")))
+}
+
+fn check_shape(name: &str, actual: &[usize], expected: &[usize]) -> PyResult<()> {
+    if actual == expected {
+        Ok(())
+    } else {
+        Err(input_error(format!("{name} has shape {actual:?}, expected {expected:?}")))
+    }
+}
+
+/// An ERP image of either supported pixel type.
+#[derive(FromPyObject)]
+enum ErpImage<'py> {
+    U8(PyReadonlyArray3<'py, u8>),
+    F32(PyReadonlyArray3<'py, f32>),
+}
+
+// ---------------------------------------------------------------------------------------------
+// Layouts and plans.
+
+/// The icosahedron layout's cameras: (rotations (N,3,3), intrinsics (N,4) as fx, fy, cx, cy,
+/// (height, width), face triangles (N,3,2) in gnomonic coordinates).
+#[pyfunction]
+#[pyo3(signature = (erp_width, padding=0.3, tangent_width=None))]
+#[allow(clippy::type_complexity)]
+fn icosahedron_cameras(
+    py: Python<'_>,
+    erp_width: usize,
+    padding: f64,
+    tangent_width: Option<usize>,
+) -> PyResult<(
+    Bound<'_, PyArrayDyn<f64>>,
+    Bound<'_, PyArrayDyn<f64>>,
+    (usize, usize),
+    Bound<'_, PyArrayDyn<f64>>,
+)> {
+    let layout = Layout::icosahedron(erp_width, padding, tangent_width).map_err(PyCoreError)?;
+    let n = layout.cameras.len();
+    let rotations = layout
+        .cameras
+        .iter()
+        .flat_map(|c| (0..9).map(move |k| c.rotation[(k / 3, k % 3)]))
+        .collect();
+    let intrinsics = layout.cameras.iter().flat_map(|c| [c.fx, c.fy, c.cx, c.cy]).collect();
+    let polygons = layout.face_polygons.iter().flatten().flatten().copied().collect();
+    Ok((
+        to_numpy(py, rotations, &[n, 3, 3])?,
+        to_numpy(py, intrinsics, &[n, 4])?,
+        layout.tangent_shape(),
+        to_numpy(py, polygons, &[n, 3, 2])?,
+    ))
+}
+
+/// Sampling maps of one layout at one ERP size, built on first use and reused.
+#[pyclass(frozen, module = "m360._core")]
+struct Plan {
+    inner: m360_core::Plan,
+}
+
+#[pymethods]
+impl Plan {
+    /// A plan for cameras given as rotations (N,3,3) world→camera and intrinsics (N,4)
+    /// (fx, fy, cx, cy), all of size `tangent_shape` = (h, w), for an ERP of `erp_shape` = (H, W).
+    #[new]
+    fn new(
+        erp_shape: (usize, usize),
+        rotations: PyReadonlyArray3<'_, f64>,
+        intrinsics: PyReadonlyArray2<'_, f64>,
+        tangent_shape: (usize, usize),
+    ) -> PyResult<Self> {
+        let n = rotations.shape()[0];
+        check_shape("rotations", rotations.shape(), &[n, 3, 3])?;
+        check_shape("intrinsics", intrinsics.shape(), &[n, 4])?;
+        let rot = rotations.as_array();
+        let intr = intrinsics.as_array();
+        let cameras = (0..n)
+            .map(|k| TangentCamera {
+                rotation: nalgebra_matrix(|r, c| rot[[k, r, c]]),
+                fx: intr[[k, 0]],
+                fy: intr[[k, 1]],
+                cx: intr[[k, 2]],
+                cy: intr[[k, 3]],
+                width: tangent_shape.1,
+                height: tangent_shape.0,
+            })
+            .collect();
+        let layout = Layout::new(erp_shape.0, erp_shape.1, cameras, vec![]).map_err(PyCoreError)?;
+        Ok(Self {
+            inner: m360_core::Plan::new(layout),
+        })
+    }
+
+    /// Build the sampling maps now instead of on first use ("tangents", "erp" or "all").
+    #[pyo3(signature = (which="all"))]
+    fn prepare(&self, py: Python<'_>, which: &str) -> PyResult<()> {
+        let (tangents, erp) = match which {
+            "tangents" => (true, false),
+            "erp" => (false, true),
+            "all" => (true, true),
+            _ => return Err(input_error(format!("unknown map {which:?}: 'tangents', 'erp' or 'all'"))),
+        };
+        detached(py, || {
+            if tangents {
+                self.inner.tangent_taps();
+            }
+            if erp {
+                self.inner.erp_taps();
+            }
+        })
+    }
+
+    /// Bytes held by the maps built so far.
+    fn memory_bytes(&self) -> usize {
+        self.inner.memory_bytes()
+    }
+
+    /// (H, W) number of tangents that see each ERP pixel.
+    fn coverage<'py>(&self, py: Python<'py>) -> PyResult<Bound<'py, PyArrayDyn<u8>>> {
+        let counts = detached(py, || self.inner.erp_taps().counts().to_vec())?;
+        let layout = self.inner.layout();
+        to_numpy(py, counts, &[layout.erp_height, layout.erp_width])
+    }
+
+    /// Bilinear ERP (H,W,C) uint8 or float32 → tangents (N,h,w,C) of the same dtype.
+    fn erp_to_tangents<'py>(&self, py: Python<'py>, erp: ErpImage<'py>) -> PyResult<Bound<'py, PyAny>> {
+        let layout = self.inner.layout();
+        let (h, w) = layout.tangent_shape();
+        let n = layout.cameras.len();
+        match erp {
+            ErpImage::U8(a) => {
+                let c = self.check_erp(a.shape())?;
+                let data = contiguous(&a, "erp")?;
+                let out = detached(py, || {
+                    m360_core::resample::erp_to_tangents(self.inner.tangent_taps(), layout, data, c)
+                })?;
+                Ok(to_numpy(py, out, &[n, h, w, c])?.into_any())
+            }
+            ErpImage::F32(a) => {
+                let c = self.check_erp(a.shape())?;
+                let data = contiguous(&a, "erp")?;
+                let out = detached(py, || {
+                    m360_core::resample::erp_to_tangents(self.inner.tangent_taps(), layout, data, c)
+                })?;
+                Ok(to_numpy(py, out, &[n, h, w, c])?.into_any())
+            }
+        }
+    }
+
+    /// Tangents (N,h,w) float32 → per-face ERP maps (N,H,W) float32, NaN where a face is blind.
+    fn tangents_to_erp<'py>(
+        &self,
+        py: Python<'py>,
+        tangents: PyReadonlyArray3<'py, f32>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let layout = self.inner.layout();
+        self.check_tangents("tangents", tangents.shape())?;
+        let data = contiguous(&tangents, "tangents")?;
+        let out = detached(py, || {
+            m360_core::resample::tangents_to_erp(self.inner.erp_taps(), layout, data)
+        })?;
+        to_numpy(py, out, &[layout.cameras.len(), layout.erp_height, layout.erp_width])
+    }
+
+    /// Perspective disparity (N,h,w) float32 (NaN or mask False = no estimate) → spherical
+    /// disparity per tangent (N,h,w) float32, NaN where invalid.
+    #[pyo3(signature = (perspective, mask=None))]
+    fn spherical_disparity<'py>(
+        &self,
+        py: Python<'py>,
+        perspective: PyReadonlyArray3<'py, f32>,
+        mask: Option<PyReadonlyArray3<'py, bool>>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let layout = self.inner.layout();
+        self.check_tangents("tangent_disparity", perspective.shape())?;
+        let data = contiguous(&perspective, "tangent_disparity")?;
+        let mask = match &mask {
+            Some(m) => {
+                self.check_tangents("mask", m.shape())?;
+                Some(contiguous(m, "mask")?)
+            }
+            None => None,
+        };
+        let out = detached(py, || stitch::spherical_disparity(layout, data, mask))?;
+        to_numpy(py, out, perspective.shape())
+    }
+
+    /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with
+    /// `blend` in {"mean", "nn"}: (disparity (H,W), spread (H,W)) float32.
+    #[allow(clippy::type_complexity)]
+    fn blend<'py>(
+        &self,
+        py: Python<'py>,
+        tangents: PyReadonlyArray3<'py, f32>,
+        blend: &str,
+    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+        let mode = match blend {
+            "mean" => Blend::Mean,
+            "nn" => Blend::Nearest,
+            _ => return Err(input_error(format!("unknown blend {blend:?}: 'mean' or 'nn'"))),
+        };
+        let layout = self.inner.layout();
+        self.check_tangents("tangents", tangents.shape())?;
+        let data = contiguous(&tangents, "tangents")?;
+        let out = detached(py, || stitch::blend(self.inner.erp_taps(), layout, data, mode))?;
+        let shape = [layout.erp_height, layout.erp_width];
+        Ok((to_numpy(py, out.disparity, &shape)?, to_numpy(py, out.spread, &shape)?))
+    }
+}
+
+impl Plan {
+    fn check_erp(&self, shape: &[usize]) -> PyResult<usize> {
+        let layout = self.inner.layout();
+        let c = shape[2];
+        if !(1..=4).contains(&c) {
+            return Err(input_error(format!("erp has {c} channels, expected 1 to 4")));
+        }
+        check_shape("erp", shape, &[layout.erp_height, layout.erp_width, c])?;
+        Ok(c)
+    }
+
+    fn check_tangents(&self, name: &str, shape: &[usize]) -> PyResult<()> {
+        let layout = self.inner.layout();
+        let (h, w) = layout.tangent_shape();
+        check_shape(name, shape, &[layout.cameras.len(), h, w])
+    }
+}
+
+fn nalgebra_matrix(at: impl Fn(usize, usize) -> f64) -> nalgebra::Matrix3<f64> {
+    nalgebra::Matrix3::from_fn(at)
+}
+
+#[pymodule]
+mod _core {
+    #[pymodule_export]
+    use super::{get_num_threads, icosahedron_cameras, set_num_threads, Plan};
+
+    #[pymodule_init]
+    fn init(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {
+        use pyo3::types::PyModuleMethods;
+        m.add("__version__", env!("CARGO_PKG_VERSION"))
+    }
+}

@@ -1,0 +1,71 @@
+"""Shared fixtures: layouts, synthetic scenes with exact depth, and hypothesis profiles."""
+
+from __future__ import annotations
+
+import functools
+import os
+
+import m360
+import m360._sphere as sph
+import m360.synthetic as syn
+import numpy as np
+import pytest
+from hypothesis import settings
+
+settings.register_profile("fast", max_examples=50, deadline=None)
+settings.register_profile("slow", max_examples=2000, deadline=None)
+settings.load_profile(os.environ.get("M360_HYPOTHESIS_PROFILE", "fast"))
+
+
+@functools.lru_cache(maxsize=8)
+def layout(erp_width: int) -> m360.Layout:
+    return m360.Layout.icosahedron(erp_width)
+
+
+@functools.lru_cache(maxsize=4)
+def scene(seed: int) -> syn.Scene:
+    return syn.room(seed)
+
+
+@functools.lru_cache(maxsize=6)
+def erp_depth(seed: int, erp_width: int) -> np.ndarray:
+    """Exact radial depth (H, W) float64 of scene `seed`, by ray casting every ERP pixel centre."""
+    h = erp_width // 2
+    return scene(seed).distance(sph.erp_directions(h, erp_width))
+
+
+@functools.lru_cache(maxsize=6)
+def tangent_disparity(seed: int, erp_width: int) -> np.ndarray:
+    """Exact perspective disparity (N, h, w) float32 of scene `seed`, by ray casting tangents."""
+    return syn.tangent_perspective_disparity(scene(seed), layout(erp_width).cameras)
+
+
+def smooth_field(d: np.ndarray) -> np.ndarray:
+    """A smooth positive function of direction (..., 3) with structure at both poles."""
+    x, y, z = d[..., 0], d[..., 1], d[..., 2]
+    return 2.0 + 0.6 * x + 0.4 * y + 0.3 * x * z - 0.2 * z + 0.25 * y * y
+
+
+def tangent_directions(lay: m360.Layout) -> np.ndarray:
+    """(N, h, w, 3) world directions of every tangent pixel centre (numpy oracle)."""
+    return np.stack(
+        [
+            sph.camera_pixel_directions(c.rotation, c.fx, c.fy, c.cx, c.cy, c.width, c.height)
+            for c in lay.cameras
+        ]
+    )
+
+
+@pytest.fixture(params=[1, 2], ids=["1-thread", "2-threads"])
+def threads(request: pytest.FixtureRequest):
+    before = m360.get_num_threads()
+    m360.set_num_threads(request.param)
+    yield request.param
+    m360.set_num_threads(before)
+
+
+def as_perspective(spherical: np.ndarray, lay: m360.Layout) -> np.ndarray:
+    """Tangent values whose spherical disparity is `spherical`: divide by cos(angle to axis)."""
+    dirs = tangent_directions(lay)
+    cosines = np.stack([dirs[k] @ cam.axis for k, cam in enumerate(lay.cameras)])
+    return (spherical / cosines).astype(np.float32)
