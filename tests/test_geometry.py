@@ -67,7 +67,9 @@ def test_every_direction_is_covered_two_to_five_times() -> None:
     covered = np.zeros(len(d), int)
     for cam in layout(2048).cameras:
         x, y, front = cam.project(d)
-        inside = front & (x >= -0.5) & (x <= cam.width - 0.5) & (y >= -0.5) & (y <= cam.height - 0.5)
+        inside = (
+            front & (x >= -0.5) & (x <= cam.width - 0.5) & (y >= -0.5) & (y <= cam.height - 0.5)
+        )
         covered += inside
     assert covered.min() >= 2 and covered.max() <= 5
     # The compiled footprints agree with this count on the ERP grid.
@@ -76,8 +78,12 @@ def test_every_direction_is_covered_two_to_five_times() -> None:
     grid = sph.erp_directions(*lay.erp_shape)
     for cam in lay.cameras:
         x, y, front = cam.project(grid)
-        counts += front & (x >= -0.5) & (x <= cam.width - 0.5) & (y >= -0.5) & (y <= cam.height - 0.5)
-    result = m360.stitch(np.ones((20, *lay.tangent_shape), np.float32), lay, "none", "mean", return_details=True)
+        counts += (
+            front & (x >= -0.5) & (x <= cam.width - 0.5) & (y >= -0.5) & (y <= cam.height - 0.5)
+        )
+    result = m360.stitch(
+        np.ones((20, *lay.tangent_shape), np.float32), lay, "none", "mean", return_details=True
+    )
     assert isinstance(result, m360.StitchResult)
     np.testing.assert_array_equal(result.coverage, counts)
 
@@ -139,7 +145,11 @@ def test_erp_to_tangents_smooth_field_everywhere_including_poles() -> None:
 def test_uint8_and_float_agree(channels: int | None) -> None:
     lay = layout(512)
     rgb, _ = m360.synthetic.render(scene(1), 512)
-    img = rgb[..., 0] if channels is None else np.concatenate([rgb, rgb[..., :1]], axis=2)[..., : channels]
+    img = (
+        rgb[..., 0]
+        if channels is None
+        else np.concatenate([rgb, rgb[..., :1]], axis=2)[..., :channels]
+    )
     out8 = m360.erp_to_tangents(img, lay)
     outf = m360.erp_to_tangents(img.astype(np.float32), lay)
     expected_shape = (20, *lay.tangent_shape) + (() if channels is None else (channels,))

@@ -80,7 +80,9 @@ def test_no_seam_at_the_longitude_wrap_and_poles(blend: str) -> None:
 
 def test_nn_takes_the_face_whose_triangle_contains_the_pixel() -> None:
     lay = layout(512)
-    face_id = np.broadcast_to(np.arange(20, dtype=np.float32)[:, None, None], (20, *lay.tangent_shape))
+    face_id = np.broadcast_to(
+        np.arange(20, dtype=np.float32)[:, None, None], (20, *lay.tangent_shape)
+    )
     # Undo the spherical factor so the stitched value is exactly the face index.
     out = m360.stitch(as_perspective(face_id, lay), lay, align="none", blend="nn")
     # Oracle: the face whose (gnomonic) triangle contains the direction.
@@ -142,7 +144,9 @@ def test_same_result_with_one_and_two_threads() -> None:
 
 def test_details() -> None:
     lay = layout(512)
-    res = m360.stitch(tangent_disparity(0, 512), lay, align="none", blend="mean", return_details=True)
+    res = m360.stitch(
+        tangent_disparity(0, 512), lay, align="none", blend="mean", return_details=True
+    )
     assert isinstance(res, m360.StitchResult)
     assert res.disparity.shape == res.confidence.shape == res.coverage.shape == lay.erp_shape
     assert set(res.timings) == {"convert", "align", "blend"}

@@ -1,7 +1,10 @@
 # Stub of the compiled module m360._core (rust/m360-py); checked by `mypy.stubtest m360._core`.
+from typing import final
+
 import numpy as np
 import numpy.typing as npt
 
+__all__ = ["Plan", "__version__", "get_num_threads", "icosahedron_cameras", "set_num_threads"]
 __version__: str
 
 def set_num_threads(threads: int | None = None) -> None: ...
@@ -12,6 +15,7 @@ def icosahedron_cameras(
     npt.NDArray[np.float64], npt.NDArray[np.float64], tuple[int, int], npt.NDArray[np.float64]
 ]: ...
 
+@final
 class Plan:
     def __new__(
         cls,
@@ -23,9 +27,9 @@ class Plan:
     def prepare(self, which: str = "all") -> None: ...
     def memory_bytes(self) -> int: ...
     def coverage(self) -> npt.NDArray[np.uint8]: ...
-    def erp_to_tangents(self, erp: npt.NDArray[np.uint8] | npt.NDArray[np.float32]) -> npt.NDArray[
-        np.uint8
-    ] | npt.NDArray[np.float32]: ...
+    def erp_to_tangents(
+        self, erp: npt.NDArray[np.uint8] | npt.NDArray[np.float32]
+    ) -> npt.NDArray[np.uint8] | npt.NDArray[np.float32]: ...
     def tangents_to_erp(self, tangents: npt.NDArray[np.float32]) -> npt.NDArray[np.float32]: ...
     def spherical_disparity(
         self, perspective: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None

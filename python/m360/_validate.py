@@ -23,7 +23,9 @@ def as_array(value: Any, name: str) -> np.ndarray:
     except Exception as exc:  # numpy raises many kinds for ragged or odd objects
         raise InputError(f"{name} is not an array: {type(value).__name__}") from exc
     if array.dtype.kind not in "biuf":
-        raise InputError(f"{name} is not a numeric array: {type(value).__name__} of dtype {array.dtype}")
+        raise InputError(
+            f"{name} is not a numeric array: {type(value).__name__} of dtype {array.dtype}"
+        )
     return array
 
 
@@ -34,10 +36,9 @@ def check_shape(array: np.ndarray, name: str, dims: Sequence[str], **expected: i
     """
     if array.ndim != len(dims):
         raise InputError(
-            f"{name} must have {len(dims)} dimensions ({', '.join(dims)}), "
-            f"got shape {array.shape}"
+            f"{name} must have {len(dims)} dimensions ({', '.join(dims)}), got shape {array.shape}"
         )
-    for dim, size in zip(dims, array.shape):
+    for dim, size in zip(dims, array.shape, strict=True):
         if dim in expected and size != expected[dim]:
             want = tuple(expected.get(d, d) for d in dims)
             raise InputError(f"{name} has shape {array.shape}, expected {want} ({dim} = {size})")
@@ -55,7 +56,9 @@ def check_erp_shape(height: int, width: int, name: str) -> None:
 def float32_array(array: np.ndarray, name: str, *, allow_nan: bool = True) -> np.ndarray:
     """A C-contiguous float32 copy or view; float64/float16 are converted, infinities refused."""
     if array.dtype.kind != "f":
-        raise InputError(f"{name} must be a float array (float32 preferred), got dtype {array.dtype}")
+        raise InputError(
+            f"{name} must be a float array (float32 preferred), got dtype {array.dtype}"
+        )
     out = np.ascontiguousarray(array, dtype=np.float32)
     bad = ~np.isfinite(out) if not allow_nan else np.isinf(out)
     if bad.any():

@@ -172,7 +172,9 @@ class Layout:
         digest = hashlib.sha1(repr(erp_shape).encode())
         for cam in cameras:
             digest.update(np.asarray(cam.rotation, dtype=np.float64).tobytes())
-            digest.update(np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height]).tobytes())
+            digest.update(
+                np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height]).tobytes()
+            )
         return cls(erp_shape, cameras, padding, name, digest.hexdigest())
 
     @property
@@ -193,8 +195,7 @@ class Layout:
         h, w = self.tangent_shape
         pad = "" if self.padding is None else f", padding={self.padding}"
         return (
-            f"Layout.{self.name}(erp_shape={self.erp_shape}, {len(self)} cameras of "
-            f"{w}x{h}{pad})"
+            f"Layout.{self.name}(erp_shape={self.erp_shape}, {len(self)} cameras of {w}x{h}{pad})"
         )
 
 
@@ -252,7 +253,9 @@ def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray
     if array.ndim not in (2, 3):
         raise InputError(f"erp must be (H, W) or (H, W, C), got shape {array.shape}")
     if array.ndim == 3 and not 1 <= array.shape[2] <= 4:
-        raise InputError(f"erp has {array.shape[2]} channels, expected 1 to 4 (shape {array.shape})")
+        raise InputError(
+            f"erp has {array.shape[2]} channels, expected 1 to 4 (shape {array.shape})"
+        )
     height, width = array.shape[:2]
     check_erp_shape(height, width, "erp")
     layout = _layout_for(layout, height, width)
@@ -261,7 +264,9 @@ def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray
     elif array.dtype.kind == "f":
         data = float32_array(array, "erp")
     else:
-        raise InputError(f"erp has dtype {array.dtype}; supported: uint8, float32 (float64 converted)")
+        raise InputError(
+            f"erp has dtype {array.dtype}; supported: uint8, float32 (float64 converted)"
+        )
     planar = data.ndim == 2
     out = plan_for(layout).erp_to_tangents(data[..., None] if planar else data)
     return out[..., 0] if planar else out

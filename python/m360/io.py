@@ -56,7 +56,9 @@ def save_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     """Write a uint8/uint16 image (H,W) or (H,W,3) BGR as PNG atomically; returns the path."""
     ok, encoded = cv2.imencode(".png", image)
     if not ok:
-        raise InputError(f"cannot encode an image of shape {image.shape} and dtype {image.dtype} as PNG")
+        raise InputError(
+            f"cannot encode an image of shape {image.shape} and dtype {image.dtype} as PNG"
+        )
     target = Path(path)
     with atomic_path(target) as tmp:
         tmp.write_bytes(encoded.tobytes())
@@ -64,7 +66,7 @@ def save_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
 
 
 def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A colour preview (H, W, 3) uint8 BGR of a disparity map: near is warm, far is cool, NaN black.
+    """A colour preview (H, W, 3) uint8 BGR of a disparity map: near warm, far cool, NaN black.
 
     Values are scaled between the given percentiles of the finite values (robust to outliers).
     """

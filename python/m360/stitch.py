@@ -131,5 +131,7 @@ def _check_mask(mask: np.ndarray, layout: Layout) -> np.ndarray:
     h, w = layout.tangent_shape
     check_shape(array, "mask", ("N", "h", "w"), N=len(layout), h=h, w=w)
     if array.dtype != np.bool_:
-        raise InputError(f"mask must be a bool array (False = no estimate), got dtype {array.dtype}")
+        raise InputError(
+            f"mask must be a bool array (False = no estimate), got dtype {array.dtype}"
+        )
     return np.ascontiguousarray(array)

@@ -22,16 +22,29 @@ fn time(label: &str, mut f: impl FnMut()) {
 }
 
 fn main() {
-    let width: usize = std::env::args().nth(1).and_then(|s| s.parse().ok()).unwrap_or(2048);
+    let width: usize = std::env::args()
+        .nth(1)
+        .and_then(|s| s.parse().ok())
+        .unwrap_or(2048);
     let t = Instant::now();
     let plan = Plan::new(Layout::icosahedron(width, 0.3, None).expect("layout"));
     plan.tangent_taps();
-    println!("{:<28} {:8.4} s", "build tangent taps", t.elapsed().as_secs_f64());
+    println!(
+        "{:<28} {:8.4} s",
+        "build tangent taps",
+        t.elapsed().as_secs_f64()
+    );
     let t = Instant::now();
     plan.erp_taps();
-    println!("{:<28} {:8.4} s", "build erp taps", t.elapsed().as_secs_f64());
+    println!(
+        "{:<28} {:8.4} s",
+        "build erp taps",
+        t.elapsed().as_secs_f64()
+    );
     let layout = plan.layout();
-    let erp: Vec<u8> = (0..layout.erp_height * layout.erp_width * 3).map(|i| (i * 7 % 251) as u8).collect();
+    let erp: Vec<u8> = (0..layout.erp_height * layout.erp_width * 3)
+        .map(|i| (i * 7 % 251) as u8)
+        .collect();
     time("erp->tangents u8x3", || {
         std::hint::black_box(erp_to_tangents(plan.tangent_taps(), layout, &erp, 3));
     });

@@ -52,14 +52,20 @@ impl Layout {
             if cam.width < 2 || cam.height < 2 {
                 return bad(format!("camera {k} is smaller than 2x2 pixels"));
             }
-            let finite = [cam.fx, cam.fy, cam.cx, cam.cy].iter().all(|v| v.is_finite());
+            let finite = [cam.fx, cam.fy, cam.cx, cam.cy]
+                .iter()
+                .all(|v| v.is_finite());
             if !finite || cam.fx <= 0.0 || cam.fy <= 0.0 {
-                return bad(format!("camera {k} has non-finite or non-positive intrinsics"));
+                return bad(format!(
+                    "camera {k} has non-finite or non-positive intrinsics"
+                ));
             }
             let r = &cam.rotation;
             let orthonormal = (r * r.transpose() - Matrix3::identity()).abs().max() < 1e-6;
             if !orthonormal || (r.determinant() - 1.0).abs() > 1e-6 {
-                return bad(format!("camera {k}'s rotation is not a proper rotation matrix"));
+                return bad(format!(
+                    "camera {k}'s rotation is not a proper rotation matrix"
+                ));
             }
         }
         if !face_polygons.is_empty() && face_polygons.len() != cameras.len() {
@@ -80,8 +86,12 @@ impl Layout {
     /// Tangents are `tangent_width` pixels wide (default: 400 at ERP width 2048, scaled linearly),
     /// with square pixels; the height follows from the bounding box (346 at width 400). Faces 0–4
     /// touch the north pole, 5–9 and 10–14 are the equatorial band, 15–19 touch the south pole.
-    pub fn icosahedron(erp_width: usize, padding: f64, tangent_width: Option<usize>) -> Result<Self> {
-        if erp_width % 2 != 0 || erp_width < 8 {
+    pub fn icosahedron(
+        erp_width: usize,
+        padding: f64,
+        tangent_width: Option<usize>,
+    ) -> Result<Self> {
+        if !erp_width.is_multiple_of(2) || erp_width < 8 {
             return Err(CoreError::InvalidLayout(format!(
                 "ERP width {erp_width} must be even and at least 8"
             )));
@@ -119,7 +129,8 @@ fn icosahedron_faces() -> Vec<[Vector3<f64>; 3]> {
     let north = Vector3::new(0.0, -1.0, 0.0);
     let south = Vector3::new(0.0, 1.0, 0.0);
     let upper = |k: usize| crate::sphere::lonlat_direction((72.0 * k as f64) * deg, ring_lat);
-    let lower = |k: usize| crate::sphere::lonlat_direction((36.0 + 72.0 * k as f64) * deg, -ring_lat);
+    let lower =
+        |k: usize| crate::sphere::lonlat_direction((36.0 + 72.0 * k as f64) * deg, -ring_lat);
     let mut faces = Vec::with_capacity(20);
     faces.extend((0..5).map(|k| [north, upper(k), upper(k + 1)]));
     faces.extend((0..5).map(|k| [upper(k), upper(k + 1), lower(k)]));
@@ -129,7 +140,11 @@ fn icosahedron_faces() -> Vec<[Vector3<f64>; 3]> {
 }
 
 /// The camera of one face and the face triangle in its gnomonic coordinates.
-fn face_camera(face: &[Vector3<f64>; 3], padding: f64, width: usize) -> (TangentCamera, Vec<[f64; 2]>) {
+fn face_camera(
+    face: &[Vector3<f64>; 3],
+    padding: f64,
+    width: usize,
+) -> (TangentCamera, Vec<[f64; 2]>) {
     let centre = (face[0] + face[1] + face[2]).normalize();
     let lon = centre.x.atan2(centre.z);
     let lat = (-centre.y).asin();
@@ -172,9 +187,9 @@ fn face_camera(face: &[Vector3<f64>; 3], padding: f64, width: usize) -> (Tangent
 /// A convex polygon with every edge moved outwards by `distance`.
 fn offset_polygon(poly: &[[f64; 2]], distance: f64) -> Vec<[f64; 2]> {
     let n = poly.len();
-    let centroid = poly
-        .iter()
-        .fold([0.0, 0.0], |a, p| [a[0] + p[0] / n as f64, a[1] + p[1] / n as f64]);
+    let centroid = poly.iter().fold([0.0, 0.0], |a, p| {
+        [a[0] + p[0] / n as f64, a[1] + p[1] / n as f64]
+    });
     // Edge k joins vertex k and k+1: outward unit normal and offset line n·p = c.
     let lines: Vec<([f64; 2], f64)> = (0..n)
         .map(|k| {
@@ -194,7 +209,10 @@ fn offset_polygon(poly: &[[f64; 2]], distance: f64) -> Vec<[f64; 2]> {
             let (n1, c1) = lines[(k + n - 1) % n];
             let (n2, c2) = lines[k];
             let det = n1[0] * n2[1] - n1[1] * n2[0];
-            [(c1 * n2[1] - c2 * n1[1]) / det, (n1[0] * c2 - n2[0] * c1) / det]
+            [
+                (c1 * n2[1] - c2 * n1[1]) / det,
+                (n1[0] * c2 - n2[0] * c1) / det,
+            ]
         })
         .collect()
 }
@@ -220,10 +238,20 @@ mod tests {
         for (k, cam) in layout.cameras.iter().enumerate() {
             let (x0, y0) = cam.gnomonic(-0.5, -0.5);
             let (x1, y1) = cam.gnomonic(cam.width as f64 - 0.5, cam.height as f64 - 0.5);
-            assert!((x0 + 1.181).abs() < 2e-3 && (x1 - 1.181).abs() < 2e-3, "face {k}");
+            assert!(
+                (x0 + 1.181).abs() < 2e-3 && (x1 - 1.181).abs() < 2e-3,
+                "face {k}"
+            );
             let apex_up = matches!(k, 0..=4 | 10..=14);
-            let (ylo, yhi, row) = if apex_up { (-1.364, 0.682, 230.0) } else { (-0.682, 1.364, 115.0) };
-            assert!((y0 - ylo).abs() < 5e-3 && (y1 - yhi).abs() < 5e-3, "face {k}: {y0} {y1}");
+            let (ylo, yhi, row) = if apex_up {
+                (-1.364, 0.682, 230.0)
+            } else {
+                (-0.682, 1.364, 115.0)
+            };
+            assert!(
+                (y0 - ylo).abs() < 5e-3 && (y1 - yhi).abs() < 5e-3,
+                "face {k}: {y0} {y1}"
+            );
             assert!((cam.cy - row).abs() < 1.0, "face {k}: cy {}", cam.cy);
         }
     }

@@ -32,7 +32,8 @@ impl Plan {
 
     /// Where each tangent pixel samples the ERP image (built on first call).
     pub fn tangent_taps(&self) -> &TangentTaps {
-        self.tangent_taps.get_or_init(|| TangentTaps::build(&self.layout))
+        self.tangent_taps
+            .get_or_init(|| TangentTaps::build(&self.layout))
     }
 
     /// Which tangents, and where, each ERP pixel sees (built on first call).

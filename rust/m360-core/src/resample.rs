@@ -108,7 +108,12 @@ impl TangentTaps {
                         taps.push(Tap::new((i0 as usize * ew + j0 as usize) as u32, fx, fy));
                     } else {
                         let at = |i: i64, j: i64| erp_index_wrapped(i, j, eh, ew);
-                        let corners = [at(i0, j0), at(i0, j0 + 1), at(i0 + 1, j0), at(i0 + 1, j0 + 1)];
+                        let corners = [
+                            at(i0, j0),
+                            at(i0, j0 + 1),
+                            at(i0 + 1, j0),
+                            at(i0 + 1, j0 + 1),
+                        ];
                         taps.push(Tap::new(WRAPPED | wrapped.len() as u32, fx, fy));
                         wrapped.push(corners);
                     }
@@ -122,7 +127,10 @@ impl TangentTaps {
             let offset = wrapped.len() as u32;
             taps.extend(row_taps.into_iter().map(|t| {
                 if t.index & WRAPPED != 0 {
-                    Tap { index: WRAPPED | ((t.index & !WRAPPED) + offset), ..t }
+                    Tap {
+                        index: WRAPPED | ((t.index & !WRAPPED) + offset),
+                        ..t
+                    }
                 } else {
                     t
                 }
@@ -148,8 +156,16 @@ impl TangentTaps {
     /// If `erp` is not the size the taps were built for (the bindings check shapes first).
     pub fn sample<T: Texel, const C: usize>(&self, erp: &[T], out: &mut [T], tangent_width: usize) {
         let ew = self.erp_width;
-        assert_eq!(erp.len(), self.erp_pixels * C, "ERP size does not match the plan");
-        assert_eq!(out.len(), self.taps.len() * C, "output size does not match the plan");
+        assert_eq!(
+            erp.len(),
+            self.erp_pixels * C,
+            "ERP size does not match the plan"
+        );
+        assert_eq!(
+            out.len(),
+            self.taps.len() * C,
+            "output size does not match the plan"
+        );
         out.par_chunks_mut(tangent_width * C)
             .zip(self.taps.par_chunks(tangent_width))
             .for_each(|(row, taps)| {
@@ -214,8 +230,11 @@ impl ErpTaps {
         let grid = ErpGrid::new(eh, ew);
         // A direction outside a camera's bounding cone cannot land on its image: one dot
         // product rejects most of the 20 cameras before any projection.
-        let cones: Vec<(nalgebra::Vector3<f64>, f64)> =
-            layout.cameras.iter().map(|cam| (cam.axis(), cone_cosine(cam))).collect();
+        let cones: Vec<(nalgebra::Vector3<f64>, f64)> = layout
+            .cameras
+            .iter()
+            .map(|cam| (cam.axis(), cone_cosine(cam)))
+            .collect();
         let rows: Vec<(Vec<u8>, Vec<Tap>)> = (0..eh)
             .into_par_iter()
             .map(|i| {
@@ -224,7 +243,8 @@ impl ErpTaps {
                 for j in 0..ew {
                     let d = grid.direction(i, j);
                     let first = taps.len();
-                    for (k, (cam, (axis, min_cos))) in layout.cameras.iter().zip(&cones).enumerate() {
+                    for (k, (cam, (axis, min_cos))) in layout.cameras.iter().zip(&cones).enumerate()
+                    {
                         let cos = axis.dot(&d);
                         if cos < *min_cos {
                             continue;
@@ -294,8 +314,17 @@ impl ErpTaps {
     /// # Panics
     /// If `tangents` is not the size the taps were built for (the bindings check shapes first).
     #[inline]
-    pub fn visit_row(&self, tangents: &[f32], i: usize, mut visit: impl FnMut(usize, &[(usize, f32)])) {
-        assert_eq!(tangents.len(), self.tangent_pixels * self.faces, "tangent stack size mismatch");
+    pub fn visit_row(
+        &self,
+        tangents: &[f32],
+        i: usize,
+        mut visit: impl FnMut(usize, &[(usize, f32)]),
+    ) {
+        assert_eq!(
+            tangents.len(),
+            self.tangent_pixels * self.faces,
+            "tangent stack size mismatch"
+        );
         let w = self.tangent_width;
         let row = &self.taps[self.row_start[i]..self.row_start[i + 1]];
         let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
@@ -346,12 +375,21 @@ fn tangent_tap(cam: &TangentCamera, d: &nalgebra::Vector3<f64>, base: usize) -> 
     let y = y.clamp(0.0, (h - 1) as f64);
     let x0 = (x as usize).min(w - 2); // x ≥ 0: truncation is floor
     let y0 = (y as usize).min(h - 2);
-    Some(Tap::new((base + y0 * w + x0) as u32, x - x0 as f64, y - y0 as f64))
+    Some(Tap::new(
+        (base + y0 * w + x0) as u32,
+        x - x0 as f64,
+        y - y0 as f64,
+    ))
 }
 
 /// Sample an ERP image into the tangent images of `layout` through `taps`.
 /// `erp` is (H, W, C) interleaved; the result is (N, h, w, C).
-pub fn erp_to_tangents<T: Texel>(taps: &TangentTaps, layout: &Layout, erp: &[T], channels: usize) -> Vec<T> {
+pub fn erp_to_tangents<T: Texel>(
+    taps: &TangentTaps,
+    layout: &Layout,
+    erp: &[T],
+    channels: usize,
+) -> Vec<T> {
     let (h, w) = layout.tangent_shape();
     let mut out = vec![erp[0]; layout.cameras.len() * h * w * channels];
     debug_assert_eq!(erp.len(), layout.erp_height * layout.erp_width * channels);

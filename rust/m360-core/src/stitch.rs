@@ -18,7 +18,11 @@ pub enum Blend {
 /// Spherical disparity (1/distance) of every tangent pixel from perspective disparity (1/z):
 /// each pixel divided by the length of its own ray `(gx, gy, 1)`, computed from its own camera,
 /// so no face can use another's factor (reference bug B1). Pixels whose `mask` is false become NaN.
-pub fn spherical_disparity(layout: &Layout, perspective: &[f32], mask: Option<&[bool]>) -> Vec<f32> {
+pub fn spherical_disparity(
+    layout: &Layout,
+    perspective: &[f32],
+    mask: Option<&[bool]>,
+) -> Vec<f32> {
     let (h, w) = layout.tangent_shape();
     debug_assert_eq!(perspective.len(), layout.cameras.len() * h * w);
     let mut out = vec![0.0f32; perspective.len()];
@@ -127,7 +131,11 @@ mod tests {
             .collect();
         let got = erp_to_tangents(plan.tangent_taps(), layout, &erp, 1);
         let want = tangent_field(&plan);
-        let worst = got.iter().zip(&want).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+        let worst = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| (a - b).abs())
+            .fold(0.0f32, f32::max);
         assert!(worst < 2e-3, "worst error {worst}");
     }
 
@@ -135,7 +143,11 @@ mod tests {
     fn every_direction_is_seen_by_two_to_five_faces() {
         let plan = plan(256);
         let counts = plan.erp_taps().counts();
-        assert!(counts.iter().all(|&c| (2..=5).contains(&c)), "{:?}", counts.iter().max());
+        assert!(
+            counts.iter().all(|&c| (2..=5).contains(&c)),
+            "{:?}",
+            counts.iter().max()
+        );
     }
 
     #[test]
@@ -148,7 +160,10 @@ mod tests {
             let out = blend(plan.erp_taps(), layout, &tangents, mode);
             for (p, &v) in out.disparity.iter().enumerate() {
                 let want = field(&grid.direction(p / layout.erp_width, p % layout.erp_width));
-                assert!((v as f64 - want).abs() < 2e-3, "{mode:?} pixel {p}: {v} vs {want}");
+                assert!(
+                    (v as f64 - want).abs() < 2e-3,
+                    "{mode:?} pixel {p}: {v} vs {want}"
+                );
             }
         }
     }
@@ -165,7 +180,10 @@ mod tests {
         assert!(per_face[..plane].iter().all(|v| v.is_nan()));
         assert!(per_face[plane..].iter().any(|v| v.is_finite()));
         let out = blend(plan.erp_taps(), layout, &tangents, Blend::Nearest);
-        assert!(out.disparity.iter().all(|v| v.is_finite()), "other faces cover face 0");
+        assert!(
+            out.disparity.iter().all(|v| v.is_finite()),
+            "other faces cover face 0"
+        );
     }
 
     #[test]
@@ -189,12 +207,18 @@ mod tests {
     fn parallel_equals_sequential() {
         let plan_a = plan(256);
         let tangents = tangent_field(&plan_a);
-        let pool = rayon::ThreadPoolBuilder::new().num_threads(1).build().expect("pool");
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(1)
+            .build()
+            .expect("pool");
         let seq = pool.install(|| {
             let p = self::plan(256);
             blend(p.erp_taps(), p.layout(), &tangents, Blend::Mean).disparity
         });
         let par = blend(plan_a.erp_taps(), plan_a.layout(), &tangents, Blend::Mean).disparity;
-        assert!(seq.iter().zip(&par).all(|(a, b)| a.to_bits() == b.to_bits()));
+        assert!(seq
+            .iter()
+            .zip(&par)
+            .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
 }

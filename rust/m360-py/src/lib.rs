@@ -8,10 +8,7 @@ use m360_core::layout::Layout;
 use m360_core::stitch::{self, Blend};
 use m360_core::{CoreError, TangentCamera};
 use numpy::ndarray::{Array, IxDyn};
-use numpy::{
-    IntoPyArray, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3,
-    PyUntypedArrayMethods,
-};
+use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, RwLock};
@@ -85,7 +82,9 @@ fn detached<T: Send>(py: Python<'_>, work: impl FnOnce() -> T + Send) -> PyResul
                 .map(|s| s.to_string())
                 .or_else(|| panic.downcast_ref::<String>().cloned())
                 .unwrap_or_else(|| "unknown panic".into());
-            M360Error::new_err(format!("internal error in m360's core (please report): {msg}"))
+            M360Error::new_err(format!(
+                "internal error in m360's core (please report): {msg}"
+            ))
         })
 }
 
@@ -138,7 +137,9 @@ fn check_shape(name: &str, actual: &[usize], expected: &[usize]) -> PyResult<()>
     if actual == expected {
         Ok(())
     } else {
-        Err(input_error(format!("{name} has shape {actual:?}, expected {expected:?}")))
+        Err(input_error(format!(
+            "{name} has shape {actual:?}, expected {expected:?}"
+        )))
     }
 }
 
@@ -175,8 +176,18 @@ fn icosahedron_cameras(
         .iter()
         .flat_map(|c| (0..9).map(move |k| c.rotation[(k / 3, k % 3)]))
         .collect();
-    let intrinsics = layout.cameras.iter().flat_map(|c| [c.fx, c.fy, c.cx, c.cy]).collect();
-    let polygons = layout.face_polygons.iter().flatten().flatten().copied().collect();
+    let intrinsics = layout
+        .cameras
+        .iter()
+        .flat_map(|c| [c.fx, c.fy, c.cx, c.cy])
+        .collect();
+    let polygons = layout
+        .face_polygons
+        .iter()
+        .flatten()
+        .flatten()
+        .copied()
+        .collect();
     Ok((
         to_numpy(py, rotations, &[n, 3, 3])?,
         to_numpy(py, intrinsics, &[n, 4])?,
@@ -231,7 +242,11 @@ impl Plan {
             "tangents" => (true, false),
             "erp" => (false, true),
             "all" => (true, true),
-            _ => return Err(input_error(format!("unknown map {which:?}: 'tangents', 'erp' or 'all'"))),
+            _ => {
+                return Err(input_error(format!(
+                    "unknown map {which:?}: 'tangents', 'erp' or 'all'"
+                )))
+            }
         };
         detached(py, || {
             if tangents {
@@ -256,7 +271,11 @@ impl Plan {
     }
 
     /// Bilinear ERP (H,W,C) uint8 or float32 → tangents (N,h,w,C) of the same dtype.
-    fn erp_to_tangents<'py>(&self, py: Python<'py>, erp: ErpImage<'py>) -> PyResult<Bound<'py, PyAny>> {
+    fn erp_to_tangents<'py>(
+        &self,
+        py: Python<'py>,
+        erp: ErpImage<'py>,
+    ) -> PyResult<Bound<'py, PyAny>> {
         let layout = self.inner.layout();
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -292,7 +311,11 @@ impl Plan {
         let out = detached(py, || {
             m360_core::resample::tangents_to_erp(self.inner.erp_taps(), layout, data)
         })?;
-        to_numpy(py, out, &[layout.cameras.len(), layout.erp_height, layout.erp_width])
+        to_numpy(
+            py,
+            out,
+            &[layout.cameras.len(), layout.erp_height, layout.erp_width],
+        )
     }
 
     /// Perspective disparity (N,h,w) float32 (NaN or mask False = no estimate) → spherical
@@ -330,14 +353,23 @@ impl Plan {
         let mode = match blend {
             "mean" => Blend::Mean,
             "nn" => Blend::Nearest,
-            _ => return Err(input_error(format!("unknown blend {blend:?}: 'mean' or 'nn'"))),
+            _ => {
+                return Err(input_error(format!(
+                    "unknown blend {blend:?}: 'mean' or 'nn'"
+                )))
+            }
         };
         let layout = self.inner.layout();
         self.check_tangents("tangents", tangents.shape())?;
         let data = contiguous(&tangents, "tangents")?;
-        let out = detached(py, || stitch::blend(self.inner.erp_taps(), layout, data, mode))?;
+        let out = detached(py, || {
+            stitch::blend(self.inner.erp_taps(), layout, data, mode)
+        })?;
         let shape = [layout.erp_height, layout.erp_width];
-        Ok((to_numpy(py, out.disparity, &shape)?, to_numpy(py, out.spread, &shape)?))
+        Ok((
+            to_numpy(py, out.disparity, &shape)?,
+            to_numpy(py, out.spread, &shape)?,
+        ))
     }
 }
 
@@ -346,7 +378,9 @@ impl Plan {
         let layout = self.inner.layout();
         let c = shape[2];
         if !(1..=4).contains(&c) {
-            return Err(input_error(format!("erp has {c} channels, expected 1 to 4")));
+            return Err(input_error(format!(
+                "erp has {c} channels, expected 1 to 4"
+            )));
         }
         check_shape("erp", shape, &[layout.erp_height, layout.erp_width, c])?;
         Ok(c)
