@@ -155,7 +155,8 @@ def test_uint8_and_float_agree(channels: int | None) -> None:
     expected_shape = (20, *lay.tangent_shape) + (() if channels is None else (channels,))
     assert out8.shape == expected_shape and out8.dtype == np.uint8
     assert outf.shape == expected_shape and outf.dtype == np.float32
-    assert np.abs(out8.astype(np.float32) - outf).max() <= 0.5 + 1e-3
+    # u8 rounds the same bilinear value; fixed-point weights may move it by 255·4·2⁻¹⁵.
+    assert np.abs(out8.astype(np.float32) - outf).max() <= 0.5 + 0.04
 
 
 def test_non_contiguous_and_read_only_inputs_work() -> None:

@@ -1,6 +1,6 @@
 //! Times the resampling kernels without Python in the way: `cargo run --release --example profile_resample`.
 use m360_core::resample::{erp_to_tangents, tangents_to_erp};
-use m360_core::stitch::{blend, Blend};
+use m360_core::stitch::{blend_to_vec, Blend};
 use m360_core::{Layout, Plan};
 use std::time::Instant;
 
@@ -46,18 +46,24 @@ fn main() {
         .map(|i| (i * 7 % 251) as u8)
         .collect();
     time("erp->tangents u8x3", || {
-        std::hint::black_box(erp_to_tangents(plan.tangent_taps(), layout, &erp, 3));
+        let mut out = vec![0u8; 20 * layout.tangent_shape().0 * layout.tangent_shape().1 * 3];
+        erp_to_tangents(plan.tangent_taps(), layout, &erp, 3, &mut out);
+        std::hint::black_box(out);
     });
     let erpf: Vec<f32> = erp.iter().step_by(3).map(|&v| v as f32).collect();
     time("erp->tangents f32x1", || {
-        std::hint::black_box(erp_to_tangents(plan.tangent_taps(), layout, &erpf, 1));
+        let mut out = vec![0f32; 20 * layout.tangent_shape().0 * layout.tangent_shape().1];
+        erp_to_tangents(plan.tangent_taps(), layout, &erpf, 1, &mut out);
+        std::hint::black_box(out);
     });
     let (h, w) = layout.tangent_shape();
     let tiles = vec![1.0f32; 20 * h * w];
     time("tangents->erp", || {
-        std::hint::black_box(tangents_to_erp(plan.erp_taps(), layout, &tiles));
+        let mut out = vec![0f32; 20 * layout.erp_height * layout.erp_width];
+        tangents_to_erp(plan.erp_taps(), layout, &tiles, &mut out);
+        std::hint::black_box(out);
     });
     time("blend mean", || {
-        std::hint::black_box(blend(plan.erp_taps(), layout, &tiles, Blend::Mean));
+        std::hint::black_box(blend_to_vec(plan.erp_taps(), layout, &tiles, Blend::Mean));
     });
 }

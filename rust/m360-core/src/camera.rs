@@ -36,7 +36,13 @@ impl TangentCamera {
     #[inline]
     pub fn project(&self, d: &Vector3<f64>) -> Option<(f64, f64)> {
         let p = self.rotation * d;
-        (p.z > 0.0).then(|| (self.fx * p.x / p.z + self.cx, self.fy * p.y / p.z + self.cy))
+        (p.z > 0.0).then(|| {
+            let inv_z = 1.0 / p.z;
+            (
+                self.fx * p.x * inv_z + self.cx,
+                self.fy * p.y * inv_z + self.cy,
+            )
+        })
     }
 
     /// Whether a continuous pixel position lies on the image (pixel areas included).

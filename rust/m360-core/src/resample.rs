@@ -88,19 +88,38 @@ pub struct TangentTaps {
 
 impl TangentTaps {
     /// Taps for every pixel of every camera of `layout`.
+    ///
+    /// ERP positions cost two `atan2` per pixel, so they are computed once per set of cameras
+    /// that differ only by a turn about the vertical axis (the five faces of each icosahedron
+    /// band): such a camera sees the same positions shifted in longitude.
     pub fn build(layout: &Layout) -> Self {
         let (h, w) = layout.tangent_shape();
         let (eh, ew) = (layout.erp_height, layout.erp_width);
+        let bases = vertical_symmetry(layout);
+        let base_ids: Vec<usize> = (0..layout.cameras.len())
+            .filter(|&k| bases[k].0 == k)
+            .collect();
+        let base_rows: Vec<Vec<(f64, f64)>> = (0..base_ids.len() * h)
+            .into_par_iter()
+            .map(|at| {
+                let cam = &layout.cameras[base_ids[at / h]];
+                let r = (at % h) as f64;
+                (0..w)
+                    .map(|c| direction_to_pixel(&cam.pixel_direction(c as f64, r), eh, ew))
+                    .collect()
+            })
+            .collect();
+        let slot = |k: usize| base_ids.iter().position(|&b| b == k).unwrap_or(0);
         let rows: Vec<(Vec<Tap>, Vec<[u32; 4]>)> = (0..layout.cameras.len() * h)
             .into_par_iter()
             .map(|face_row| {
-                let cam = &layout.cameras[face_row / h];
-                let r = (face_row % h) as f64;
+                let (base, shift) = bases[face_row / h];
+                let positions = &base_rows[slot(base) * h + face_row % h];
                 let mut taps = Vec::with_capacity(w);
                 let mut wrapped = Vec::new();
-                for c in 0..w {
-                    let d = cam.pixel_direction(c as f64, r);
-                    let (u, v) = direction_to_pixel(&d, eh, ew);
+                for &(u, v) in positions {
+                    // Shifted longitudes stay in [−0.5, W − 0.5), where the grid starts.
+                    let u = (u + shift + 0.5).rem_euclid(ew as f64) - 0.5;
                     // u, v ≥ −0.5, so truncating u + 1 is floor(u) + 1 without a libm call.
                     let (j0, i0) = ((u + 1.0) as i64 - 1, (v + 1.0) as i64 - 1);
                     let (fx, fy) = (u - j0 as f64, v - i0 as f64);
@@ -169,7 +188,14 @@ impl TangentTaps {
         out.par_chunks_mut(tangent_width * C)
             .zip(self.taps.par_chunks(tangent_width))
             .for_each(|(row, taps)| {
-                for (px, &tap) in row.chunks_exact_mut(C).zip(taps) {
+                for (n, (px, &tap)) in row.chunks_exact_mut(C).zip(taps).enumerate() {
+                    if let Some(ahead) = taps.get(n + PREFETCH_DISTANCE) {
+                        if ahead.index & WRAPPED == 0 {
+                            let i = ahead.index as usize * C;
+                            prefetch(erp, i);
+                            prefetch(erp, i + ew * C);
+                        }
+                    }
                     let corners = if tap.index & WRAPPED == 0 {
                         let i = tap.index as usize;
                         [i, i + 1, i + ew, i + ew + 1]
@@ -186,6 +212,60 @@ impl TangentTaps {
                 }
             });
     }
+}
+
+/// Most tangents one ERP pixel can be seen by (the icosahedron layout needs 5).
+const MAX_FACES_PER_PIXEL: usize = 16;
+
+/// How many pixels ahead the ERP rows of a tap are prefetched: the taps say exactly which cache
+/// lines the next pixels need, which the hardware prefetcher cannot guess along a curved path.
+const PREFETCH_DISTANCE: usize = 32;
+
+/// Hint the CPU to load the cache line holding `data[index]` (no-op where unsupported).
+#[inline(always)]
+fn prefetch<T>(data: &[T], index: usize) {
+    #[cfg(target_arch = "x86_64")]
+    if index < data.len() {
+        // SAFETY: the pointer is in bounds (checked), and prefetching never faults or writes.
+        unsafe {
+            use std::arch::x86_64::{_mm_prefetch, _MM_HINT_T0};
+            _mm_prefetch::<_MM_HINT_T0>(data.as_ptr().add(index).cast());
+        }
+    }
+    #[cfg(not(target_arch = "x86_64"))]
+    let _ = (data, index);
+}
+
+/// For each camera, the first camera with the same intrinsics that it equals up to a turn about
+/// the world's vertical axis, and that turn as a shift in ERP columns; (itself, 0) if none.
+fn vertical_symmetry(layout: &Layout) -> Vec<(usize, f64)> {
+    let cams = &layout.cameras;
+    let columns_per_radian = layout.erp_width as f64 / std::f64::consts::TAU;
+    let mut bases: Vec<(usize, f64)> = Vec::with_capacity(cams.len());
+    for (k, cam) in cams.iter().enumerate() {
+        let found = (0..k)
+            .filter(|&j| bases[j].0 == j)
+            .find_map(|j| turn_about_vertical(&cams[j], cam).map(|turn| (j, turn)));
+        bases.push(found.map_or((k, 0.0), |(j, turn)| (j, turn * columns_per_radian)));
+    }
+    bases
+}
+
+/// The angle α such that `b` is `a` turned by α about the world y axis (same intrinsics).
+fn turn_about_vertical(a: &TangentCamera, b: &TangentCamera) -> Option<f64> {
+    // Equal up to rounding: each face's intrinsics come from its own bounding box.
+    let close = |p: f64, q: f64| (p - q).abs() <= 1e-9 * p.abs().max(1.0);
+    if !(close(a.fx, b.fx) && close(a.fy, b.fy) && close(a.cx, b.cx) && close(a.cy, b.cy)) {
+        return None;
+    }
+    // b sees Q·d where a sees d when R_b Q = R_a, i.e. Q = R_bᵀ R_a.
+    let q = b.rotation.transpose() * a.rotation;
+    let tol = 1e-12;
+    let about_y = (q[(1, 1)] - 1.0).abs() < tol
+        && [q[(0, 1)], q[(1, 0)], q[(1, 2)], q[(2, 1)]]
+            .iter()
+            .all(|v| v.abs() < tol);
+    about_y.then(|| q[(0, 2)].atan2(q[(0, 0)]))
 }
 
 /// Flat index of ERP pixel (i, j) where i may be −1 or H and j any integer: longitude wraps, and
@@ -228,40 +308,51 @@ impl ErpTaps {
         let (h, w) = layout.tangent_shape();
         let (eh, ew) = (layout.erp_height, layout.erp_width);
         let grid = ErpGrid::new(eh, ew);
-        // A direction outside a camera's bounding cone cannot land on its image: one dot
-        // product rejects most of the 20 cameras before any projection.
-        let cones: Vec<(nalgebra::Vector3<f64>, f64)> = layout
+        // A direction outside a camera's bounding cone cannot land on its image: per row, the
+        // latitude gap to the axis rejects about half the cameras, and per pixel one dot product
+        // rejects most of the rest before any projection.
+        let cones: Vec<(nalgebra::Vector3<f64>, f64, f64, f64)> = layout
             .cameras
             .iter()
-            .map(|cam| (cam.axis(), cone_cosine(cam)))
+            .map(|cam| {
+                let (axis, min_cos) = (cam.axis(), cone_cosine(cam));
+                (axis, min_cos, (-axis.y).asin(), min_cos.acos())
+            })
             .collect();
         let rows: Vec<(Vec<u8>, Vec<Tap>)> = (0..eh)
             .into_par_iter()
             .map(|i| {
+                let lat = crate::sphere::row_latitude(i as f64, eh);
+                let candidates: Vec<usize> = (0..cones.len())
+                    .filter(|&k| (lat - cones[k].2).abs() <= cones[k].3 + 1e-9)
+                    .collect();
                 let mut counts = Vec::with_capacity(ew);
-                let mut taps = Vec::with_capacity(ew * 2);
+                // Four faces see a pixel on average; the row vector is sized once.
+                let mut taps = Vec::with_capacity(ew * 4);
+                let mut seen = [(0.0f64, Tap::default()); MAX_FACES_PER_PIXEL];
                 for j in 0..ew {
                     let d = grid.direction(i, j);
-                    let first = taps.len();
-                    for (k, (cam, (axis, min_cos))) in layout.cameras.iter().zip(&cones).enumerate()
-                    {
+                    let mut n = 0;
+                    for &k in &candidates {
+                        let (axis, min_cos, _, _) = &cones[k];
                         let cos = axis.dot(&d);
-                        if cos < *min_cos {
+                        if cos < *min_cos || n == MAX_FACES_PER_PIXEL {
                             continue;
                         }
-                        if let Some(tap) = tangent_tap(cam, &d, k * h * w) {
+                        if let Some(tap) = tangent_tap(&layout.cameras[k], &d, k * h * w) {
                             // Insertion keeps the pixel's taps nearest-axis first.
-                            let mut at = taps.len();
-                            taps.push((cos, tap));
-                            while at > first && taps[at - 1].0 < cos {
-                                taps.swap(at - 1, at);
+                            let mut at = n;
+                            while at > 0 && seen[at - 1].0 < cos {
+                                seen[at] = seen[at - 1];
                                 at -= 1;
                             }
+                            seen[at] = (cos, tap);
+                            n += 1;
                         }
                     }
-                    counts.push((taps.len() - first) as u8);
+                    taps.extend(seen[..n].iter().map(|s| s.1));
+                    counts.push(n as u8);
                 }
-                let taps: Vec<Tap> = taps.into_iter().map(|(_, tap)| tap).collect();
                 (counts, taps)
             })
             .collect();
@@ -333,7 +424,12 @@ impl ErpTaps {
         for (j, &n) in counts.iter().enumerate() {
             let n = n as usize;
             samples.clear();
-            for &tap in &row[at..at + n] {
+            for (t, &tap) in row[at..at + n].iter().enumerate() {
+                if let Some(ahead) = row.get(at + t + PREFETCH_DISTANCE) {
+                    let k = ahead.index as usize;
+                    prefetch(tangents, k);
+                    prefetch(tangents, k + w);
+                }
                 let k = tap.index as usize;
                 let wts = tap.weights();
                 // SAFETY: taps point at a top-left neighbour with x0 <= w − 2 and y0 <= h − 2 of
@@ -383,48 +479,93 @@ fn tangent_tap(cam: &TangentCamera, d: &nalgebra::Vector3<f64>, base: usize) -> 
 }
 
 /// Sample an ERP image into the tangent images of `layout` through `taps`.
-/// `erp` is (H, W, C) interleaved; the result is (N, h, w, C).
+/// `erp` is (H, W, C) interleaved; `out` is (N, h, w, C) and is overwritten.
 pub fn erp_to_tangents<T: Texel>(
     taps: &TangentTaps,
     layout: &Layout,
     erp: &[T],
     channels: usize,
-) -> Vec<T> {
-    let (h, w) = layout.tangent_shape();
-    let mut out = vec![erp[0]; layout.cameras.len() * h * w * channels];
-    debug_assert_eq!(erp.len(), layout.erp_height * layout.erp_width * channels);
+    out: &mut [T],
+) {
+    let (_, w) = layout.tangent_shape();
     match channels {
-        1 => taps.sample::<T, 1>(erp, &mut out, w),
-        2 => taps.sample::<T, 2>(erp, &mut out, w),
-        3 => taps.sample::<T, 3>(erp, &mut out, w),
-        4 => taps.sample::<T, 4>(erp, &mut out, w),
+        1 => taps.sample::<T, 1>(erp, out, w),
+        2 => taps.sample::<T, 2>(erp, out, w),
+        3 => taps.sample::<T, 3>(erp, out, w),
+        4 => taps.sample::<T, 4>(erp, out, w),
         _ => unreachable!("channels are validated to be 1..=4"),
     }
-    out
 }
 
-/// Each tangent image mapped onto the ERP grid: (N, H, W), NaN where a face does not see the
-/// pixel (or a bilinear neighbour is NaN).
-pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32]) -> Vec<f32> {
+/// Each tangent image mapped onto the ERP grid: `out` (N, H, W) is overwritten, NaN where a face
+/// does not see the pixel (or a bilinear neighbour is NaN).
+///
+/// # Panics
+/// If `out` is not N·H·W long.
+pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32], out: &mut [f32]) {
     let (eh, ew) = (layout.erp_height, layout.erp_width);
     let plane = eh * ew;
-    let mut out = vec![f32::NAN; layout.cameras.len() * plane];
+    assert_eq!(
+        out.len(),
+        layout.cameras.len() * plane,
+        "output size does not match the plan"
+    );
+    out.par_chunks_mut(1 << 16)
+        .for_each(|chunk| chunk.fill(f32::NAN));
     let ptr = SharedMut(out.as_mut_ptr());
     (0..eh).into_par_iter().for_each(|i| {
         let ptr = &ptr;
         taps.visit_row(tangents, i, |j, samples| {
             for &(face, v) in samples {
-                // SAFETY: each (face, i, j) element is written by exactly one iteration (rows are
-                // disjoint across threads, a face appears once per pixel), and `out` outlives the
-                // parallel loop.
+                // SAFETY: face < N, i < H and j < W, so the index is in bounds (length asserted
+                // above); each (face, i, j) element is written by exactly one iteration (rows are
+                // disjoint across threads, a face appears once per pixel).
                 unsafe { *ptr.0.add(face * plane + i * ew + j) = v };
             }
         });
     });
-    out
 }
 
 /// A raw pointer that may be shared between threads for provably disjoint writes.
 struct SharedMut<T>(*mut T);
 // SAFETY: only used for writes to disjoint elements, see the call sites.
 unsafe impl<T> Sync for SharedMut<T> {}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn icosahedron_bands_share_positions() {
+        // Five faces per band differ by 72° turns: 4 cameras compute positions, 16 reuse them.
+        let layout = Layout::icosahedron(512, 0.3, None).expect("layout");
+        let bases = vertical_symmetry(&layout);
+        let roots: Vec<usize> = (0..20).filter(|&k| bases[k].0 == k).collect();
+        assert_eq!(roots, vec![0, 5, 10, 15]);
+        for (k, &(base, shift)) in bases.iter().enumerate() {
+            // The turn is (k − base)·72°, i.e. (k − base)·W/5 columns, modulo W.
+            let expected = (k - base) as f64 * 512.0 / 5.0;
+            let diff = (shift - expected).rem_euclid(512.0);
+            assert!(diff.min(512.0 - diff) < 1e-9, "camera {k}: shift {shift}");
+        }
+    }
+
+    #[test]
+    fn wrapped_index_crosses_the_pole_and_the_seam() {
+        let (h, w) = (4, 8);
+        assert_eq!(erp_index_wrapped(-1, 1, h, w), 5); // above row 0, col 1 → row 0, col 5
+        assert_eq!(erp_index_wrapped(4, 6, h, w), 3 * 8 + 2); // below the last row
+        assert_eq!(erp_index_wrapped(2, 8, h, w), 2 * 8); // past the last column
+        assert_eq!(erp_index_wrapped(2, -1, h, w), 2 * 8 + 7);
+    }
+
+    #[test]
+    fn fixed_point_weights_sum_to_one() {
+        for (fx, fy) in [(0.0, 0.0), (1.0, 1.0), (0.3, 0.9), (0.999, 0.001)] {
+            let tap = Tap::new(0, fx, fy);
+            let w = tap.weights();
+            assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6);
+            assert_eq!(u8::bilinear([200, 200, 200, 200], tap), 200);
+        }
+    }
+}

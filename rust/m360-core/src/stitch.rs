@@ -18,14 +18,19 @@ pub enum Blend {
 /// Spherical disparity (1/distance) of every tangent pixel from perspective disparity (1/z):
 /// each pixel divided by the length of its own ray `(gx, gy, 1)`, computed from its own camera,
 /// so no face can use another's factor (reference bug B1). Pixels whose `mask` is false become NaN.
+/// `out` (N·h·w) is overwritten.
+///
+/// # Panics
+/// If the slices are not N·h·w long.
 pub fn spherical_disparity(
     layout: &Layout,
     perspective: &[f32],
     mask: Option<&[bool]>,
-) -> Vec<f32> {
+    out: &mut [f32],
+) {
     let (h, w) = layout.tangent_shape();
-    debug_assert_eq!(perspective.len(), layout.cameras.len() * h * w);
-    let mut out = vec![0.0f32; perspective.len()];
+    let n = layout.cameras.len() * h * w;
+    assert!(perspective.len() == n && out.len() == n && mask.is_none_or(|m| m.len() == n));
     out.par_chunks_mut(w)
         .zip(perspective.par_chunks(w))
         .enumerate()
@@ -42,23 +47,24 @@ pub fn spherical_disparity(
                 };
             }
         });
-    out
 }
 
-/// A blended ERP map and how much the contributing tangents disagreed.
-#[derive(Debug, Clone)]
-pub struct Blended {
-    /// (H·W) blended values, NaN where no tangent has a valid sample.
-    pub disparity: Vec<f32>,
-    /// (H·W) population standard deviation of the valid samples (0 with one, NaN with none).
-    pub spread: Vec<f32>,
-}
-
-/// Blend per-tangent maps (N·h·w, NaN = invalid) onto the ERP grid of `layout`.
-pub fn blend(taps: &ErpTaps, layout: &Layout, tangents: &[f32], mode: Blend) -> Blended {
+/// Blend per-tangent maps (N·h·w, NaN = invalid) onto the ERP grid of `layout`: `disparity`
+/// (H·W) gets the blend, NaN where no tangent has a valid sample; `spread` (H·W) the population
+/// standard deviation of the valid samples (0 with one, NaN with none).
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    mode: Blend,
+    disparity: &mut [f32],
+    spread: &mut [f32],
+) {
     let (eh, ew) = (layout.erp_height, layout.erp_width);
-    let mut disparity = vec![f32::NAN; eh * ew];
-    let mut spread = vec![f32::NAN; eh * ew];
+    assert!(disparity.len() == eh * ew && spread.len() == eh * ew);
     disparity
         .par_chunks_mut(ew)
         .zip(spread.par_chunks_mut(ew))
@@ -77,7 +83,10 @@ pub fn blend(taps: &ErpTaps, layout: &Layout, tangents: &[f32], mode: Blend) -> 
                         sum_sq += (v as f64) * (v as f64);
                     }
                 }
-                if n > 0 {
+                if n == 0 {
+                    out[j] = f32::NAN;
+                    out_spread[j] = f32::NAN;
+                } else {
                     let mean = sum / n as f64;
                     out[j] = match mode {
                         Blend::Mean => mean as f32,
@@ -87,7 +96,19 @@ pub fn blend(taps: &ErpTaps, layout: &Layout, tangents: &[f32], mode: Blend) -> 
                 }
             });
         });
-    Blended { disparity, spread }
+}
+
+/// [`blend`] into new vectors: (disparity, spread).
+pub fn blend_to_vec(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    mode: Blend,
+) -> (Vec<f32>, Vec<f32>) {
+    let n = layout.erp_height * layout.erp_width;
+    let (mut disparity, mut spread) = (vec![0.0; n], vec![0.0; n]);
+    blend(taps, layout, tangents, mode, &mut disparity, &mut spread);
+    (disparity, spread)
 }
 
 #[cfg(test)]
@@ -129,7 +150,8 @@ mod tests {
             .flat_map(|i| (0..layout.erp_width).map(move |j| (i, j)))
             .map(|(i, j)| field(&grid.direction(i, j)) as f32)
             .collect();
-        let got = erp_to_tangents(plan.tangent_taps(), layout, &erp, 1);
+        let mut got = vec![0.0f32; 20 * layout.tangent_shape().0 * layout.tangent_shape().1];
+        erp_to_tangents(plan.tangent_taps(), layout, &erp, 1, &mut got);
         let want = tangent_field(&plan);
         let worst = got
             .iter()
@@ -157,8 +179,8 @@ mod tests {
         let grid = ErpGrid::new(layout.erp_height, layout.erp_width);
         let tangents = tangent_field(&plan);
         for mode in [Blend::Mean, Blend::Nearest] {
-            let out = blend(plan.erp_taps(), layout, &tangents, mode);
-            for (p, &v) in out.disparity.iter().enumerate() {
+            let (disparity, _) = blend_to_vec(plan.erp_taps(), layout, &tangents, mode);
+            for (p, &v) in disparity.iter().enumerate() {
                 let want = field(&grid.direction(p / layout.erp_width, p % layout.erp_width));
                 assert!(
                     (v as f64 - want).abs() < 2e-3,
@@ -175,13 +197,14 @@ mod tests {
         let mut tangents = tangent_field(&plan);
         let (h, w) = layout.tangent_shape();
         tangents[..h * w].fill(f32::NAN); // face 0 has no estimate at all
-        let per_face = tangents_to_erp(plan.erp_taps(), layout, &tangents);
         let plane = layout.erp_height * layout.erp_width;
+        let mut per_face = vec![0.0f32; 20 * plane];
+        tangents_to_erp(plan.erp_taps(), layout, &tangents, &mut per_face);
         assert!(per_face[..plane].iter().all(|v| v.is_nan()));
         assert!(per_face[plane..].iter().any(|v| v.is_finite()));
-        let out = blend(plan.erp_taps(), layout, &tangents, Blend::Nearest);
+        let (disparity, _) = blend_to_vec(plan.erp_taps(), layout, &tangents, Blend::Nearest);
         assert!(
-            out.disparity.iter().all(|v| v.is_finite()),
+            disparity.iter().all(|v| v.is_finite()),
             "other faces cover face 0"
         );
     }
@@ -194,7 +217,8 @@ mod tests {
         let ones = vec![1.0f32; n];
         let mut mask = vec![true; n];
         mask[5] = false;
-        let s = spherical_disparity(layout, &ones, Some(&mask));
+        let mut s = vec![0.0f32; n];
+        spherical_disparity(layout, &ones, Some(&mask), &mut s);
         assert!(s[5].is_nan());
         let cam = &layout.cameras[0];
         let (cx, cy) = (cam.cx.round(), cam.cy.round());
@@ -213,9 +237,9 @@ mod tests {
             .expect("pool");
         let seq = pool.install(|| {
             let p = self::plan(256);
-            blend(p.erp_taps(), p.layout(), &tangents, Blend::Mean).disparity
+            blend_to_vec(p.erp_taps(), p.layout(), &tangents, Blend::Mean).0
         });
-        let par = blend(plan_a.erp_taps(), plan_a.layout(), &tangents, Blend::Mean).disparity;
+        let par = blend_to_vec(plan_a.erp_taps(), plan_a.layout(), &tangents, Blend::Mean).0;
         assert!(seq
             .iter()
             .zip(&par)

@@ -5,10 +5,14 @@
 //! (`m360.errors.InputError`), never a panic.
 
 use m360_core::layout::Layout;
+use m360_core::resample;
 use m360_core::stitch::{self, Blend};
 use m360_core::{CoreError, TangentCamera};
 use numpy::ndarray::{Array, IxDyn};
-use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{
+    IntoPyArray, PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3,
+    PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, RwLock};
@@ -124,6 +128,23 @@ fn to_numpy<'py, T: numpy::Element>(
         .map_err(|e| M360Error::new_err(format!("internal shape error: {e}")))
 }
 
+/// A new zero-filled C-contiguous array for the core to write into: numpy's allocator (which
+/// asks for huge pages on large arrays) instead of a Rust `Vec` handed over afterwards.
+fn output_array<'py, T: numpy::Element>(
+    py: Python<'py>,
+    shape: &[usize],
+) -> Bound<'py, PyArrayDyn<T>> {
+    PyArrayDyn::<T>::zeros(py, IxDyn(shape), false)
+}
+
+fn writable<'a, T: numpy::Element>(
+    array: &'a mut numpy::PyReadwriteArrayDyn<'_, T>,
+) -> PyResult<&'a mut [T]> {
+    array
+        .as_slice_mut()
+        .map_err(|e| M360Error::new_err(format!("internal error: output not contiguous: {e}")))
+}
+
 fn contiguous<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     array: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
@@ -220,7 +241,7 @@ impl Plan {
         let intr = intrinsics.as_array();
         let cameras = (0..n)
             .map(|k| TangentCamera {
-                rotation: nalgebra_matrix(|r, c| rot[[k, r, c]]),
+                rotation: nalgebra::Matrix3::from_fn(|r, c| rot[[k, r, c]]),
                 fx: intr[[k, 0]],
                 fy: intr[[k, 1]],
                 cx: intr[[k, 2]],
@@ -276,26 +297,9 @@ impl Plan {
         py: Python<'py>,
         erp: ErpImage<'py>,
     ) -> PyResult<Bound<'py, PyAny>> {
-        let layout = self.inner.layout();
-        let (h, w) = layout.tangent_shape();
-        let n = layout.cameras.len();
         match erp {
-            ErpImage::U8(a) => {
-                let c = self.check_erp(a.shape())?;
-                let data = contiguous(&a, "erp")?;
-                let out = detached(py, || {
-                    m360_core::resample::erp_to_tangents(self.inner.tangent_taps(), layout, data, c)
-                })?;
-                Ok(to_numpy(py, out, &[n, h, w, c])?.into_any())
-            }
-            ErpImage::F32(a) => {
-                let c = self.check_erp(a.shape())?;
-                let data = contiguous(&a, "erp")?;
-                let out = detached(py, || {
-                    m360_core::resample::erp_to_tangents(self.inner.tangent_taps(), layout, data, c)
-                })?;
-                Ok(to_numpy(py, out, &[n, h, w, c])?.into_any())
-            }
+            ErpImage::U8(a) => Ok(self.sample_tangents(py, &a)?.into_any()),
+            ErpImage::F32(a) => Ok(self.sample_tangents(py, &a)?.into_any()),
         }
     }
 
@@ -308,14 +312,18 @@ impl Plan {
         let layout = self.inner.layout();
         self.check_tangents("tangents", tangents.shape())?;
         let data = contiguous(&tangents, "tangents")?;
-        let out = detached(py, || {
-            m360_core::resample::tangents_to_erp(self.inner.erp_taps(), layout, data)
-        })?;
-        to_numpy(
+        let out = output_array(
             py,
-            out,
             &[layout.cameras.len(), layout.erp_height, layout.erp_width],
-        )
+        );
+        {
+            let mut rw = out.readwrite();
+            let dst = writable(&mut rw)?;
+            detached(py, || {
+                resample::tangents_to_erp(self.inner.erp_taps(), layout, data, dst)
+            })?;
+        }
+        Ok(out)
     }
 
     /// Perspective disparity (N,h,w) float32 (NaN or mask False = no estimate) → spherical
@@ -337,8 +345,13 @@ impl Plan {
             }
             None => None,
         };
-        let out = detached(py, || stitch::spherical_disparity(layout, data, mask))?;
-        to_numpy(py, out, perspective.shape())
+        let out = output_array(py, perspective.shape());
+        {
+            let mut rw = out.readwrite();
+            let dst = writable(&mut rw)?;
+            detached(py, || stitch::spherical_disparity(layout, data, mask, dst))?;
+        }
+        Ok(out)
     }
 
     /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with
@@ -362,18 +375,40 @@ impl Plan {
         let layout = self.inner.layout();
         self.check_tangents("tangents", tangents.shape())?;
         let data = contiguous(&tangents, "tangents")?;
-        let out = detached(py, || {
-            stitch::blend(self.inner.erp_taps(), layout, data, mode)
-        })?;
         let shape = [layout.erp_height, layout.erp_width];
-        Ok((
-            to_numpy(py, out.disparity, &shape)?,
-            to_numpy(py, out.spread, &shape)?,
-        ))
+        let (disparity, spread) = (output_array(py, &shape), output_array(py, &shape));
+        {
+            let (mut rw_d, mut rw_s) = (disparity.readwrite(), spread.readwrite());
+            let (dst_d, dst_s) = (writable(&mut rw_d)?, writable(&mut rw_s)?);
+            detached(py, || {
+                stitch::blend(self.inner.erp_taps(), layout, data, mode, dst_d, dst_s)
+            })?;
+        }
+        Ok((disparity, spread))
     }
 }
 
 impl Plan {
+    fn sample_tangents<'py, T: resample::Texel + numpy::Element>(
+        &self,
+        py: Python<'py>,
+        erp: &PyReadonlyArray3<'py, T>,
+    ) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+        let layout = self.inner.layout();
+        let (h, w) = layout.tangent_shape();
+        let c = self.check_erp(erp.shape())?;
+        let data = contiguous(erp, "erp")?;
+        let out = output_array(py, &[layout.cameras.len(), h, w, c]);
+        {
+            let mut rw = out.readwrite();
+            let dst = writable(&mut rw)?;
+            detached(py, || {
+                resample::erp_to_tangents(self.inner.tangent_taps(), layout, data, c, dst)
+            })?;
+        }
+        Ok(out)
+    }
+
     fn check_erp(&self, shape: &[usize]) -> PyResult<usize> {
         let layout = self.inner.layout();
         let c = shape[2];
@@ -391,10 +426,6 @@ impl Plan {
         let (h, w) = layout.tangent_shape();
         check_shape(name, shape, &[layout.cameras.len(), h, w])
     }
-}
-
-fn nalgebra_matrix(at: impl Fn(usize, usize) -> f64) -> nalgebra::Matrix3<f64> {
-    nalgebra::Matrix3::from_fn(at)
 }
 
 #[pymodule]

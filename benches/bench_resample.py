@@ -1,0 +1,212 @@
+"""Resampling speed and memory: ERP → 20 tangents and tangents → ERP at 2K / 4K / 8K.
+
+Baselines, measured in the same run on the same inputs:
+- ``cv2.remap`` with precomputed maps (float32 maps and OpenCV's fixed-point maps; the faster
+  one is the baseline), the fastest known way to do the same sampling from Python;
+- ``py360convert.e2p`` called once per tangent (what most 360° code does);
+- tangents → ERP: ``cv2.remap`` of every face at its precomputed footprint positions, then a
+  ``np.bincount`` mean: the same work as ``stitch(align="none", blend="mean")``.
+
+Run: ``.venv/bin/python benches/bench_resample.py [--sizes 2048 4096 8192] [--repeats 5]``.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as h  # noqa: E402
+
+import m360  # noqa: E402
+import m360._sphere as sph  # noqa: E402
+from m360.geometry import clear_plan_cache, plan_for  # noqa: E402
+
+Row = tuple[int, str, str, h.Timing, "float | None"]
+
+
+def panorama(width: int) -> np.ndarray:
+    """A textured RGB panorama (content does not affect timing): a 1K render, upscaled."""
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(0), 1024)
+    return cv2.resize(rgb, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+
+
+def tangent_maps(layout: m360.Layout) -> tuple[np.ndarray, np.ndarray]:
+    """cv2.remap maps (N*h, w) float32 of every tangent pixel into the ERP."""
+    height, width = layout.erp_shape
+    cols, rows = [], []
+    for cam in layout.cameras:
+        d = sph.camera_pixel_directions(
+            cam.rotation, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height
+        )
+        col, row = sph.lonlat_to_erp_pixel(*sph.directions_to_lonlat(d), height, width)
+        cols.append(col.astype(np.float32))
+        rows.append(row.astype(np.float32))
+    return np.concatenate(cols), np.concatenate(rows)
+
+
+def footprints(layout: m360.Layout) -> list[tuple[np.ndarray, np.ndarray, np.ndarray]]:
+    """Per face: the ERP flat indices it sees and its (x, y) positions there, as cv2 maps."""
+    height, width = layout.erp_shape
+    lat, lon = sph.erp_latitudes(height), sph.erp_longitudes(width)
+    out = []
+    for cam in layout.cameras:
+        idx, xs, ys = [], [], []
+        for r0 in range(0, height, 256):
+            d = sph.lonlat_to_directions(lon[None, :], lat[r0 : r0 + 256, None])
+            x, y, front = cam.project(d)
+            inside = front & (x >= -0.5) & (x <= cam.width - 0.5)
+            inside &= (y >= -0.5) & (y <= cam.height - 0.5)
+            flat = np.flatnonzero(inside)
+            idx.append(flat + r0 * width)
+            xs.append(np.clip(x.ravel()[flat], 0, cam.width - 1).astype(np.float32))
+            ys.append(np.clip(y.ravel()[flat], 0, cam.height - 1).astype(np.float32))
+        out.append((np.concatenate(idx), _blocks(np.concatenate(xs)), _blocks(np.concatenate(ys))))
+    return out
+
+
+def _blocks(values: np.ndarray, width: int = 1024) -> np.ndarray:
+    """A flat map as (rows, width), edge-padded: cv2.remap needs both sides < 32767."""
+    pad = -len(values) % width
+    return np.pad(values, (0, pad), mode="edge").reshape(-1, width)
+
+
+def bench_size(size: int, repeats: int, e2p_repeats: int) -> list[Row]:
+    """Every timing of one ERP width: (width, operation, implementation, timing, baseline s)."""
+    out: list[Row] = []
+    layout = m360.Layout.icosahedron(size)
+    rgb = panorama(size)
+
+    def build_plan(which: str) -> None:
+        clear_plan_cache()
+        plan_for(layout).prepare(which)
+
+    for which, label in (("tangents", "ERP->tangent taps"), ("erp", "tangent->ERP taps")):
+        t = h.measure(lambda: build_plan(which), repeats=repeats)  # noqa: B023
+        out.append((size, "plan build", f"m360 {label}", t, None))
+    plan_for(layout).prepare("all")
+
+    # ERP -> 20 tangents.
+    mx, my = tangent_maps(layout)
+    fixed = cv2.convertMaps(mx, my, cv2.CV_16SC2)
+    lin, wrap = cv2.INTER_LINEAR, cv2.BORDER_WRAP
+    t_f32 = h.measure(lambda: cv2.remap(rgb, mx, my, lin, borderMode=wrap), repeats=repeats)
+    t_fix = h.measure(lambda: cv2.remap(rgb, *fixed, lin, borderMode=wrap), repeats=repeats)
+    base = min(t_f32.median, t_fix.median)
+    t_m360 = h.measure(lambda: m360.erp_to_tangents(rgb, layout), repeats=repeats)
+    op = "ERP->tangents u8x3"
+    out += [
+        (size, op, "m360", t_m360, base),
+        (size, op, "cv2.remap float maps", t_f32, base),
+        (size, op, "cv2.remap fixed maps", t_fix, base),
+    ]
+    try:
+        import py360convert
+    except ImportError:
+        py360convert = None
+    if py360convert is not None:
+        cam = layout.cameras[0]
+        fov = (
+            float(np.degrees(2 * np.arctan(cam.width / 2 / cam.fx))),
+            float(np.degrees(2 * np.arctan(cam.height / 2 / cam.fy))),
+        )
+        centres = [np.degrees(sph.directions_to_lonlat(c.axis)) for c in layout.cameras]
+
+        def e2p_all() -> None:
+            for lon, lat in centres:
+                py360convert.e2p(rgb, fov, float(lon), float(lat), (cam.height, cam.width))
+
+        reps = max(1, min(e2p_repeats, repeats))
+        t = h.measure(e2p_all, repeats=reps, warmup=0)
+        out.append((size, op, "py360convert.e2p x20", t, base))
+
+    # Tangents -> ERP.
+    tiles = m360.erp_to_tangents(rgb[..., 1].astype(np.float32), layout)
+    prints = footprints(layout)
+    n_pixels = layout.erp_shape[0] * layout.erp_shape[1]
+    flat_idx = np.concatenate([i for i, _, _ in prints])
+
+    def cv2_footprints() -> np.ndarray:
+        return np.concatenate(
+            [cv2.remap(tiles[k], x, y, lin).ravel()[: len(i)] for k, (i, x, y) in enumerate(prints)]
+        )
+
+    def cv2_mean() -> np.ndarray:
+        s = np.bincount(flat_idx, weights=cv2_footprints(), minlength=n_pixels)
+        c = np.bincount(flat_idx, minlength=n_pixels)
+        return (s / c).reshape(layout.erp_shape)
+
+    t_fp = h.measure(cv2_footprints, repeats=repeats)
+    t_mean = h.measure(cv2_mean, repeats=repeats)
+    t_stitch = h.measure(
+        lambda: m360.stitch(tiles, layout, align="none", blend="mean"), repeats=repeats
+    )
+    t_maps = h.measure(lambda: m360.tangents_to_erp(tiles, layout), repeats=repeats)
+    out += [
+        (size, "tangents->ERP mean", "m360 stitch(none, mean)", t_stitch, t_mean.median),
+        (size, "tangents->ERP mean", "cv2 footprints + bincount", t_mean, t_mean.median),
+        (size, "tangents->ERP", "cv2.remap footprints only", t_fp, t_fp.median),
+        (size, "tangents->ERP", "m360 tangents_to_erp (N,H,W)", t_maps, t_fp.median),
+    ]
+    clear_plan_cache()
+    return out
+
+
+def peak_rss(sizes: list[int]) -> list[list[float]]:
+    """Peak RSS of a fresh interpreter that runs one stitch(align='none') at each size."""
+    floor = h.run_in_subprocess_peak_rss("import numpy as np, m360")
+    code = (
+        "import numpy as np, m360\n"
+        "lay = m360.Layout.icosahedron({w})\n"
+        "tiles = np.ones((20, *lay.tangent_shape), np.float32)\n"
+        "m360.stitch(tiles, lay, align='none', blend='mean')\n"
+    )
+    rows = []
+    for size in sizes:
+        t0 = time.perf_counter()
+        peak = h.run_in_subprocess_peak_rss(code.format(w=size))
+        rows.append([size, peak, peak - floor, time.perf_counter() - t0])
+    return rows
+
+
+def main() -> None:
+    parser = h.bench_argparser(__doc__.splitlines()[0])
+    parser.add_argument("--e2p-repeats", type=int, default=2, help="repeats of py360convert (slow)")
+    parser.add_argument("--no-rss", action="store_true", help="skip the peak-RSS subprocesses")
+    args = parser.parse_args()
+    meta = h.metadata()
+    meta.update(m360_threads=m360.get_num_threads(), cv2_threads=cv2.getNumThreads())
+    print(
+        f"m360 {m360.__version__} @ {meta.get('git_commit')}, {meta.get('cpu_model')}, "
+        f"{meta.get('cpu_count')} cpus, m360 threads {meta['m360_threads']}, "
+        f"cv2 threads {meta['cv2_threads']}; median of {args.repeats} runs"
+    )
+    rows, json_rows = [], []
+    for size in args.sizes:
+        for width, op, impl, t, baseline in bench_size(size, args.repeats, args.e2p_repeats):
+            ratio = t.median / baseline if baseline else float("nan")
+            rows.append([width, op, impl, t.median, t.iqr, ratio])
+            json_rows.append({"erp_width": width, "op": op, "impl": impl, "timing": t})
+    h.print_table(
+        "ratio = median / baseline in the same run (<= 1: m360 at least as fast)",
+        ["ERP width", "operation", "implementation", "median s", "IQR s", "ratio"],
+        rows,
+    )
+    if not args.no_rss:
+        rss = peak_rss(args.sizes)
+        json_rows += [{"erp_width": r[0], "op": "stitch peak RSS MB", "value": r[1]} for r in rss]
+        h.print_table(
+            "peak RSS of a fresh process running stitch(align='none', blend='mean')",
+            ["ERP width", "peak RSS MB", "minus import MB", "wall s"],
+            rss,
+        )
+    if args.json:
+        h.write_json(args.json, json_rows, meta)
+
+
+if __name__ == "__main__":
+    main()
