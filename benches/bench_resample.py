@@ -20,11 +20,10 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
-import _harness as h  # noqa: E402
-
-import m360  # noqa: E402
-import m360._sphere as sph  # noqa: E402
-from m360.geometry import clear_plan_cache, plan_for  # noqa: E402
+import _harness as h
+import m360
+import m360._sphere as sph
+from m360.geometry import clear_plan_cache, plan_for
 
 Row = tuple[int, str, str, h.Timing, "float | None"]
 
