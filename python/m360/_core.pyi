@@ -1,5 +1,5 @@
 # Stub of the compiled module m360._core (rust/m360-py); checked by `mypy.stubtest m360._core`.
-from typing import final
+from typing import Any, final
 
 import numpy as np
 import numpy.typing as npt
@@ -34,6 +34,20 @@ class Plan:
     def spherical_disparity(
         self, perspective: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None
     ) -> npt.NDArray[np.float32]: ...
+    def align(
+        self,
+        maps: npt.NDArray[np.float32],
+        levels: list[tuple[int, int]],
+        energy: str,
+        smoothness: float,
+        scale: float,
+        solver: str,
+        max_iterations: int,
+        tolerance: float,
+        sample_fraction: float,
+        pole_cap_deg: float,
+        offsets: str,
+    ) -> tuple[npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]]]: ...
     def blend(
         self, tangents: npt.NDArray[np.float32], blend: str
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...

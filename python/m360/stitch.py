@@ -3,22 +3,47 @@
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 
-from ._validate import as_array, check_shape
+from ._validate import as_array, check_shape, one_of
 from .errors import InputError
 from .geometry import Layout, check_tiles, plan_for
 
-__all__ = ["ALIGN_MODES", "BLEND_MODES", "StitchResult", "stitch"]
+__all__ = [
+    "ALIGN_MODES",
+    "BLEND_MODES",
+    "ENERGIES",
+    "MULTISCALE",
+    "SOLVERS",
+    "StitchResult",
+    "stitch",
+]
 
-#: Alignment modes implemented in this version.
-ALIGN_MODES = ("none",)
+#: Alignment modes by name; a (cols, rows) grid or a list of them gives an explicit schedule.
+ALIGN_MODES = ("multiscale", "none")
+#: The paper's multi-scale schedule of (cols, rows) grid nodes per tangent, coarse to fine.
+MULTISCALE = ((4, 3), (8, 7), (16, 14))
+#: Energies: "normalized" (well-posed, the default) or "paper" (the formula as printed).
+ENERGIES = ("normalized", "paper")
+#: Solvers: "newton" (exact Hessian, sparse Cholesky) or "lbfgs" (the paper's choice).
+SOLVERS = ("newton", "lbfgs")
+#: Term weights (smoothness, scale) of each energy. The paper's are λ_s = 40, λ_c = 0.007;
+#: the normalized energy's were chosen by measurement on synthetic rooms (benches/bench_align.py).
+ENERGY_WEIGHTS = {"paper": (40.0, 0.007), "normalized": (1.0, 0.01)}
+#: Where the alignment offset acts: "perspective" (D̃ = s·D + o/|q|: a network's affine error
+#: is exactly representable) or "spherical" (D̃ = s·D + o, the paper's formula).
+OFFSETS = ("perspective", "spherical")
+DEFAULT_OFFSETS = {"normalized": "perspective", "paper": "spherical"}
+#: Iteration cap per level when `iterations` is None: Newton converges long before its cap;
+#: L-BFGS stops after the paper's 50.
+DEFAULT_ITERATIONS = {"newton": 100, "lbfgs": 50}
 #: Blend modes implemented in this version.
 BLEND_MODES = ("mean", "nn")
-_PLANNED_ALIGN = ("multiscale",)
+_PLANNED_ALIGN: tuple[str, ...] = ()
 _PLANNED_BLEND = ("poisson", "frustum", "radial")
 
 
@@ -55,18 +80,27 @@ class StitchResult:
 def stitch(
     tangent_disparity: np.ndarray,
     layout: Layout,
-    align: str = "multiscale",
+    align: str | tuple[int, int] | Sequence[tuple[int, int]] = "multiscale",
     blend: str = "poisson",
     *,
     mask: np.ndarray | None = None,
+    energy: str = "normalized",
+    solver: str = "newton",
+    iterations: int | None = None,
+    tolerance: float = 1e-6,
+    sample_fraction: float = 0.01,
+    pole_cap_deg: float = 0.0,
+    smoothness: float | None = None,
+    scale_weight: float | None = None,
+    offsets: str | None = None,
     return_details: bool = False,
 ) -> np.ndarray | StitchResult:
     """Stitch per-tangent perspective disparity into one ERP spherical disparity map.
 
     Each tangent value is first converted from perspective disparity (1/z, what a monocular
     network predicts up to scale and shift) to spherical disparity (1/distance) with its own
-    pixel's ray length, then mapped to the ERP grid (bilinear at the exact projected position)
-    and blended.
+    pixel's ray length; the tangents are then aligned (paper §3.3), mapped to the ERP grid
+    (bilinear at the exact projected position) and blended.
 
     Parameters
     ----------
@@ -75,28 +109,73 @@ def stitch(
         estimate. float64 is converted.
     layout : Layout
         The layout the tangents were made with.
-    align : str
-        ``"none"``: values pass through unchanged (no standardisation). ``"multiscale"`` (the
-        default of the method) comes with the alignment module; until then it raises InputError.
+    align : str, (cols, rows) or list of (cols, rows)
+        ``"multiscale"``: the schedule :data:`MULTISCALE` (4x3 → 8x7 → 16x14 grid nodes per
+        tangent). ``(cols, rows)``: one level; a list: that schedule. Each level starts from
+        identity fields on the maps as the previous level left them. ``"none"``: values pass
+        through unchanged (no standardisation).
     blend : str
         ``"mean"``: average of every tangent that sees the pixel. ``"nn"``: the tangent whose
         un-padded face contains the pixel (falling back to the next nearest face where that one
         has no valid value). ``"poisson"`` and the weighted blends come with the blending module.
     mask : (N, h, w) bool, optional
         False marks pixels with no estimate (sky, tripod). They never contribute, not even
-        through a bilinear neighbour.
+        through a bilinear neighbour, and are left out of standardisation and overlaps.
+    energy : {"normalized", "paper"}
+        ``"paper"``: the paper's energy as printed, (1/z_a) Σ r² + 40/(N·m·n) Σ (Δs² + Δo²) +
+        0.007 Σ 1/s. Its 1/s term is summed over nodes while the others are averaged, so at fine
+        grids it dominates and the optimum depends on the grid (solved to convergence it degrades
+        even exact tangents). ``"normalized"`` (default): every term is resolution independent —
+        the data term averaged over samples, the smoothness a Dirichlet energy of the fields per
+        tangent, the scale term a mean of 1/s — so each level's answer does not depend on its
+        grid size or on when the solver stops.
+    solver : {"newton", "lbfgs"}
+        ``"newton"``: exact Hessian, sparse Cholesky (faer), converges in a few iterations.
+        ``"lbfgs"``: limited-memory BFGS, the paper's solver.
+    iterations : int, optional
+        Iteration cap per level; default 100 for Newton (it converges first) and 50 for L-BFGS
+        (the paper's setting).
+    tolerance : float
+        Converged when the gradient's max-norm ≤ tolerance · max(1, |energy|).
+    sample_fraction : float
+        Fraction of overlap pixels used by the data term (paper: 1 %), chosen deterministically.
+    pole_cap_deg : float
+        Leave out overlap samples within this many degrees of either pole.
+    smoothness, scale_weight : float, optional
+        Term weights; default :data:`ENERGY_WEIGHTS` of the chosen energy.
+    offsets : {"perspective", "spherical"}, optional
+        Where the offset field acts. A network's output is affine in *perspective* disparity,
+        and spherical = perspective/|q| (q the pixel's ray), so its shift becomes o/|q| in
+        spherical disparity, which a spherical offset cannot represent exactly.
+        ``"perspective"`` models D̃ = s·D + o/|q| (and standardises in perspective space);
+        ``"spherical"`` is the paper's D̃ = s·D + o. Default: perspective for the normalized
+        energy, spherical for ``energy="paper"``.
     return_details : bool
         Return a :class:`StitchResult` instead of the disparity array.
 
     Returns
     -------
     (H, W) float32 spherical disparity, NaN where no tangent has a valid value; or a
-    StitchResult.
+    StitchResult. With alignment the result is in the input's range up to one global affine map.
     """
     t0 = time.perf_counter()
     tiles = check_tiles(tangent_disparity, layout, "tangent_disparity")
-    align = _mode(align, "align", ALIGN_MODES, _PLANNED_ALIGN)
+    schedule = _schedule(align, layout)
     blend = _mode(blend, "blend", BLEND_MODES, _PLANNED_BLEND)
+    energy = one_of(energy, "energy", ENERGIES)
+    solver = one_of(solver, "solver", SOLVERS)
+    max_iterations = DEFAULT_ITERATIONS[solver] if iterations is None else _count(iterations)
+    tolerance = _number(tolerance, "tolerance", low=0.0)
+    sample_fraction = _number(sample_fraction, "sample_fraction", low=0.0, high=1.0)
+    pole_cap_deg = _number(pole_cap_deg, "pole_cap_deg", low=0.0, high=89.0)
+    default_smooth, default_scale = ENERGY_WEIGHTS[energy]
+    smooth = default_smooth if smoothness is None else _number(smoothness, "smoothness", low=0.0)
+    scale = default_scale if scale_weight is None else _number(scale_weight, "scale_weight")
+    if scale <= 0:
+        raise InputError(f"scale_weight={scale_weight!r} must be > 0 (it keeps the scales from 0)")
+    offset_space = (
+        DEFAULT_OFFSETS[energy] if offsets is None else one_of(offsets, "offsets", OFFSETS)
+    )
     valid = None if mask is None else _check_mask(mask, layout)
     if not isinstance(return_details, bool):
         raise InputError(f"return_details must be True or False, got {return_details!r}")
@@ -104,7 +183,15 @@ def stitch(
     plan = plan_for(layout)
     spherical = plan.spherical_disparity(tiles, valid)
     t1 = time.perf_counter()
-    t2 = t1  # alignment: "none" passes the values through
+    grids: list[np.ndarray] = []
+    report: dict[str, Any] = {}
+    if schedule:
+        spherical, levels, grids = plan.align(
+            spherical, schedule, energy, smooth, scale, solver, max_iterations, tolerance,
+            sample_fraction, pole_cap_deg, offset_space,
+        )  # fmt: skip
+        report["align"] = levels
+    t2 = time.perf_counter()
     disparity, spread = plan.blend(spherical, blend)
     t3 = time.perf_counter()
     if not return_details:
@@ -113,8 +200,70 @@ def stitch(
         disparity=disparity,
         confidence=spread,
         coverage=plan.coverage(),
+        grids=grids,
+        report=report,
         timings={"convert": t1 - t0, "align": t2 - t1, "blend": t3 - t2},
     )
+
+
+def _schedule(align: object, layout: Layout) -> list[tuple[int, int]]:
+    """The list of (cols, rows) levels that ``align`` asks for ([] for "none")."""
+    if isinstance(align, str):
+        if align == "none":
+            return []
+        if align == "multiscale":
+            return list(MULTISCALE)
+        _mode(align, "align", ALIGN_MODES, _PLANNED_ALIGN)
+    levels: list[object]
+    if _is_grid(align):
+        levels = [align]
+    elif isinstance(align, (list, tuple)) and align and all(_is_grid(g) for g in align):
+        levels = list(align)
+    else:
+        raise InputError(
+            f"align={align!r} is not supported; use 'multiscale', 'none', a (cols, rows) grid "
+            "or a list of grids such as [(4, 3), (8, 7)]"
+        )
+    h, w = layout.tangent_shape
+    out = []
+    for grid in levels:
+        cols, rows = (int(v) for v in grid)  # type: ignore[union-attr]
+        if cols < 2 or rows < 2:
+            raise InputError(f"alignment grid {grid!r} needs at least 2 x 2 nodes (cols, rows)")
+        if cols > w or rows > h:
+            raise InputError(
+                f"alignment grid {grid!r} has more nodes than the tangent has pixels ({w}x{h})"
+            )
+        out.append((cols, rows))
+    return out
+
+
+def _is_grid(value: object) -> bool:
+    return (
+        isinstance(value, (list, tuple))
+        and len(value) == 2
+        and all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in value)
+    )
+
+
+def _count(value: object) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 0:
+        raise InputError(f"iterations={value!r} must be a non-negative integer")
+    return int(value)
+
+
+def _number(value: object, name: str, low: float | None = None, high: float | None = None) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise InputError(f"{name}={value!r} must be a number")
+    number = float(value)
+    if (
+        not np.isfinite(number)
+        or (low is not None and number < low)
+        or (high is not None and number > high)
+    ):
+        bounds = f"[{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
+        raise InputError(f"{name}={value!r} must be a finite number in {bounds}")
+    return number
 
 
 def _mode(value: object, name: str, available: tuple[str, ...], planned: tuple[str, ...]) -> str:

@@ -7,6 +7,10 @@ use std::fmt;
 pub enum CoreError {
     /// A layout or option is unusable (checked again here because layouts can be user-built).
     InvalidLayout(String),
+    /// The input cannot be processed as asked (a tangent without valid pixels, a constant map).
+    Degenerate(String),
+    /// A solver met a non-finite value or an indefinite system.
+    NonFinite(String),
     /// Array dimensions do not match the plan they are used with.
     ShapeMismatch {
         /// What was being checked.
@@ -22,6 +26,8 @@ impl fmt::Display for CoreError {
     fn fmt(&self, f: &mut fmt::Formatter<'_>) -> fmt::Result {
         match self {
             CoreError::InvalidLayout(msg) => write!(f, "invalid layout: {msg}"),
+            CoreError::Degenerate(msg) => write!(f, "{msg}"),
+            CoreError::NonFinite(msg) => write!(f, "numerical failure: {msg}"),
             CoreError::ShapeMismatch {
                 what,
                 expected,

@@ -6,7 +6,8 @@
 //! 2. [`camera`] and [`layout`]: pinhole tangent cameras, and the icosahedron layout of the paper.
 //! 3. [`plan`]: per-(layout, ERP size) sampling maps, built once and reused for every image.
 //! 4. [`resample`]: ERP → tangent images and tangent images → ERP, bilinear and parallel.
-//! 5. [`stitch`]: perspective → spherical disparity and the simple blends (mean, nearest face).
+//! 5. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
+//! 6. [`stitch`]: perspective → spherical disparity and the simple blends (mean, nearest face).
 //!
 //! Conventions (world frame x right, y down, z forward; pixel centres at integer coordinates) are
 //! those of `DESIGN.md` §1. This crate knows nothing of Python: the bindings crate validates user
@@ -14,6 +15,7 @@
 //! can happen on valid input through [`CoreError`].
 #![deny(missing_docs)]
 
+pub mod align;
 pub mod camera;
 pub mod error;
 pub mod layout;

@@ -1,8 +1,12 @@
 //! Per-(layout, ERP size) sampling maps, built on first use and shared by every later image.
 
+use crate::align::Overlaps;
 use crate::layout::Layout;
 use crate::resample::{ErpTaps, TangentTaps};
-use std::sync::OnceLock;
+use std::sync::{Arc, Mutex, OnceLock};
+
+/// (sample fraction, pole cap) as bit patterns: the options overlap samples depend on.
+type OverlapKey = (u64, u64);
 
 /// Everything that depends only on the layout (and so on the ERP size), not on the image.
 ///
@@ -13,6 +17,8 @@ pub struct Plan {
     layout: Layout,
     tangent_taps: OnceLock<TangentTaps>,
     erp_taps: OnceLock<ErpTaps>,
+    /// Overlap samples per (sample fraction, pole cap) — a handful of option sets at most.
+    overlaps: Mutex<Vec<(OverlapKey, Arc<Overlaps>)>>,
 }
 
 impl Plan {
@@ -22,6 +28,7 @@ impl Plan {
             layout,
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
+            overlaps: Mutex::new(Vec::new()),
         }
     }
 
@@ -39,6 +46,19 @@ impl Plan {
     /// Which tangents, and where, each ERP pixel sees (built on first call).
     pub fn erp_taps(&self) -> &ErpTaps {
         self.erp_taps.get_or_init(|| ErpTaps::build(&self.layout))
+    }
+
+    /// Overlap samples for alignment with these options (built on first call).
+    pub fn overlaps(&self, fraction: f64, pole_cap_deg: f64) -> Arc<Overlaps> {
+        let key = (fraction.to_bits(), pole_cap_deg.to_bits());
+        // A poisoned lock only means another thread panicked mid-build; the cache stays valid.
+        let mut cache = self.overlaps.lock().unwrap_or_else(|e| e.into_inner());
+        if let Some((_, found)) = cache.iter().find(|(k, _)| *k == key) {
+            return found.clone();
+        }
+        let built = Arc::new(Overlaps::build(&self.layout, fraction, pole_cap_deg));
+        cache.push((key, built.clone()));
+        built
     }
 
     /// Bytes held by the maps built so far.

@@ -19,6 +19,7 @@ use std::sync::{Arc, RwLock};
 
 pyo3::import_exception!(m360.errors, M360Error);
 pyo3::import_exception!(m360.errors, InputError);
+pyo3::import_exception!(m360.errors, SolverError);
 
 /// A core error on its way to Python (the orphan rule forbids `From<CoreError> for PyErr`).
 struct PyCoreError(CoreError);
@@ -26,9 +27,10 @@ struct PyCoreError(CoreError);
 impl From<PyCoreError> for PyErr {
     fn from(err: PyCoreError) -> PyErr {
         match err.0 {
-            e @ (CoreError::InvalidLayout(_) | CoreError::ShapeMismatch { .. }) => {
-                InputError::new_err(e.to_string())
-            }
+            e @ (CoreError::InvalidLayout(_)
+            | CoreError::ShapeMismatch { .. }
+            | CoreError::Degenerate(_)) => InputError::new_err(e.to_string()),
+            e @ CoreError::NonFinite(_) => SolverError::new_err(e.to_string()),
         }
     }
 }
@@ -352,6 +354,105 @@ impl Plan {
             detached(py, || stitch::spherical_disparity(layout, data, mask, dst))?;
         }
         Ok(out)
+    }
+
+    /// Align spherical disparity maps (N,h,w) float32 (NaN = invalid): returns the aligned
+    /// maps, and per level a report dict and the fields (N, rows, cols, 2) as (s, o).
+    #[pyo3(signature = (maps, levels, energy, smoothness, scale, solver, max_iterations, tolerance, sample_fraction, pole_cap_deg, offsets))]
+    #[allow(clippy::too_many_arguments, clippy::type_complexity)]
+    fn align<'py>(
+        &self,
+        py: Python<'py>,
+        maps: PyReadonlyArray3<'py, f32>,
+        levels: Vec<(usize, usize)>,
+        energy: &str,
+        smoothness: f64,
+        scale: f64,
+        solver: &str,
+        max_iterations: usize,
+        tolerance: f64,
+        sample_fraction: f64,
+        pole_cap_deg: f64,
+        offsets: &str,
+    ) -> PyResult<(
+        Bound<'py, PyArrayDyn<f32>>,
+        Vec<Bound<'py, pyo3::types::PyDict>>,
+        Vec<Bound<'py, PyArrayDyn<f64>>>,
+    )> {
+        use m360_core::align::{self, AlignOptions, Energy, LevelParams, Offsets, Solver};
+        let layout = self.inner.layout();
+        let (h, w) = layout.tangent_shape();
+        self.check_tangents("maps", maps.shape())?;
+        let energy = match energy {
+            "paper" => Energy::Paper,
+            "normalized" => Energy::Normalized,
+            _ => return Err(input_error(format!("unknown energy {energy:?}"))),
+        };
+        let offsets = match offsets {
+            "perspective" => Offsets::Perspective,
+            "spherical" => Offsets::Spherical,
+            _ => return Err(input_error(format!("unknown offsets {offsets:?}"))),
+        };
+        let solver = match solver {
+            "lbfgs" => Solver::Lbfgs,
+            "newton" => Solver::Newton,
+            _ => return Err(input_error(format!("unknown solver {solver:?}"))),
+        };
+        for &(cols, rows) in &levels {
+            if cols < 2 || rows < 2 || cols > w || rows > h {
+                return Err(input_error(format!(
+                    "grid {cols}x{rows} must be at least 2x2 and at most the tangent size {w}x{h}"
+                )));
+            }
+        }
+        let options = AlignOptions {
+            levels: levels
+                .iter()
+                .map(|&(cols, rows)| LevelParams {
+                    cols,
+                    rows,
+                    energy,
+                    smoothness,
+                    scale,
+                    offsets,
+                })
+                .collect(),
+            solver,
+            max_iterations,
+            tolerance,
+        };
+        let data = contiguous(&maps, "maps")?;
+        let out = output_array::<f32>(py, maps.shape());
+        let solved = {
+            let mut rw = out.readwrite();
+            let dst = writable(&mut rw)?;
+            dst.copy_from_slice(data);
+            detached(py, || {
+                let overlaps = self.inner.overlaps(sample_fraction, pole_cap_deg);
+                align::align(layout, dst, &overlaps, &options)
+            })?
+            .map_err(PyCoreError)?
+        };
+        let n = layout.cameras.len();
+        let mut reports = Vec::with_capacity(solved.len());
+        let mut grids = Vec::with_capacity(solved.len());
+        for level in solved {
+            let r = &level.report;
+            let d = pyo3::types::PyDict::new(py);
+            d.set_item("grid", (level.params.cols, level.params.rows))?;
+            d.set_item("iterations", r.iterations)?;
+            d.set_item("initial_energy", r.initial_energy)?;
+            d.set_item("energy", r.energy)?;
+            d.set_item("gradient_norm", r.gradient_norm)?;
+            d.set_item("converged", r.converged)?;
+            d.set_item("samples", r.samples)?;
+            d.set_item("build_seconds", level.build_seconds)?;
+            d.set_item("solve_seconds", level.solve_seconds)?;
+            reports.push(d);
+            let shape = [n, level.params.rows, level.params.cols, 2];
+            grids.push(to_numpy(py, level.fields, &shape)?);
+        }
+        Ok((out, reports, grids))
     }
 
     /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with

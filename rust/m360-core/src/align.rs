@@ -1,0 +1,1097 @@
+//! Global deformable alignment of per-tangent disparity (paper §3.3, `DESIGN.md` §6).
+//!
+//! Each tangent a gets grids of scale s and offset o (nodes on the image corners, bilinear in
+//! between) so that D̃_a = s·D_a + o agrees with its neighbours where they overlap. The energy is
+//! a data term over sampled overlap pairs, a smoothness term over grid edges and a 1/s term that
+//! keeps the scales from collapsing; [`Energy::Paper`] is the paper's formula literally,
+//! [`Energy::Normalized`] the well-posed variant whose terms do not depend on the grid size.
+//!
+//! Unknowns are laid out node-interleaved: `x[2·node] = s`, `x[2·node + 1] = o`, with
+//! `node = tangent·(cols·rows) + row·cols + col`, so the (s, o) pair of a node is one 2×2 block
+//! of the Hessian.
+
+use crate::error::{CoreError, Result};
+use crate::layout::Layout;
+use crate::sphere::direction_to_pixel;
+use faer::linalg::solvers::Solve;
+use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
+use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
+use faer::{Mat, Side};
+use rayon::prelude::*;
+
+/// Which energy to minimise.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Energy {
+    /// The paper literally: (1/z_a) Σ r² + λ_s/(N·m·n) Σ_edges (Δs² + Δo²) + λ_c Σ 1/s.
+    Paper,
+    /// Resolution-independent: the data term averaged over samples, the smoothness a discrete
+    /// Dirichlet energy ∫|∇s|² + |∇o|² per tangent (edges weighted by their aspect), the scale
+    /// term a mean of 1/s over the nodes. Refining the grid does not change the balance.
+    Normalized,
+}
+
+/// In which disparity the per-tangent offset o acts.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Offsets {
+    /// D̃ = s·D + o on spherical disparity, as the paper writes it.
+    Spherical,
+    /// D̃ = s·D + o/|q| — the offset acts on perspective disparity, where a network's affine
+    /// ambiguity lives (spherical = perspective/|q|), so a per-tangent affine error of the
+    /// network is exactly a constant (s, o) field.
+    Perspective,
+}
+
+/// Weights and shape of one alignment level.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct LevelParams {
+    /// Grid nodes per tangent, horizontally (m ≥ 2).
+    pub cols: usize,
+    /// Grid nodes per tangent, vertically (n ≥ 2).
+    pub rows: usize,
+    /// Which energy.
+    pub energy: Energy,
+    /// Weight of the smoothness term (paper: 40).
+    pub smoothness: f64,
+    /// Weight of the 1/s term (paper: 0.007).
+    pub scale: f64,
+    /// Where the offset acts.
+    pub offsets: Offsets,
+}
+
+/// Which solver.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Solver {
+    /// Limited-memory BFGS with a backtracking Armijo line search (the paper's choice).
+    Lbfgs,
+    /// Newton's method with the exact Hessian, factorised by faer's sparse Cholesky.
+    Newton,
+}
+
+/// How a level's solve ended.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SolveReport {
+    /// Iterations taken.
+    pub iterations: usize,
+    /// Energy at the start (identity fields) and at the end.
+    pub initial_energy: f64,
+    /// Energy at the end.
+    pub energy: f64,
+    /// Max-norm of the gradient at the end.
+    pub gradient_norm: f64,
+    /// Whether the gradient criterion held at the end.
+    pub converged: bool,
+    /// Number of overlap samples used.
+    pub samples: usize,
+}
+
+/// Overlap samples of a layout: pixel `pa` of tangent `a` lands at (xb, yb) in tangent `b > a`.
+///
+/// A deterministic pseudo-random `fraction` of the pixels of each tangent is kept (a hash of
+/// tangent and pixel index), so the same layout and options always give the same samples.
+#[derive(Debug, Clone, Default)]
+pub struct Overlaps {
+    a: Vec<u16>,
+    b: Vec<u16>,
+    pa: Vec<u32>,
+    xb: Vec<f32>,
+    yb: Vec<f32>,
+}
+
+impl Overlaps {
+    /// Samples of `layout` keeping `fraction` of the pixels, excluding directions within
+    /// `pole_cap_deg` degrees of either pole.
+    pub fn build(layout: &Layout, fraction: f64, pole_cap_deg: f64) -> Self {
+        let (h, w) = layout.tangent_shape();
+        let threshold = (fraction.clamp(0.0, 1.0) * u64::MAX as f64) as u64;
+        let max_abs_lat = (90.0 - pole_cap_deg).to_radians();
+        let (eh, ew) = (layout.erp_height, layout.erp_width);
+        let per_face: Vec<Overlaps> = (0..layout.cameras.len())
+            .into_par_iter()
+            .map(|a| {
+                let cam_a = &layout.cameras[a];
+                let mut out = Overlaps::default();
+                for p in 0..h * w {
+                    if splitmix64(((a as u64) << 32) | p as u64) > threshold {
+                        continue;
+                    }
+                    let d = cam_a.pixel_direction((p % w) as f64, (p / w) as f64);
+                    if pole_cap_deg > 0.0 {
+                        let (_, row) = direction_to_pixel(&d, eh, ew);
+                        let lat = std::f64::consts::FRAC_PI_2
+                            - std::f64::consts::PI * (row + 0.5) / eh as f64;
+                        if lat.abs() > max_abs_lat {
+                            continue;
+                        }
+                    }
+                    for (b, cam_b) in layout.cameras.iter().enumerate().skip(a + 1) {
+                        if let Some((x, y)) = cam_b.project(&d) {
+                            if cam_b.contains(x, y) {
+                                out.a.push(a as u16);
+                                out.b.push(b as u16);
+                                out.pa.push(p as u32);
+                                out.xb.push(x.clamp(0.0, (w - 1) as f64) as f32);
+                                out.yb.push(y.clamp(0.0, (h - 1) as f64) as f32);
+                            }
+                        }
+                    }
+                }
+                out
+            })
+            .collect();
+        let mut all = Overlaps::default();
+        for part in per_face {
+            all.a.extend(part.a);
+            all.b.extend(part.b);
+            all.pa.extend(part.pa);
+            all.xb.extend(part.xb);
+            all.yb.extend(part.yb);
+        }
+        all
+    }
+
+    /// Number of samples.
+    pub fn len(&self) -> usize {
+        self.a.len()
+    }
+
+    /// Whether there are no samples.
+    pub fn is_empty(&self) -> bool {
+        self.a.is_empty()
+    }
+}
+
+/// A well-mixed 64-bit hash (SplitMix64 finaliser): deterministic sampling without an RNG.
+fn splitmix64(mut z: u64) -> u64 {
+    z = z.wrapping_add(0x9E37_79B9_7F4A_7C15);
+    z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+    z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+    z ^ (z >> 31)
+}
+
+/// Median and mean absolute deviation from it of the finite values; None if there are none.
+fn median_and_spread(values: &[f32]) -> Option<(f64, f64)> {
+    let mut finite: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
+    if finite.is_empty() {
+        return None;
+    }
+    let mid = finite.len() / 2;
+    let (_, &mut median, _) = finite.select_nth_unstable_by(mid, f32::total_cmp);
+    let median = median as f64;
+    let spread = finite
+        .iter()
+        .map(|&v| (v as f64 - median).abs())
+        .sum::<f64>()
+        / finite.len() as f64;
+    Some((median, spread))
+}
+
+/// The factor multiplying the offset at tangent pixel (x, y) of `cam`: 1/|q| for perspective
+/// offsets, 1 for spherical ones.
+#[inline]
+fn offset_factor(offsets: Offsets, cam: &crate::TangentCamera, x: f64, y: f64) -> f64 {
+    match offsets {
+        Offsets::Spherical => 1.0,
+        Offsets::Perspective => cam.spherical_factor(x, y),
+    }
+}
+
+/// Standardise each tangent in place to (d − median)/mean|d − median| over its finite values,
+/// measured in the space where offsets act (`offsets`: perspective values are d·|q|), so that
+/// standardising is itself one of the affine maps the alignment can represent.
+/// Returns the (median, spread) used per tangent; a tangent without finite values or with zero
+/// spread is an error naming it.
+pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
+    let (h, w) = layout.tangent_shape();
+    let stats: Vec<Option<(f64, f64)>> = maps
+        .par_chunks(h * w)
+        .zip(&layout.cameras)
+        .map(|(map, cam)| {
+            let values: Vec<f32> = map
+                .iter()
+                .enumerate()
+                .map(|(p, &v)| {
+                    (v as f64 / offset_factor(offsets, cam, (p % w) as f64, (p / w) as f64)) as f32
+                })
+                .collect();
+            median_and_spread(&values)
+        })
+        .collect();
+    let mut out = Vec::with_capacity(stats.len());
+    for (t, s) in stats.into_iter().enumerate() {
+        match s {
+            Some((m, spread)) if spread > 0.0 && spread.is_finite() => out.push((m, spread)),
+            Some(_) => {
+                return Err(CoreError::Degenerate(format!(
+                    "tangent {t} is constant: it has no disparity variation to align"
+                )))
+            }
+            None => {
+                return Err(CoreError::Degenerate(format!(
+                    "tangent {t} has no valid pixel (all NaN or masked)"
+                )))
+            }
+        }
+    }
+    maps.par_chunks_mut(h * w)
+        .zip(&layout.cameras)
+        .zip(&out)
+        .for_each(|((map, cam), &(m, spread))| {
+            let inv = 1.0 / spread;
+            for (p, v) in map.iter_mut().enumerate() {
+                let f = offset_factor(offsets, cam, (p % w) as f64, (p / w) as f64);
+                *v = ((*v as f64 - m * f) * inv) as f32;
+            }
+        });
+    Ok(out)
+}
+
+/// Bilinear node weights of a continuous pixel position in a `cols`×`rows` grid spanning an
+/// image of `w`×`h` pixels: the top-left node (col, row) and the fractions.
+#[inline]
+fn grid_cell(
+    x: f64,
+    y: f64,
+    w: usize,
+    h: usize,
+    cols: usize,
+    rows: usize,
+) -> (usize, usize, f64, f64) {
+    let gx = x / (w - 1) as f64 * (cols - 1) as f64;
+    let gy = y / (h - 1) as f64 * (rows - 1) as f64;
+    let c0 = (gx.max(0.0) as usize).min(cols - 2);
+    let r0 = (gy.max(0.0) as usize).min(rows - 2);
+    (c0, r0, gx - c0 as f64, gy - r0 as f64)
+}
+
+/// A sample's 8 nodes and its residual coefficients on their s and o.
+type SampleTerms = ([u32; 8], [f64; 8], [f64; 8]);
+
+/// One level's problem: valid samples with their nodes and coefficients, and the grid edges.
+///
+/// The residual of sample k is r_k = Σ_j coef_s[k][j]·s[node[k][j]] + coef_o[k][j]·o[node[k][j]]
+/// over its 8 nodes (4 in a with positive weights, 4 in b with negative ones).
+#[derive(Debug, Clone)]
+pub struct Problem {
+    params: LevelParams,
+    tangents: usize,
+    nodes: Vec<[u32; 8]>,
+    coef_s: Vec<[f64; 8]>,
+    coef_o: Vec<[f64; 8]>,
+    /// (node p, node q, weight): smoothness adds weight·((s_p − s_q)² + (o_p − o_q)²).
+    edges: Vec<(u32, u32, f64)>,
+    /// Weight of Σ 1/s.
+    scale_weight: f64,
+    /// Weight of Σ o²: fixes the global offset, which no other term sees (see `GAUGE`).
+    gauge_weight: f64,
+}
+
+/// The data and smoothness terms are unchanged by adding one constant to every offset, and no
+/// term fixes it; this tiny pull of the offsets towards 0 (standardised maps have median 0)
+/// makes the minimum unique and the Newton system positive definite, without measurably moving
+/// the solution.
+const GAUGE: f64 = 1e-9;
+
+/// Largest spread of the four bilinear neighbours of a b-sample, in standardised units (the
+/// mean absolute deviation of each tangent is 1), for the sample to be used.
+const EDGE_RANGE: f64 = 0.1;
+
+impl Problem {
+    /// The problem of aligning `maps` (N·h·w, NaN = invalid) with `params` over `overlaps`.
+    /// Samples whose a-pixel or any of the four b-neighbours is invalid are dropped.
+    pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
+        let (h, w) = layout.tangent_shape();
+        let n = layout.cameras.len();
+        let (cols, rows) = (params.cols, params.rows);
+        let per = cols * rows;
+        let tp = h * w;
+        let prepared: Vec<Option<SampleTerms>> = (0..overlaps.len())
+            .into_par_iter()
+            .map(|k| {
+                let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
+                let pa = overlaps.pa[k] as usize;
+                let da = maps[a * tp + pa];
+                let (xb, yb) = (overlaps.xb[k] as f64, overlaps.yb[k] as f64);
+                let x0 = (xb as usize).min(w - 2);
+                let y0 = (yb as usize).min(h - 2);
+                let (fx, fy) = (xb - x0 as f64, yb - y0 as f64);
+                let base = b * tp + y0 * w + x0;
+                let corners = [
+                    maps[base],
+                    maps[base + 1],
+                    maps[base + w],
+                    maps[base + w + 1],
+                ];
+                if !da.is_finite() || corners.iter().any(|v| !v.is_finite()) {
+                    return None;
+                }
+                // Bilinear interpolation across a depth edge is no measurement of either side:
+                // such samples would dominate the squared data term with resampling error.
+                let (lo, hi) = corners
+                    .iter()
+                    .fold((f32::MAX, f32::MIN), |(l, u), &v| (l.min(v), u.max(v)));
+                if (hi - lo) as f64 > EDGE_RANGE {
+                    return None;
+                }
+                let c = corners.map(|v| v as f64);
+                let db = (1.0 - fx) * (1.0 - fy) * c[0]
+                    + fx * (1.0 - fy) * c[1]
+                    + (1.0 - fx) * fy * c[2]
+                    + fx * fy * c[3];
+                let (ca, ra, ax, ay) =
+                    grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
+                let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
+                let node = |t: usize, c: usize, r: usize| (t * per + r * cols + c) as u32;
+                let nodes = [
+                    node(a, ca, ra),
+                    node(a, ca + 1, ra),
+                    node(a, ca, ra + 1),
+                    node(a, ca + 1, ra + 1),
+                    node(b, cb, rb),
+                    node(b, cb + 1, rb),
+                    node(b, cb, rb + 1),
+                    node(b, cb + 1, rb + 1),
+                ];
+                let wa = [
+                    (1.0 - ax) * (1.0 - ay),
+                    ax * (1.0 - ay),
+                    (1.0 - ax) * ay,
+                    ax * ay,
+                ];
+                let wb = [
+                    (1.0 - bx) * (1.0 - by),
+                    bx * (1.0 - by),
+                    (1.0 - bx) * by,
+                    bx * by,
+                ];
+                let fa = offset_factor(
+                    params.offsets,
+                    &layout.cameras[a],
+                    (pa % w) as f64,
+                    (pa / w) as f64,
+                );
+                let fb = offset_factor(params.offsets, &layout.cameras[b], xb, yb);
+                let mut coef_s = [0.0; 8];
+                let mut coef_o = [0.0; 8];
+                for j in 0..4 {
+                    coef_s[j] = wa[j] * da as f64;
+                    coef_o[j] = wa[j] * fa;
+                    coef_s[4 + j] = -wb[j] * db;
+                    coef_o[4 + j] = -wb[j] * fb;
+                }
+                Some((nodes, coef_s, coef_o))
+            })
+            .collect();
+        let mut nodes = Vec::with_capacity(prepared.len());
+        let mut coef_s = Vec::with_capacity(prepared.len());
+        let mut coef_o = Vec::with_capacity(prepared.len());
+        for (nd, cs, co) in prepared.into_iter().flatten() {
+            nodes.push(nd);
+            coef_s.push(cs);
+            coef_o.push(co);
+        }
+
+        // Smoothness edges between 4-neighbours, and the term weights.
+        let (hx, hy) = (1.0 / (cols - 1) as f64, 1.0 / (rows - 1) as f64);
+        let (w_h, w_v, scale_weight) = match params.energy {
+            Energy::Paper => {
+                let per_edge = params.smoothness / (n * per) as f64;
+                (per_edge, per_edge, params.scale)
+            }
+            Energy::Normalized => (
+                params.smoothness / n as f64 * hy / hx,
+                params.smoothness / n as f64 * hx / hy,
+                params.scale / (n * per) as f64,
+            ),
+        };
+        let mut edges = Vec::with_capacity(n * per * 2);
+        for t in 0..n {
+            for r in 0..rows {
+                for c in 0..cols {
+                    let p = (t * per + r * cols + c) as u32;
+                    if c + 1 < cols {
+                        edges.push((p, p + 1, w_h));
+                    }
+                    if r + 1 < rows {
+                        edges.push((p, p + cols as u32, w_v));
+                    }
+                }
+            }
+        }
+        Self {
+            params,
+            tangents: n,
+            nodes,
+            coef_s,
+            coef_o,
+            edges,
+            scale_weight,
+            gauge_weight: GAUGE,
+        }
+    }
+
+    /// Number of unknowns (2 per node).
+    pub fn len(&self) -> usize {
+        2 * self.tangents * self.params.cols * self.params.rows
+    }
+
+    /// Whether the problem has no unknowns.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+
+    /// Number of valid overlap samples.
+    pub fn samples(&self) -> usize {
+        self.nodes.len()
+    }
+
+    /// Identity fields: s = 1, o = 0.
+    pub fn identity(&self) -> Vec<f64> {
+        (0..self.len())
+            .map(|i| if i % 2 == 0 { 1.0 } else { 0.0 })
+            .collect()
+    }
+
+    /// Residual of sample k.
+    #[inline]
+    fn residual(&self, k: usize, x: &[f64]) -> f64 {
+        let (nd, cs, co) = (&self.nodes[k], &self.coef_s[k], &self.coef_o[k]);
+        (0..8)
+            .map(|j| {
+                let i = 2 * nd[j] as usize;
+                cs[j] * x[i] + co[j] * x[i + 1]
+            })
+            .sum()
+    }
+
+    /// Energy at `x`, and its gradient into `grad` when given. Any s ≤ 0 gives +∞.
+    ///
+    /// The data term is reduced over fixed chunks in index order, so the result does not
+    /// depend on the number of threads.
+    pub fn energy(&self, x: &[f64], grad: Option<&mut [f64]>) -> f64 {
+        const CHUNK: usize = 4096;
+        let inv_z = 1.0 / self.samples().max(1) as f64;
+        let want_grad = grad.is_some();
+        let n = self.len();
+        let partial: Vec<(f64, Vec<f64>)> = (0..self.samples().div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                let mut g = if want_grad { vec![0.0; n] } else { Vec::new() };
+                let mut e = 0.0;
+                for k in c * CHUNK..((c + 1) * CHUNK).min(self.samples()) {
+                    let r = self.residual(k, x);
+                    e += r * r;
+                    if want_grad {
+                        let (nd, cs, co) = (&self.nodes[k], &self.coef_s[k], &self.coef_o[k]);
+                        for j in 0..8 {
+                            let i = 2 * nd[j] as usize;
+                            g[i] += 2.0 * r * cs[j] * inv_z;
+                            g[i + 1] += 2.0 * r * co[j] * inv_z;
+                        }
+                    }
+                }
+                (e, g)
+            })
+            .collect();
+        let mut energy = 0.0;
+        let mut gradient = grad;
+        if let Some(g) = gradient.as_deref_mut() {
+            g.fill(0.0);
+        }
+        for (e, g_part) in partial {
+            energy += e * inv_z;
+            if let Some(g) = gradient.as_deref_mut() {
+                for (gi, pi) in g.iter_mut().zip(&g_part) {
+                    *gi += pi;
+                }
+            }
+        }
+        for &(p, q, wgt) in &self.edges {
+            let (p, q) = (2 * p as usize, 2 * q as usize);
+            let (ds, dof) = (x[p] - x[q], x[p + 1] - x[q + 1]);
+            energy += wgt * (ds * ds + dof * dof);
+            if let Some(g) = gradient.as_deref_mut() {
+                g[p] += 2.0 * wgt * ds;
+                g[q] -= 2.0 * wgt * ds;
+                g[p + 1] += 2.0 * wgt * dof;
+                g[q + 1] -= 2.0 * wgt * dof;
+            }
+        }
+        for node in 0..n / 2 {
+            let (s, o) = (x[2 * node], x[2 * node + 1]);
+            if s <= 0.0 {
+                return f64::INFINITY;
+            }
+            energy += self.scale_weight / s + self.gauge_weight * o * o;
+            if let Some(g) = gradient.as_deref_mut() {
+                g[2 * node] -= self.scale_weight / (s * s);
+                g[2 * node + 1] += 2.0 * self.gauge_weight * o;
+            }
+        }
+        energy
+    }
+}
+
+/// Stopping rule shared by both solvers: the gradient's max-norm is below `tolerance` times
+/// max(1, |E|) (energies are O(1): the maps are standardised).
+fn gradient_small(grad: &[f64], energy: f64, tolerance: f64) -> bool {
+    max_abs(grad) <= tolerance * energy.abs().max(1.0)
+}
+
+fn max_abs(v: &[f64]) -> f64 {
+    v.iter().fold(0.0, |m, x| m.max(x.abs()))
+}
+
+fn dot(a: &[f64], b: &[f64]) -> f64 {
+    a.iter().zip(b).map(|(x, y)| x * y).sum()
+}
+
+/// Backtracking Armijo line search along `dir` from `x` (energy `e`, gradient `g`); returns the
+/// new point and energy, or None if no step decreases the energy.
+fn line_search(
+    problem: &Problem,
+    x: &[f64],
+    e: f64,
+    g: &[f64],
+    dir: &[f64],
+) -> Option<(Vec<f64>, f64)> {
+    let slope = dot(g, dir);
+    if slope >= 0.0 {
+        return None;
+    }
+    // Largest step that keeps every scale positive (the 1/s term is a barrier at 0).
+    let mut step: f64 = 1.0;
+    for i in (0..x.len()).step_by(2) {
+        if dir[i] < 0.0 {
+            step = step.min(0.95 * x[i] / -dir[i]);
+        }
+    }
+    let mut trial = vec![0.0; x.len()];
+    for _ in 0..60 {
+        for ((t, xi), di) in trial.iter_mut().zip(x).zip(dir) {
+            *t = xi + step * di;
+        }
+        let et = problem.energy(&trial, None);
+        if et <= e + 1e-4 * step * slope {
+            return Some((trial, et));
+        }
+        step *= 0.5;
+    }
+    None
+}
+
+/// Minimise `problem` from `x0` with `solver`, at most `max_iterations` iterations, stopping when
+/// the gradient's max-norm is below `tolerance`·max(1, |E|).
+pub fn solve(
+    problem: &Problem,
+    x0: &[f64],
+    solver: Solver,
+    max_iterations: usize,
+    tolerance: f64,
+) -> Result<(Vec<f64>, SolveReport)> {
+    let n = problem.len();
+    let mut x = x0.to_vec();
+    let mut g = vec![0.0; n];
+    let mut e = problem.energy(&x, Some(&mut g));
+    if !e.is_finite() {
+        return Err(CoreError::NonFinite("alignment energy at the start".into()));
+    }
+    let initial_energy = e;
+    let mut iterations = 0;
+    let mut newton = match solver {
+        Solver::Newton => Some(NewtonSystem::new(problem)?),
+        Solver::Lbfgs => None,
+    };
+    let mut history: Vec<(Vec<f64>, Vec<f64>, f64)> = Vec::new(); // (s_k, y_k, 1/(y·s))
+    const MEMORY: usize = 10;
+    while iterations < max_iterations && !gradient_small(&g, e, tolerance) {
+        let dir = match newton.as_mut() {
+            Some(system) => system.step(problem, &x, &g)?,
+            None => lbfgs_direction(&g, &history),
+        };
+        let Some((x_new, e_new)) = line_search(problem, &x, e, &g, &dir) else {
+            break; // no decrease possible at this precision: the minimum is reached
+        };
+        let mut g_new = vec![0.0; n];
+        problem.energy(&x_new, Some(&mut g_new));
+        if newton.is_none() {
+            let s: Vec<f64> = x_new.iter().zip(&x).map(|(a, b)| a - b).collect();
+            let y: Vec<f64> = g_new.iter().zip(&g).map(|(a, b)| a - b).collect();
+            let ys = dot(&y, &s);
+            if ys > 1e-300 {
+                if history.len() == MEMORY {
+                    history.remove(0);
+                }
+                history.push((s, y, 1.0 / ys));
+            }
+        }
+        x = x_new;
+        e = e_new;
+        g = g_new;
+        iterations += 1;
+    }
+    let converged = gradient_small(&g, e, tolerance);
+    Ok((
+        x,
+        SolveReport {
+            iterations,
+            initial_energy,
+            energy: e,
+            gradient_norm: max_abs(&g),
+            converged,
+            samples: problem.samples(),
+        },
+    ))
+}
+
+/// L-BFGS two-loop recursion: an approximation of −H⁻¹g from the stored curvature pairs.
+fn lbfgs_direction(g: &[f64], history: &[(Vec<f64>, Vec<f64>, f64)]) -> Vec<f64> {
+    let mut q = g.to_vec();
+    let mut alphas = Vec::with_capacity(history.len());
+    for (s, y, rho) in history.iter().rev() {
+        let alpha = rho * dot(s, &q);
+        for (qi, yi) in q.iter_mut().zip(y) {
+            *qi -= alpha * yi;
+        }
+        alphas.push(alpha);
+    }
+    let gamma = history
+        .last()
+        .map_or(1.0, |(s, y, _)| dot(s, y) / dot(y, y).max(1e-300));
+    for qi in q.iter_mut() {
+        *qi *= gamma;
+    }
+    for ((s, y, rho), alpha) in history.iter().zip(alphas.iter().rev()) {
+        let beta = rho * dot(y, &q);
+        for (qi, si) in q.iter_mut().zip(s) {
+            *qi += (alpha - beta) * si;
+        }
+    }
+    q.iter_mut().for_each(|v| *v = -*v);
+    q
+}
+
+/// The exact Hessian in compressed-column form (lower triangle), with the constant part
+/// (data, smoothness, gauge) assembled once and only the 1/s curvature updated per step, and
+/// the symbolic Cholesky analysis done once.
+struct NewtonSystem {
+    symbolic: SymbolicSparseColMat<usize>,
+    analysis: SymbolicLlt<usize>,
+    constant: Vec<f64>,
+    /// Position in the value array of each diagonal entry (2·node, 2·node).
+    scale_diagonal: Vec<usize>,
+}
+
+impl NewtonSystem {
+    fn new(problem: &Problem) -> Result<Self> {
+        let n = problem.len();
+        // Node-level coupling pattern: nodes of one sample, and smoothness edges.
+        let mut pairs: Vec<(u32, u32)> =
+            Vec::with_capacity(problem.samples() * 36 + problem.edges.len() + n / 2);
+        for nd in &problem.nodes {
+            for p in 0..8 {
+                for q in 0..8 {
+                    if nd[p] >= nd[q] {
+                        pairs.push((nd[q], nd[p])); // (column node, row node), row ≥ column
+                    }
+                }
+            }
+        }
+        for &(p, q, _) in &problem.edges {
+            pairs.push((p.min(q), p.max(q)));
+        }
+        pairs.extend((0..(n / 2) as u32).map(|i| (i, i)));
+        pairs.par_sort_unstable();
+        pairs.dedup();
+
+        // Expand node pairs into unknown-level lower-triangle entries, column by column.
+        let mut col_entries: Vec<Vec<usize>> = vec![Vec::new(); n];
+        for &(cn, rn) in &pairs {
+            let (c, r) = (2 * cn as usize, 2 * rn as usize);
+            if cn == rn {
+                col_entries[c].extend([r, r + 1]);
+                col_entries[c + 1].push(r + 1);
+            } else {
+                col_entries[c].extend([r, r + 1]);
+                col_entries[c + 1].extend([r, r + 1]);
+            }
+        }
+        let mut col_ptr = Vec::with_capacity(n + 1);
+        let mut row_idx = Vec::new();
+        col_ptr.push(0usize);
+        for rows in &mut col_entries {
+            rows.sort_unstable();
+            rows.dedup();
+            row_idx.extend_from_slice(rows);
+            col_ptr.push(row_idx.len());
+        }
+        drop(col_entries);
+        let position = |col_ptr: &[usize], row_idx: &[usize], r: usize, c: usize| -> usize {
+            let (lo, hi) = (col_ptr[c], col_ptr[c + 1]);
+            lo + row_idx[lo..hi]
+                .binary_search(&r)
+                .unwrap_or_else(|_| unreachable!("entry ({r}, {c}) is in the pattern"))
+        };
+
+        // Constant part of the Hessian: 2/z Σ j jᵀ + smoothness + gauge.
+        let mut constant = vec![0.0; row_idx.len()];
+        let two_over_z = 2.0 / problem.samples().max(1) as f64;
+        for k in 0..problem.samples() {
+            let (nd, cs, co) = (&problem.nodes[k], &problem.coef_s[k], &problem.coef_o[k]);
+            for p in 0..8 {
+                for q in 0..8 {
+                    let (ip, iq) = (2 * nd[p] as usize, 2 * nd[q] as usize);
+                    let cp = [cs[p], co[p]];
+                    let cq = [cs[q], co[q]];
+                    for (dp, &vp) in cp.iter().enumerate() {
+                        for (dq, &vq) in cq.iter().enumerate() {
+                            let (r, c) = (ip + dp, iq + dq);
+                            if r >= c {
+                                constant[position(&col_ptr, &row_idx, r, c)] +=
+                                    two_over_z * vp * vq;
+                            }
+                        }
+                    }
+                }
+            }
+        }
+        for &(p, q, wgt) in &problem.edges {
+            let (lo, hi) = (2 * p.min(q) as usize, 2 * p.max(q) as usize);
+            for d in 0..2 {
+                constant[position(&col_ptr, &row_idx, lo + d, lo + d)] += 2.0 * wgt;
+                constant[position(&col_ptr, &row_idx, hi + d, hi + d)] += 2.0 * wgt;
+                constant[position(&col_ptr, &row_idx, hi + d, lo + d)] -= 2.0 * wgt;
+            }
+        }
+        let mut scale_diagonal = Vec::with_capacity(n / 2);
+        for node in 0..n / 2 {
+            let (i, j) = (2 * node, 2 * node + 1);
+            constant[position(&col_ptr, &row_idx, j, j)] += 2.0 * problem.gauge_weight;
+            scale_diagonal.push(position(&col_ptr, &row_idx, i, i));
+        }
+        let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
+        let analysis = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower)
+            .map_err(|e| CoreError::NonFinite(format!("Cholesky analysis failed: {e:?}")))?;
+        Ok(Self {
+            symbolic,
+            analysis,
+            constant,
+            scale_diagonal,
+        })
+    }
+
+    /// The Newton direction −H(x)⁻¹ g.
+    fn step(&mut self, problem: &Problem, x: &[f64], g: &[f64]) -> Result<Vec<f64>> {
+        let mut values = self.constant.clone();
+        for (node, &at) in self.scale_diagonal.iter().enumerate() {
+            let s = x[2 * node];
+            values[at] += 2.0 * problem.scale_weight / (s * s * s);
+        }
+        let matrix = SparseColMatRef::new(self.symbolic.as_ref(), &values);
+        let llt = Llt::try_new_with_symbolic(self.analysis.clone(), matrix, Side::Lower).map_err(
+            |e| CoreError::NonFinite(format!("alignment Hessian is not positive definite: {e:?}")),
+        )?;
+        let mut rhs = Mat::<f64>::from_fn(g.len(), 1, |i, _| -g[i]);
+        llt.solve_in_place(rhs.as_mut());
+        let dir: Vec<f64> = (0..g.len()).map(|i| rhs[(i, 0)]).collect();
+        if dir.iter().any(|v| !v.is_finite()) {
+            return Err(CoreError::NonFinite("Newton step".into()));
+        }
+        Ok(dir)
+    }
+}
+
+/// Apply solved fields to the maps in place: D ← s(x)·D + o(x)·f(x) with bilinear s, o per
+/// pixel and f the offset factor of `params.offsets`.
+pub fn apply_fields(layout: &Layout, maps: &mut [f32], x: &[f64], params: &LevelParams) {
+    let (h, w) = layout.tangent_shape();
+    let (cols, rows) = (params.cols, params.rows);
+    let per = cols * rows;
+    maps.par_chunks_mut(w)
+        .enumerate()
+        .for_each(|(face_row, row)| {
+            let (t, y) = (face_row / h, face_row % h);
+            let cam = &layout.cameras[t];
+            for (xp, v) in row.iter_mut().enumerate() {
+                let (c0, r0, fx, fy) = grid_cell(xp as f64, y as f64, w, h, cols, rows);
+                let node = |c: usize, r: usize| 2 * (t * per + r * cols + c);
+                let wts = [
+                    (1.0 - fx) * (1.0 - fy),
+                    fx * (1.0 - fy),
+                    (1.0 - fx) * fy,
+                    fx * fy,
+                ];
+                let ids = [
+                    node(c0, r0),
+                    node(c0 + 1, r0),
+                    node(c0, r0 + 1),
+                    node(c0 + 1, r0 + 1),
+                ];
+                let (mut s, mut o) = (0.0, 0.0);
+                for (wt, &i) in wts.iter().zip(&ids) {
+                    s += wt * x[i];
+                    o += wt * x[i + 1];
+                }
+                let f = offset_factor(params.offsets, cam, xp as f64, y as f64);
+                *v = (s * *v as f64 + o * f) as f32;
+            }
+        });
+}
+
+/// One solved level: its parameters, fields (x, node-interleaved s/o) and report.
+#[derive(Debug, Clone)]
+pub struct Level {
+    /// Parameters of the level.
+    pub params: LevelParams,
+    /// Solved fields, `x[2·node] = s`, `x[2·node + 1] = o`.
+    pub fields: Vec<f64>,
+    /// How the solve ended.
+    pub report: SolveReport,
+    /// Seconds spent building the level's problem.
+    pub build_seconds: f64,
+    /// Seconds spent solving it.
+    pub solve_seconds: f64,
+}
+
+/// Options of a whole alignment.
+#[derive(Debug, Clone)]
+pub struct AlignOptions {
+    /// The levels, coarse to fine.
+    pub levels: Vec<LevelParams>,
+    /// Which solver.
+    pub solver: Solver,
+    /// Iteration cap per level.
+    pub max_iterations: usize,
+    /// Gradient tolerance (relative to max(1, |E|)).
+    pub tolerance: f64,
+}
+
+/// Align spherical disparity maps (N·h·w, NaN = invalid) in place.
+///
+/// Each tangent is standardised, then every level is solved from identity fields on the maps
+/// as the previous level left them, and its fields are applied before the next level (so no
+/// deformation is ever applied twice: reference bug B3). Finally the common standardisation is
+/// undone with the mean median and spread of the inputs, so the result is in the inputs' range.
+pub fn align(
+    layout: &Layout,
+    maps: &mut [f32],
+    overlaps: &Overlaps,
+    options: &AlignOptions,
+) -> Result<Vec<Level>> {
+    let offsets = options
+        .levels
+        .first()
+        .map_or(Offsets::Spherical, |p| p.offsets);
+    let stats = standardize(layout, maps, offsets)?;
+    let mut levels = Vec::with_capacity(options.levels.len());
+    for params in &options.levels {
+        let t0 = std::time::Instant::now();
+        let problem = Problem::new(layout, maps, overlaps, *params);
+        if problem.samples() == 0 {
+            return Err(CoreError::Degenerate(
+                "the tangents have no valid overlapping pixels to align".into(),
+            ));
+        }
+        let t1 = std::time::Instant::now();
+        let (fields, report) = solve(
+            &problem,
+            &problem.identity(),
+            options.solver,
+            options.max_iterations,
+            options.tolerance,
+        )?;
+        apply_fields(layout, maps, &fields, params);
+        levels.push(Level {
+            params: *params,
+            fields,
+            report,
+            build_seconds: (t1 - t0).as_secs_f64(),
+            solve_seconds: t1.elapsed().as_secs_f64(),
+        });
+    }
+    let n = stats.len() as f64;
+    let median = stats.iter().map(|s| s.0).sum::<f64>() / n;
+    let spread = stats.iter().map(|s| s.1).sum::<f64>() / n;
+    maps.par_iter_mut()
+        .for_each(|v| *v = (*v as f64 * spread + median) as f32);
+    Ok(levels)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn random(seed: u64, i: usize) -> f64 {
+        (splitmix64(seed ^ (i as u64).wrapping_mul(0x9E37)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+
+    /// A small layout and smooth maps with per-tangent affine distortion.
+    fn setup(energy: Energy, cols: usize, rows: usize) -> (Layout, Vec<f32>, Problem) {
+        let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let mut maps = Vec::with_capacity(20 * h * w);
+        for (t, cam) in layout.cameras.iter().enumerate() {
+            let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
+            for r in 0..h {
+                for c in 0..w {
+                    let d = cam.pixel_direction(c as f64, r as f64);
+                    maps.push((sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z) + sh) as f32);
+                }
+            }
+        }
+        standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
+        let overlaps = Overlaps::build(&layout, 0.2, 0.0);
+        let params = LevelParams {
+            cols,
+            rows,
+            energy,
+            smoothness: 40.0,
+            scale: 0.007,
+            offsets: Offsets::Perspective,
+        };
+        let problem = Problem::new(&layout, &maps, &overlaps, params);
+        (layout, maps, problem)
+    }
+
+    #[test]
+    fn gradient_matches_finite_differences() {
+        for energy in [Energy::Paper, Energy::Normalized] {
+            let (_, _, problem) = setup(energy, 4, 3);
+            let x: Vec<f64> = (0..problem.len())
+                .map(|i| {
+                    if i % 2 == 0 {
+                        0.7 + 0.6 * random(3, i)
+                    } else {
+                        random(4, i) - 0.5
+                    }
+                })
+                .collect();
+            let mut g = vec![0.0; x.len()];
+            problem.energy(&x, Some(&mut g));
+            for i in (0..x.len()).step_by(7) {
+                let h = 1e-6;
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i] += h;
+                xm[i] -= h;
+                let fd = (problem.energy(&xp, None) - problem.energy(&xm, None)) / (2.0 * h);
+                let rel = (fd - g[i]).abs() / g[i].abs().max(1e-3);
+                assert!(
+                    rel < 1e-6,
+                    "{energy:?} unknown {i}: analytic {} vs fd {fd}",
+                    g[i]
+                );
+            }
+        }
+    }
+
+    #[test]
+    fn newton_and_lbfgs_reach_the_same_minimum() {
+        let (_, _, problem) = setup(Energy::Normalized, 4, 3);
+        let x0 = problem.identity();
+        let (xn, rn) = solve(&problem, &x0, Solver::Newton, 100, 1e-10).expect("newton");
+        let (_, rl) = solve(&problem, &x0, Solver::Lbfgs, 20_000, 1e-8).expect("lbfgs");
+        assert!(rn.converged && rn.iterations < 30, "{rn:?}");
+        assert!(rl.converged, "{rl:?}");
+        assert!(
+            (rn.energy - rl.energy).abs() <= 1e-7 * rn.energy.abs().max(1.0),
+            "{rn:?} {rl:?}"
+        );
+        assert!(xn.iter().step_by(2).all(|&s| s > 0.0));
+    }
+
+    #[test]
+    fn newton_step_matches_a_dense_solve() {
+        let (_, _, problem) = setup(Energy::Paper, 3, 2);
+        let n = problem.len();
+        let x: Vec<f64> = (0..n)
+            .map(|i| {
+                if i % 2 == 0 {
+                    1.0 + 0.1 * random(5, i)
+                } else {
+                    0.1 * random(6, i)
+                }
+            })
+            .collect();
+        let mut g = vec![0.0; n];
+        problem.energy(&x, Some(&mut g));
+        let mut system = NewtonSystem::new(&problem).expect("system");
+        let dir = system.step(&problem, &x, &g).expect("step");
+        // Dense Hessian by finite differences of the analytic gradient: H·dir must equal −g.
+        let h = 1e-6;
+        let mut hd = vec![0.0; n];
+        for j in 0..n {
+            let (mut xp, mut xm) = (x.clone(), x.clone());
+            xp[j] += h;
+            xm[j] -= h;
+            let (mut gp, mut gm) = (vec![0.0; n], vec![0.0; n]);
+            problem.energy(&xp, Some(&mut gp));
+            problem.energy(&xm, Some(&mut gm));
+            for i in 0..n {
+                hd[i] += (gp[i] - gm[i]) / (2.0 * h) * dir[j];
+            }
+        }
+        let err = hd
+            .iter()
+            .zip(&g)
+            .map(|(a, b)| (a + b).abs())
+            .fold(0.0, f64::max);
+        assert!(err < 1e-5 * max_abs(&g).max(1e-6), "residual {err}");
+    }
+
+    #[test]
+    fn one_and_two_threads_agree_bit_for_bit() {
+        let (_, _, problem) = setup(Energy::Normalized, 4, 3);
+        let run = |threads: usize| {
+            let pool = rayon::ThreadPoolBuilder::new()
+                .num_threads(threads)
+                .build()
+                .expect("pool");
+            pool.install(|| {
+                solve(&problem, &problem.identity(), Solver::Lbfgs, 30, 0.0).expect("solve")
+            })
+        };
+        let (x1, r1) = run(1);
+        let (x2, r2) = run(2);
+        assert_eq!(r1, r2);
+        assert!(x1.iter().zip(&x2).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+
+    #[test]
+    fn standardize_rejects_empty_and_constant_tangents() {
+        let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let mut maps: Vec<f32> = (0..20 * h * w).map(|i| (i % 97) as f32).collect();
+        maps[3 * h * w..4 * h * w].fill(f32::NAN);
+        let err = standardize(&layout, &mut maps, Offsets::Spherical).expect_err("tangent 3");
+        assert!(matches!(err, CoreError::Degenerate(m) if m.contains("tangent 3")));
+        let mut flat = vec![2.0f32; 20 * h * w];
+        assert!(standardize(&layout, &mut flat, Offsets::Spherical).is_err());
+    }
+
+    #[test]
+    fn perspective_standardisation_removes_a_perspective_affine_map() {
+        // Perspective disparity p, then spherical = p·f: after standardising in perspective
+        // space, two different affine maps of p give the same result.
+        let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let sph = |scale: f64, shift: f64| -> Vec<f32> {
+            let mut v = Vec::with_capacity(20 * h * w);
+            for cam in &layout.cameras {
+                for p in 0..h * w {
+                    let (x, y) = ((p % w) as f64, (p / w) as f64);
+                    let persp = 1.0 + 0.5 * ((x * 0.05).sin() + (y * 0.03).cos());
+                    v.push(((scale * persp + shift) * cam.spherical_factor(x, y)) as f32);
+                }
+            }
+            v
+        };
+        let (mut a, mut b) = (sph(1.0, 0.0), sph(3.0, 2.0));
+        standardize(&layout, &mut a, Offsets::Perspective).expect("a");
+        standardize(&layout, &mut b, Offsets::Perspective).expect("b");
+        let worst = a
+            .iter()
+            .zip(&b)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst < 1e-4, "{worst}");
+    }
+}
