@@ -158,7 +158,6 @@ def test_details() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"align": "multiscale"}, "not available"),
         ({"align": "bogus"}, "not supported"),
         ({"blend": "poisson"}, "not available"),
         ({"blend": 3}, "not supported"),

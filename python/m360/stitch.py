@@ -214,9 +214,9 @@ def _schedule(align: object, layout: Layout) -> list[tuple[int, int]]:
         if align == "multiscale":
             return list(MULTISCALE)
         _mode(align, "align", ALIGN_MODES, _PLANNED_ALIGN)
-    levels: list[object]
+    levels: list[tuple[int, int]]
     if _is_grid(align):
-        levels = [align]
+        levels = [align]  # type: ignore[list-item]
     elif isinstance(align, (list, tuple)) and align and all(_is_grid(g) for g in align):
         levels = list(align)
     else:
@@ -227,7 +227,7 @@ def _schedule(align: object, layout: Layout) -> list[tuple[int, int]]:
     h, w = layout.tangent_shape
     out = []
     for grid in levels:
-        cols, rows = (int(v) for v in grid)  # type: ignore[union-attr]
+        cols, rows = int(grid[0]), int(grid[1])
         if cols < 2 or rows < 2:
             raise InputError(f"alignment grid {grid!r} needs at least 2 x 2 nodes (cols, rows)")
         if cols > w or rows > h:

@@ -326,10 +326,11 @@ impl Problem {
                 }
                 // Bilinear interpolation across a depth edge is no measurement of either side:
                 // such samples would dominate the squared data term with resampling error.
+                // (Not in the paper, so not with its energy.)
                 let (lo, hi) = corners
                     .iter()
                     .fold((f32::MAX, f32::MIN), |(l, u), &v| (l.min(v), u.max(v)));
-                if (hi - lo) as f64 > EDGE_RANGE {
+                if params.energy == Energy::Normalized && (hi - lo) as f64 > EDGE_RANGE {
                     return None;
                 }
                 let c = corners.map(|v| v as f64);
@@ -892,13 +893,20 @@ pub fn align(
             ));
         }
         let t1 = std::time::Instant::now();
-        let (fields, report) = solve(
+        let (mut fields, report) = solve(
             &problem,
             &problem.identity(),
             options.solver,
             options.max_iterations,
             options.tolerance,
         )?;
+        // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
+        // the maps in standardised units from level to level (a global factor aligns nothing).
+        // The paper applies its fields as they are.
+        if params.energy == Energy::Normalized {
+            let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
+            fields.iter_mut().for_each(|v| *v /= mean_scale);
+        }
         apply_fields(layout, maps, &fields, params);
         levels.push(Level {
             params: *params,
