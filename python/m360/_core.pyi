@@ -48,6 +48,17 @@ class Plan:
         pole_cap_deg: float,
         offsets: str,
     ) -> tuple[npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]]]: ...
+    def alignment_problem(
+        self,
+        maps: npt.NDArray[np.float32],
+        grid: tuple[int, int],
+        energy: str,
+        smoothness: float,
+        scale: float,
+        sample_fraction: float,
+        pole_cap_deg: float,
+        offsets: str,
+    ) -> dict[str, Any]: ...
     def blend(
         self, tangents: npt.NDArray[np.float32], blend: str
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...

@@ -445,6 +445,30 @@ impl Problem {
         self.nodes.len()
     }
 
+    /// The problem's terms, for inspection and independent checks: per sample the 8 nodes and
+    /// the residual coefficients on their s and o; the smoothness edges (p, q, weight); the
+    /// weights of Σ 1/s and of the gauge Σ o².
+    #[allow(clippy::type_complexity)]
+    pub fn terms(
+        &self,
+    ) -> (
+        &[[u32; 8]],
+        &[[f64; 8]],
+        &[[f64; 8]],
+        &[(u32, u32, f64)],
+        f64,
+        f64,
+    ) {
+        (
+            &self.nodes,
+            &self.coef_s,
+            &self.coef_o,
+            &self.edges,
+            self.scale_weight,
+            self.gauge_weight,
+        )
+    }
+
     /// Identity fields: s = 1, o = 0.
     pub fn identity(&self) -> Vec<f64> {
         (0..self.len())
@@ -685,10 +709,36 @@ struct NewtonSystem {
 impl NewtonSystem {
     fn new(problem: &Problem) -> Result<Self> {
         let n = problem.len();
-        // Node-level coupling pattern: nodes of one sample, and smoothness edges.
+        // Samples whose a-cell and b-cell are the same share all 8 nodes: the top-left nodes
+        // (entries 0 and 4) identify the group. Accumulating each group's 16×16 block densely
+        // and scattering it once is far cheaper than scattering every sample.
+        let key = |k: usize| ((problem.nodes[k][0] as u64) << 32) | problem.nodes[k][4] as u64;
+        let mut order: Vec<usize> = (0..problem.samples()).collect();
+        order.sort_unstable_by_key(|&k| key(k));
+        let mut groups: Vec<(usize, [f64; 256])> = Vec::new(); // (a sample of the group, block)
+        let two_over_z = 2.0 / problem.samples().max(1) as f64;
+        for chunk in order.chunk_by(|&i, &j| key(i) == key(j)) {
+            let mut block = [0.0; 256];
+            for &k in chunk {
+                let mut c = [0.0; 16];
+                for j in 0..8 {
+                    c[2 * j] = problem.coef_s[k][j];
+                    c[2 * j + 1] = problem.coef_o[k][j];
+                }
+                for (u, &cu) in c.iter().enumerate() {
+                    for (v, &cv) in c.iter().enumerate() {
+                        block[16 * u + v] += two_over_z * cu * cv;
+                    }
+                }
+            }
+            groups.push((chunk[0], block));
+        }
+
+        // Node-level coupling pattern: nodes of one group, and smoothness edges.
         let mut pairs: Vec<(u32, u32)> =
-            Vec::with_capacity(problem.samples() * 36 + problem.edges.len() + n / 2);
-        for nd in &problem.nodes {
+            Vec::with_capacity(groups.len() * 36 + problem.edges.len() + n / 2);
+        for &(k, _) in &groups {
+            let nd = &problem.nodes[k];
             for p in 0..8 {
                 for q in 0..8 {
                     if nd[p] >= nd[q] {
@@ -733,24 +783,18 @@ impl NewtonSystem {
                 .unwrap_or_else(|_| unreachable!("entry ({r}, {c}) is in the pattern"))
         };
 
-        // Constant part of the Hessian: 2/z Σ j jᵀ + smoothness + gauge.
+        // Constant part of the Hessian: 2/z Σ j jᵀ (by group) + smoothness + gauge.
         let mut constant = vec![0.0; row_idx.len()];
-        let two_over_z = 2.0 / problem.samples().max(1) as f64;
-        for k in 0..problem.samples() {
-            let (nd, cs, co) = (&problem.nodes[k], &problem.coef_s[k], &problem.coef_o[k]);
-            for p in 0..8 {
-                for q in 0..8 {
-                    let (ip, iq) = (2 * nd[p] as usize, 2 * nd[q] as usize);
-                    let cp = [cs[p], co[p]];
-                    let cq = [cs[q], co[q]];
-                    for (dp, &vp) in cp.iter().enumerate() {
-                        for (dq, &vq) in cq.iter().enumerate() {
-                            let (r, c) = (ip + dp, iq + dq);
-                            if r >= c {
-                                constant[position(&col_ptr, &row_idx, r, c)] +=
-                                    two_over_z * vp * vq;
-                            }
-                        }
+        for (k, block) in &groups {
+            let nd = &problem.nodes[*k];
+            for u in 0..16 {
+                for v in 0..16 {
+                    let (r, c) = (
+                        2 * nd[u / 2] as usize + u % 2,
+                        2 * nd[v / 2] as usize + v % 2,
+                    );
+                    if r >= c {
+                        constant[position(&col_ptr, &row_idx, r, c)] += block[16 * u + v];
                     }
                 }
             }

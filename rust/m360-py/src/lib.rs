@@ -455,6 +455,78 @@ impl Plan {
         Ok((out, reports, grids))
     }
 
+    /// The first-level alignment problem of `maps` (standardised as `align` does): a dict with
+    /// `nodes` (K,8) uint32, `coef_s`, `coef_o` (K,8) float64, `edges` (E,3) float64 as
+    /// (p, q, weight), `scale_weight`, `gauge_weight`; unknowns are node-interleaved (s, o).
+    /// For benchmarks and independent checks of the energy.
+    #[pyo3(signature = (maps, grid, energy, smoothness, scale, sample_fraction, pole_cap_deg, offsets))]
+    #[allow(clippy::too_many_arguments)]
+    fn alignment_problem<'py>(
+        &self,
+        py: Python<'py>,
+        maps: PyReadonlyArray3<'py, f32>,
+        grid: (usize, usize),
+        energy: &str,
+        smoothness: f64,
+        scale: f64,
+        sample_fraction: f64,
+        pole_cap_deg: f64,
+        offsets: &str,
+    ) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
+        use m360_core::align::{self, Energy, LevelParams, Offsets, Problem};
+        let layout = self.inner.layout();
+        self.check_tangents("maps", maps.shape())?;
+        let energy = match energy {
+            "paper" => Energy::Paper,
+            "normalized" => Energy::Normalized,
+            _ => return Err(input_error(format!("unknown energy {energy:?}"))),
+        };
+        let offsets = match offsets {
+            "perspective" => Offsets::Perspective,
+            "spherical" => Offsets::Spherical,
+            _ => return Err(input_error(format!("unknown offsets {offsets:?}"))),
+        };
+        let params = LevelParams {
+            cols: grid.0,
+            rows: grid.1,
+            energy,
+            smoothness,
+            scale,
+            offsets,
+        };
+        let mut data = contiguous(&maps, "maps")?.to_vec();
+        let problem = detached(py, || -> m360_core::error::Result<Problem> {
+            align::standardize(layout, &mut data, offsets)?;
+            let overlaps = self.inner.overlaps(sample_fraction, pole_cap_deg);
+            Ok(Problem::new(layout, &data, &overlaps, params))
+        })?
+        .map_err(PyCoreError)?;
+        let (nodes, coef_s, coef_o, edges, scale_weight, gauge_weight) = problem.terms();
+        let k = nodes.len();
+        let d = pyo3::types::PyDict::new(py);
+        d.set_item(
+            "nodes",
+            to_numpy(py, nodes.iter().flatten().copied().collect(), &[k, 8])?,
+        )?;
+        d.set_item(
+            "coef_s",
+            to_numpy(py, coef_s.iter().flatten().copied().collect(), &[k, 8])?,
+        )?;
+        d.set_item(
+            "coef_o",
+            to_numpy(py, coef_o.iter().flatten().copied().collect(), &[k, 8])?,
+        )?;
+        let flat_edges = edges
+            .iter()
+            .flat_map(|&(p, q, w)| [p as f64, q as f64, w])
+            .collect();
+        d.set_item("edges", to_numpy(py, flat_edges, &[edges.len(), 3])?)?;
+        d.set_item("scale_weight", scale_weight)?;
+        d.set_item("gauge_weight", gauge_weight)?;
+        d.set_item("unknowns", problem.len())?;
+        Ok(d)
+    }
+
     /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with
     /// `blend` in {"mean", "nn"}: (disparity (H,W), spread (H,W)) float32.
     #[allow(clippy::type_complexity)]
