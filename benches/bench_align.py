@@ -77,7 +77,7 @@ def bench_size(width: int, repeats: int, seed: int) -> tuple[list, list, list, l
     for name, kwargs in METHODS.items():
         result: list[m360.StitchResult] = []
 
-        def run() -> None:
+        def run(kwargs: dict = kwargs, result: list = result) -> None:
             res = m360.stitch(tiles, layout, blend="mean", return_details=True, **kwargs)
             assert isinstance(res, m360.StitchResult)
             result[:] = [res]
