@@ -9,10 +9,8 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import http.server
 import os
 import re
-import threading
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -20,60 +18,10 @@ import m360
 import numpy as np
 import onnx_graphs as g
 import pytest
+from local_http import LocalServer
 from m360 import models
 from m360.errors import ModelError
 from m360.estimate import OUTPUT_KINDS, OnnxEstimator, load_estimator
-
-MAX_REQUESTS = 30
-LIFETIME_S = 30.0
-
-
-class LocalServer:
-    """A bounded HTTP server: ``routes[path] = (status, body, mode)``, mode "ok" or "truncate"
-    (announce the full length, send half, close)."""
-
-    def __init__(self) -> None:
-        self.routes: dict[str, tuple[int, bytes, str]] = {}
-        self.requests: list[str] = []
-        server = self
-
-        class Handler(http.server.BaseHTTPRequestHandler):
-            def do_GET(self) -> None:
-                server.requests.append(self.path)
-                if len(server.requests) > MAX_REQUESTS:
-                    self.send_error(503, "request budget of the test server used up")
-                    threading.Thread(target=server.httpd.shutdown, daemon=True).start()
-                    return
-                status, body, mode = server.routes.get(self.path, (404, b"not found", "ok"))
-                self.send_response(status)
-                self.send_header("Content-Length", str(len(body)))
-                self.end_headers()
-                self.wfile.write(body if mode == "ok" else body[: len(body) // 2])
-                if mode == "truncate":
-                    self.close_connection = True
-
-            def log_message(self, format: str, *args: object) -> None:
-                pass
-
-        self.httpd = http.server.ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.httpd.daemon_threads = True
-        self.thread = threading.Thread(target=self.httpd.serve_forever, daemon=True)
-        self.timer = threading.Timer(LIFETIME_S, self.httpd.shutdown)
-        self.timer.daemon = True
-
-    def url(self, path: str) -> str:
-        return f"http://127.0.0.1:{self.httpd.server_address[1]}{path}"
-
-    def start(self) -> LocalServer:
-        self.thread.start()
-        self.timer.start()
-        return self
-
-    def stop(self) -> None:
-        self.timer.cancel()
-        self.httpd.shutdown()
-        self.httpd.server_close()
-        self.thread.join(timeout=5)
 
 
 @pytest.fixture
