@@ -13,7 +13,7 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 
 from __future__ import annotations
 
-from . import eval, models, synthetic
+from . import eval, io, models, synthetic
 from ._core import __version__, get_num_threads, set_num_threads
 from .errors import InputError, M360Error, ModelError, SolverError
 from .estimate import EstimateResult, estimate
@@ -36,6 +36,7 @@ __all__ = [
     "estimate",
     "eval",
     "get_num_threads",
+    "io",
     "models",
     "save",
     "set_num_threads",
