@@ -53,7 +53,7 @@ def test_run_writes_arrays_preview_and_sidecar(
     code = main(
         [
             "run", str(panorama), "-o", str(out), "--model", str(model),
-            "--align", "none", "--blend", "mean", "--threads", "1",
+            "--align", "none", "--blend", "mean", "--threads", "1", "--input-size", "64", "96",
         ]
     )  # fmt: skip
     assert code == 0, capsys.readouterr().err
@@ -75,7 +75,8 @@ def test_run_writes_arrays_preview_and_sidecar(
     assert meta["m360_version"] == m360.__version__
     assert meta["model"]["sha256"] == hashlib.sha256(model.read_bytes()).hexdigest()
     assert meta["model"]["output_kind"] == "affine_disparity"
-    assert meta["model"]["threads"] == 1
+    # 43x50 tangents fit inside 64x96 keeping their aspect: scale 64/43 -> 64 x 74.4 -> 64 x 74.
+    assert meta["model"]["threads"] == 1 and meta["model"]["network_size"] == [64, 74]
     assert meta["options"]["align"] == "none" and meta["options"]["blend"] == "mean"
     assert meta["quantities"]["depth"]["units"] == "relative"
     assert meta["quantities"]["disparity"]["invalid"] == "NaN"

@@ -316,6 +316,11 @@ def test_estimate_validates_its_inputs(tmp_path: Path) -> None:
     with pytest.raises(InputError, match="model must be a registry name"):
         m360.estimate(np.zeros((128, 256, 3), np.uint8), 42, align="none", blend="mean")  # type: ignore[arg-type]
 
+    with pytest.raises(InputError, match="threads, input_size apply to ONNX models"):
+        m360.estimate(
+            np.zeros((128, 256, 3), np.uint8), est, align="none", threads=2, input_size=(8, 8)
+        )
+
     class Bad:
         output_kind = "affine_disparity"
         name = "bad"

@@ -17,7 +17,7 @@ import cv2
 
 from . import __version__, models, synthetic
 from .errors import M360Error
-from .estimate import SimulatedEstimator, estimate, run_image
+from .estimate import OUTPUT_KINDS, SimulatedEstimator, estimate, run_image
 from .eval import depth_metrics, format_metrics
 from .geometry import Layout
 from .io import save, save_npy, save_png
@@ -75,6 +75,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"registry name or path to an .onnx file (default {models.DEFAULT_MODEL})",
     )
     run.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
+    run.add_argument(
+        "--input-size",
+        type=int,
+        nargs=2,
+        metavar=("H", "W"),
+        default=None,
+        help="network input size of a dynamic-size .onnx file (default: the model's)",
+    )
+    run.add_argument(
+        "--output-kind",
+        choices=OUTPUT_KINDS,
+        default=None,
+        help="what a .onnx file outputs (default: the registry's, or affine_disparity)",
+    )
     run.add_argument(
         "--providers",
         default=None,
@@ -160,6 +174,8 @@ def _run(args: argparse.Namespace, providers: list[str] | None) -> int:
                 blend=args.blend,
                 threads=args.threads,
                 providers=providers,
+                input_size=tuple(args.input_size) if args.input_size else None,
+                output_kind=args.output_kind,
             )
         except M360Error as exc:
             failures += 1

@@ -524,6 +524,20 @@ def load_estimator(
             )
         _models.get(text)  # raises ModelError naming the registered models
     if isinstance(model, Estimator):
+        given = {
+            "providers": providers,
+            "threads": threads,
+            "input_size": input_size,
+            "output_kind": output_kind,
+            "mean": mean,
+            "std": std,
+        }
+        ignored = [k for k, v in given.items() if v is not None]
+        if ignored:
+            raise InputError(
+                f"{', '.join(ignored)} apply to ONNX models given by name or path; configure "
+                f"the {type(model).__name__} object itself instead"
+            )
         kind = model.output_kind
         if kind not in OUTPUT_KINDS:
             options = ", ".join(repr(k) for k in OUTPUT_KINDS)
@@ -758,7 +772,7 @@ def estimate(
             "blend": st.get("blend", 0.0),
             "total": t_end - t_start,
         },
-        model=_model_info(estimator),
+        model=_model_info(estimator, layout),
         units="metres" if metric else "relative",
         options={
             "align": align,
@@ -771,7 +785,7 @@ def estimate(
     )
 
 
-def _model_info(estimator: Any) -> dict[str, Any]:
+def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
     info: dict[str, Any] = {
         "name": getattr(estimator, "name", type(estimator).__name__),
         "output_kind": estimator.output_kind,
@@ -782,6 +796,7 @@ def _model_info(estimator: Any) -> dict[str, Any]:
             path=str(estimator.path),
             providers=list(estimator.providers),
             threads=estimator.threads,
+            network_size=list(estimator.network_size(layout.tangent_shape)),
             mean=[float(v) for v in estimator.mean],
             std=[float(v) for v in estimator.std],
         )
