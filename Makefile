@@ -18,7 +18,7 @@ venv: $(BIN)/activate  ## create .venv (Python virtual environment)
 install: venv  ## build the Rust extension (release) and install m360 with test/lint extras
 	$(PY) -m pip install --quiet ".[test,lint,bench]"
 
-demo: install  ## the main job: stitch a synthetic panorama, write out/, print metrics
+demo: install  ## the main job: m360.estimate on a synthetic panorama (simulated network), write out/
 	$(BIN)/m360 demo -o out/
 
 test: install  ## the test suite (pytest)
@@ -37,6 +37,7 @@ lint: install  ## formatting, clippy, ruff, mypy and the stub check of m360._cor
 
 bench: install  ## benchmark tables (see benches/)
 	$(PY) benches/bench_resample.py
+	$(PY) benches/bench_estimate.py
 
 clean:  ## remove build products and the virtual environment
 	rm -rf target $(VENV) out

@@ -8,17 +8,21 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 >>> layout = m360.Layout.icosahedron(erp_width=2048)
 >>> tiles = m360.erp_to_tangents(erp, layout)             # (20, 346, 400[, C])
 >>> disp = m360.stitch(tangent_disparity, layout, align="none", blend="mean")
+>>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
 """
 
 from __future__ import annotations
 
-from . import eval, synthetic
+from . import eval, io, models, synthetic
 from ._core import __version__, get_num_threads, set_num_threads
 from .errors import InputError, M360Error, ModelError, SolverError
+from .estimate import EstimateResult, estimate
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
+from .io import save
 from .stitch import StitchResult, stitch
 
 __all__ = [
+    "EstimateResult",
     "InputError",
     "Layout",
     "M360Error",
@@ -29,8 +33,12 @@ __all__ = [
     "__version__",
     "clear_plan_cache",
     "erp_to_tangents",
+    "estimate",
     "eval",
     "get_num_threads",
+    "io",
+    "models",
+    "save",
     "set_num_threads",
     "stitch",
     "synthetic",

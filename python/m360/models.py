@@ -1,0 +1,512 @@
+"""Registry of depth models: where to get them, how to check them, how to feed them.
+
+Each :class:`ModelEntry` names an ONNX file, the URL(s) it is published at, its sha256, its
+licence, the input size and normalisation the network expects and what it outputs. Files are
+cached under ``$M360_HOME/models`` (default: the platform's user cache folder, via platformdirs),
+downloaded atomically with a progress bar, and their sha256 is checked before the first use in a
+process. ``M360_OFFLINE=1`` never touches the network.
+
+Download, hash check and atomic rename are pooch's (``pooch.retrieve`` writes to a temporary file
+in the cache folder, checks the hash, then moves it into place): it is the ecosystem's maintained
+tool for exactly this (DESIGN.md §10) and brings tqdm progress bars. m360 adds what pooch does not
+know: the offline switch, a check that the file is an ONNX graph and not an HTML error page, and
+:class:`~m360.errors.ModelError` messages that say where to put a manually downloaded copy.
+
+Where the publisher's sha256 could not be confirmed, the entry stores ``sha256=None`` and says so
+in ``sha256_source``; such a file is refused unless ``M360_ALLOW_UNVERIFIED=1`` is set (then it is
+used with a warning that prints the file's actual hash).
+"""
+
+from __future__ import annotations
+
+import hashlib
+import os
+import threading
+import warnings
+from collections.abc import Iterator
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from .errors import ModelError
+
+__all__ = [
+    "DEFAULT_MODEL",
+    "REGISTRY",
+    "ModelEntry",
+    "cache_dir",
+    "ensure",
+    "fetch",
+    "get",
+    "is_cached",
+    "list_models",
+    "names",
+    "sha256_of",
+    "verify",
+]
+
+#: The model :func:`m360.estimate` uses when none is named.
+DEFAULT_MODEL = "midas-v21-small"
+
+IMAGENET_MEAN = (0.485, 0.456, 0.406)
+IMAGENET_STD = (0.229, 0.224, 0.225)
+NO_NORMALISATION = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+
+#: Bytes an ONNX file (a protobuf ModelProto) may start with: field 1 (ir_version, varint) or,
+#: for some exporters, field 8 (opset_import) / 2 (producer_name) / 7 (graph).
+_ONNX_FIRST_BYTES = {0x08, 0x12, 0x1A, 0x22, 0x3A, 0x42}
+_DOWNLOAD_TIMEOUT_S = 60.0
+
+
+@dataclass(frozen=True)
+class ModelEntry:
+    """One registered model.
+
+    Attributes
+    ----------
+    name : str
+        Registry name, e.g. ``"midas-v21-small"``.
+    filename : str
+        File name in the cache folder.
+    urls : tuple of str
+        Download URLs of byte-identical copies (tried in order), pinned to a revision.
+    sha256 : str or None
+        Expected sha256 (lower-case hex) of the file; None when no published hash could be
+        confirmed (see ``sha256_source``).
+    sha256_source : str
+        Where the hash comes from, or why there is none.
+    size_bytes : int or None
+        Approximate size, for ``m360 models`` (exact when known).
+    licence : str
+        Licence of the weights.
+    input_size : (int, int)
+        Network input (height, width) the model was trained at; the file's own fixed input
+        size, when it has one, takes precedence.
+    mean, std : (float, float, float)
+        Per-channel normalisation of RGB in [0, 1]: ``(rgb - mean) / std``. (0, 0, 0) / (1, 1, 1)
+        when the exported graph normalises internally.
+    multiple_of : int
+        Network sizes are rounded to a multiple of this (32 for CNN/DPT, 14 for DINOv2 ViTs).
+    resize : str
+        ``"upper_bound"`` (fit inside ``input_size``, keep aspect) or ``"lower_bound"`` (cover
+        ``input_size``, keep aspect); only used when the file's input size is dynamic.
+    output_kind : str
+        ``"affine_disparity"``, ``"metric_depth"`` or ``"distance"`` (DESIGN.md §8).
+    description : str
+        One line for ``m360 models``.
+    notes : str
+        Provenance and caveats.
+    """
+
+    name: str
+    filename: str
+    urls: tuple[str, ...]
+    sha256: str | None
+    sha256_source: str
+    size_bytes: int | None
+    licence: str
+    input_size: tuple[int, int]
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    multiple_of: int
+    resize: str
+    output_kind: str
+    description: str
+    notes: str = ""
+
+
+_SENTIS = (
+    "https://huggingface.co/julienkay/sentis-MiDaS/resolve/49661c6dbe7e7e1a57290e30aae95b649fd33d54"
+)
+_SENTIS_NOTE = (
+    "ONNX export of the official isl-org MiDaS weights by julienkay (Hugging Face "
+    "julienkay/sentis-MiDaS, revision 49661c6); its model card says input normalisation is "
+    "baked into the graph (input RGB in [0, 1]) and input sizes are static."
+)
+_SENTIS_HASH = (
+    "Hugging Face Git LFS pointer of this file at revision 49661c6 (published by the host)"
+)
+
+REGISTRY: dict[str, ModelEntry] = {
+    e.name: e
+    for e in (
+        ModelEntry(
+            name="midas-v21-small",
+            filename="midas_v21_small_256.onnx",
+            urls=(f"{_SENTIS}/midas_v21_small_256.onnx",),
+            sha256="b0a5b3f12625137e626805167907fe0410665bec671685d59daaa2daab19f977",
+            sha256_source=_SENTIS_HASH,
+            size_bytes=66_400_000,
+            licence="MIT",
+            input_size=(256, 256),
+            mean=NO_NORMALISATION[0],
+            std=NO_NORMALISATION[1],
+            multiple_of=32,
+            resize="upper_bound",
+            output_kind="affine_disparity",
+            description="MiDaS v2.1 small (EfficientNet-Lite3), 256 px, fast CPU default",
+            notes=_SENTIS_NOTE,
+        ),
+        ModelEntry(
+            name="midas-v21-small-isl",
+            filename="midas_v21_small_isl.onnx",
+            urls=("https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",),
+            sha256=None,
+            sha256_source=(
+                "none published: the isl-org v2_1 release lists no checksum for model-small.onnx; "
+                "refused unless M360_ALLOW_UNVERIFIED=1"
+            ),
+            size_bytes=66_845_081,
+            licence="MIT",
+            input_size=(256, 256),
+            mean=NO_NORMALISATION[0],
+            std=NO_NORMALISATION[1],
+            multiple_of=32,
+            resize="upper_bound",
+            output_kind="affine_disparity",
+            description="MiDaS v2.1 small, the authors' own ONNX export (unverified hash)",
+            notes=(
+                "Official isl-org file; the authors' export script (tf/make_onnx_model.py) bakes "
+                "the ImageNet normalisation into the graph, so input RGB is in [0, 1]."
+            ),
+        ),
+        ModelEntry(
+            name="midas-v21-large",
+            filename="midas_v21_384.onnx",
+            urls=(f"{_SENTIS}/midas_v21_384.onnx",),
+            sha256="49c200fda47b9fe88f778acee05c1c773d555265122bcaa784e03298326c3b04",
+            sha256_source=_SENTIS_HASH,
+            size_bytes=416_000_000,
+            licence="MIT",
+            input_size=(384, 384),
+            mean=NO_NORMALISATION[0],
+            std=NO_NORMALISATION[1],
+            multiple_of=32,
+            resize="upper_bound",
+            output_kind="affine_disparity",
+            description="MiDaS v2.1 large (ResNeXt-101), 384 px",
+            notes=_SENTIS_NOTE,
+        ),
+        ModelEntry(
+            name="dpt-hybrid",
+            filename="dpt_hybrid_midas.onnx",
+            urls=(
+                "https://huggingface.co/Xenova/dpt-hybrid-midas/resolve/"
+                "c9ab952ed178a2f0c085a4602d0a9da35bc54bca/onnx/model.onnx",
+            ),
+            sha256="2eca68239006c64af94bdfa68464f34d7627c3dca7bb02932636e616c55a39ff",
+            sha256_source=(
+                "Hugging Face Git LFS pointer of onnx/model.onnx at revision c9ab952 "
+                "(published by the host)"
+            ),
+            size_bytes=533_000_000,
+            licence="MIT (MiDaS v3 weights, isl-org)",
+            input_size=(384, 384),
+            mean=(0.5, 0.5, 0.5),
+            std=(0.5, 0.5, 0.5),
+            multiple_of=32,
+            resize="upper_bound",
+            output_kind="affine_disparity",
+            description="MiDaS v3 DPT-Hybrid (ViT-B + ResNet-50), 384 px",
+            notes=(
+                "Transformers.js export (Xenova/dpt-hybrid-midas) of Intel/dpt-hybrid-midas; "
+                "dynamic input size, normalisation mean 0.5 / std 0.5 as DPT's preprocessor."
+            ),
+        ),
+        ModelEntry(
+            name="dpt-large",
+            filename="dpt_large_384.onnx",
+            urls=(f"{_SENTIS}/dpt_large_384.onnx",),
+            sha256="42b2e08dada8bd0e4612ac268f5f92c065389484c7e4cfab4ca8f3c32a13090f",
+            sha256_source=_SENTIS_HASH,
+            size_bytes=1_370_000_000,
+            licence="MIT",
+            input_size=(384, 384),
+            mean=NO_NORMALISATION[0],
+            std=NO_NORMALISATION[1],
+            multiple_of=32,
+            resize="upper_bound",
+            output_kind="affine_disparity",
+            description="MiDaS v3 DPT-Large (ViT-L/16), 384 px",
+            notes=_SENTIS_NOTE,
+        ),
+        ModelEntry(
+            name="depth-anything-v2-small",
+            filename="depth_anything_v2_vits.onnx",
+            urls=(
+                "https://huggingface.co/yuvraj108c/Depth-Anything-2-Onnx/resolve/"
+                "10c37c92fed4668c65c063f3acd7d04aad2c33a8/depth_anything_v2_vits.onnx",
+            ),
+            sha256="b47f3b67a5fadc18dec8cfae9954544182b79b57e8beedf6051a27cd73001c77",
+            sha256_source=(
+                "Hugging Face Git LFS pointer of this file at revision 10c37c9 (published by "
+                "the host, size 101472019 bytes)"
+            ),
+            size_bytes=101_472_019,
+            licence="Apache-2.0 (Small only: Depth-Anything-V2 Base/Large are CC-BY-NC-4.0)",
+            input_size=(518, 518),
+            mean=IMAGENET_MEAN,
+            std=IMAGENET_STD,
+            multiple_of=14,
+            resize="lower_bound",
+            output_kind="affine_disparity",
+            description="Depth Anything V2 Small (ViT-S/14, relative), 518 px",
+            notes=(
+                "Community ONNX export (yuvraj108c/Depth-Anything-2-Onnx) of the official "
+                "depth-anything/Depth-Anything-V2-Small weights; ImageNet normalisation outside "
+                "the graph. Base and Large weights are non-commercial (CC-BY-NC-4.0) and are "
+                "deliberately not registered."
+            ),
+        ),
+    )
+}
+
+_verified: set[tuple[str, int, int]] = set()
+_lock = threading.Lock()
+
+
+def names() -> list[str]:
+    """Registered model names."""
+    return list(REGISTRY)
+
+
+def get(name: str) -> ModelEntry:
+    """The registry entry called ``name``, or ModelError listing the known names."""
+    entry = REGISTRY.get(name) if isinstance(name, str) else None
+    if entry is None:
+        known = ", ".join(REGISTRY)
+        raise ModelError(
+            f"unknown model {name!r}: registered models are {known}; or pass a path to an "
+            ".onnx file, or an object with predict(tiles) and output_kind"
+        )
+    return entry
+
+
+def cache_dir() -> Path:
+    """Folder of cached model files: ``$M360_HOME/models``, default the user cache dir."""
+    home = os.environ.get("M360_HOME")
+    if home:
+        return Path(home).expanduser() / "models"
+    import platformdirs
+
+    return Path(platformdirs.user_cache_dir("m360")) / "models"
+
+
+def _offline() -> bool:
+    return os.environ.get("M360_OFFLINE", "").strip().lower() in {"1", "true", "yes", "on"}
+
+
+def _allow_unverified() -> bool:
+    value = os.environ.get("M360_ALLOW_UNVERIFIED", "").strip().lower()
+    return value in {"1", "true", "yes", "on"}
+
+
+def _candidates(entry: ModelEntry) -> Iterator[Path]:
+    """Where a file may be: ``$M360_MODEL_DIR`` (manual copies) first, then the cache."""
+    manual = os.environ.get("M360_MODEL_DIR")
+    if manual:
+        yield Path(manual).expanduser() / entry.filename
+    yield cache_dir() / entry.filename
+
+
+def local_path(entry: ModelEntry) -> Path | None:
+    """The existing local copy of ``entry`` (not verified), or None."""
+    for path in _candidates(entry):
+        if path.is_file():
+            return path
+    return None
+
+
+def is_cached(name: str) -> bool:
+    """Whether a local copy of model ``name`` exists (its hash is checked on first use)."""
+    return local_path(get(name)) is not None
+
+
+def sha256_of(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
+    """Hex sha256 of a file, read in chunks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as f:
+        for block in iter(lambda: f.read(chunk), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _where_to_put(entry: ModelEntry) -> str:
+    target = cache_dir() / entry.filename
+    return (
+        f"download it yourself from {entry.urls[0]} and put it at {target} "
+        f"(or in the folder named by M360_MODEL_DIR, or set M360_HOME)"
+    )
+
+
+def sniff_onnx(path: str | os.PathLike[str]) -> str | None:
+    """Why the file at ``path`` is clearly not an ONNX model, or None if it may be one.
+
+    Catches the usual accidents cheaply: an empty file, an HTML/JSON/text error page saved
+    under the model's name, a Git LFS pointer instead of the file.
+    """
+    with open(path, "rb") as f:
+        head = f.read(256)
+    if not head:
+        return "it is empty"
+    text = head.lstrip().lower()
+    if text.startswith((b"<!doctype html", b"<html", b"<?xml", b"<")):
+        return "it is an HTML/XML page (an error or login page saved under the model's name?)"
+    if text.startswith(b"version https://git-lfs"):
+        return "it is a Git LFS pointer file, not the model itself"
+    if text.startswith((b"{", b"[")):
+        return "it is a JSON document (an error response saved under the model's name?)"
+    if head[0] not in _ONNX_FIRST_BYTES:
+        return f"it does not start like an ONNX protobuf (first bytes {head[:8].hex()})"
+    return None
+
+
+def verify(entry: ModelEntry, path: str | os.PathLike[str]) -> Path:
+    """Check a local file against ``entry``; returns the path or raises ModelError.
+
+    The sha256 is computed once per process for a given (path, size, mtime); an entry without
+    a published hash is refused unless ``M360_ALLOW_UNVERIFIED=1`` (then a warning prints the
+    file's actual hash).
+    """
+    p = Path(path)
+    try:
+        stat = p.stat()
+    except OSError as exc:
+        raise ModelError(f"model file {p} cannot be read ({exc}); {_where_to_put(entry)}") from exc
+    key = (str(p.resolve()), stat.st_size, stat.st_mtime_ns)
+    with _lock:
+        if key in _verified:
+            return p
+    problem = sniff_onnx(p)
+    actual = sha256_of(p)
+    if entry.sha256 is None:
+        if not _allow_unverified():
+            raise ModelError(
+                f"model {entry.name!r}: no published sha256 could be confirmed for {p.name} "
+                f"({entry.sha256_source}), so m360 will not load it. Its actual sha256 is "
+                f"{actual}; if you trust the file, set M360_ALLOW_UNVERIFIED=1, or use a model "
+                "with a verified hash (m360 models)"
+            )
+        warnings.warn(
+            f"model {entry.name!r} loaded WITHOUT hash verification (M360_ALLOW_UNVERIFIED=1): "
+            f"{p} has sha256 {actual}",
+            UserWarning,
+            stacklevel=3,
+        )
+    elif actual != entry.sha256:
+        why = f"; {problem}" if problem else ""
+        truncated = (
+            f" (it is {stat.st_size} bytes, expected about {entry.size_bytes}: truncated?)"
+            if entry.size_bytes and stat.st_size < 0.98 * entry.size_bytes
+            else ""
+        )
+        raise ModelError(
+            f"model file {p} fails its hash check{why}{truncated}: expected sha256 "
+            f"{entry.sha256}, got {actual}. Delete it and run `m360 models fetch {entry.name}`, "
+            f"or {_where_to_put(entry)}"
+        )
+    if problem:
+        raise ModelError(f"model file {p} is not an ONNX model: {problem}; {_where_to_put(entry)}")
+    with _lock:
+        _verified.add(key)
+    return p
+
+
+def ensure(name: str, *, progress: bool = True) -> Path:
+    """A verified local path of model ``name``, downloading it if needed (unless offline)."""
+    entry = get(name)
+    path = local_path(entry)
+    if path is not None:
+        return verify(entry, path)
+    return fetch(name, progress=progress)
+
+
+def fetch(name: str, *, progress: bool = True, force: bool = False) -> Path:
+    """Download model ``name`` into the cache (atomic, with a progress bar) and verify it.
+
+    Raises ModelError when offline (``M360_OFFLINE=1``), when every URL fails, or when the
+    downloaded bytes do not match the expected sha256 (nothing is left in the cache then).
+    """
+    entry = get(name)
+    target = cache_dir() / entry.filename
+    if target.is_file() and not force:
+        return verify(entry, target)
+    if _offline():
+        raise ModelError(
+            f"model {entry.name!r} is not cached and M360_OFFLINE=1 forbids downloading it "
+            f"(expected sha256 {entry.sha256 or 'unpublished'}): {_where_to_put(entry)}"
+        )
+    if entry.sha256 is None and not _allow_unverified():
+        raise ModelError(
+            f"model {entry.name!r} has no confirmed sha256 ({entry.sha256_source}); m360 will "
+            "not download an unverifiable file unless M360_ALLOW_UNVERIFIED=1 is set"
+        )
+    target.parent.mkdir(parents=True, exist_ok=True)
+    if force:
+        target.unlink(missing_ok=True)
+    errors = []
+    for url in entry.urls:
+        try:
+            _download(url, entry, target, progress)
+        except ModelError:
+            raise
+        except Exception as exc:  # network errors come in many types (requests, OSError, ...)
+            errors.append(f"{url}: {type(exc).__name__}: {exc}")
+            continue
+        return verify(entry, target)
+    raise ModelError(
+        f"could not download model {entry.name!r} (expected sha256 "
+        f"{entry.sha256 or 'unpublished'}): " + "; ".join(errors) + f". {_where_to_put(entry)}"
+    )
+
+
+def _download(url: str, entry: ModelEntry, target: Path, progress: bool) -> None:
+    import pooch
+
+    known_hash = f"sha256:{entry.sha256}" if entry.sha256 else None
+    downloader = pooch.HTTPDownloader(progressbar=progress, timeout=_DOWNLOAD_TIMEOUT_S)
+    logger = pooch.get_logger()
+    level = logger.level
+    logger.setLevel("WARNING")
+    try:
+        pooch.retrieve(
+            url,
+            known_hash=known_hash,
+            fname=target.name,
+            path=target.parent,
+            downloader=downloader,
+        )
+    except ValueError as exc:  # pooch's hash mismatch; the partial file was removed
+        raise ModelError(
+            f"the file downloaded from {url} for model {entry.name!r} fails its hash check "
+            f"(expected sha256 {entry.sha256}): {exc}. Nothing was saved; {_where_to_put(entry)}"
+        ) from exc
+    finally:
+        logger.setLevel(level)
+
+
+def list_models() -> list[dict[str, Any]]:
+    """One dict per registered model: name, size, licence, cached, verified hash, description."""
+    rows = []
+    for entry in REGISTRY.values():
+        path = local_path(entry)
+        rows.append(
+            {
+                "name": entry.name,
+                "size_mb": None if entry.size_bytes is None else entry.size_bytes / 1e6,
+                "licence": entry.licence,
+                "input_size": entry.input_size,
+                "output_kind": entry.output_kind,
+                "sha256": entry.sha256,
+                "cached": path is not None,
+                "path": str(path if path is not None else cache_dir() / entry.filename),
+                "description": entry.description,
+            }
+        )
+    return rows
+
+
+def _clear_verified() -> None:
+    """Forget which files were verified in this process (tests)."""
+    with _lock:
+        _verified.clear()

@@ -1,0 +1,283 @@
+"""m360.models: registry, cache, download and verification.
+
+Downloads go to a local HTTP server on 127.0.0.1 (a thread that serves at most a few dozen
+requests and shuts itself down after 30 s) serving a tiny ONNX file made in the test; no test
+touches the internet. Real weights are only exercised when M360_MODEL_DIR points at them.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import hashlib
+import os
+import re
+from collections.abc import Iterator
+from pathlib import Path
+
+import m360
+import numpy as np
+import onnx_graphs as g
+import pytest
+from local_http import LocalServer
+from m360 import models
+from m360.errors import ModelError
+from m360.estimate import OUTPUT_KINDS, OnnxEstimator, load_estimator
+
+
+@pytest.fixture
+def server() -> Iterator[LocalServer]:
+    srv = LocalServer().start()
+    try:
+        yield srv
+    finally:
+        srv.stop()
+
+
+@pytest.fixture(autouse=True)
+def isolated_cache(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> Path:
+    home = tmp_path / "m360home"
+    monkeypatch.setenv("M360_HOME", str(home))
+    monkeypatch.setenv("NO_PROXY", "127.0.0.1,localhost")
+    for var in ("M360_OFFLINE", "M360_MODEL_DIR", "M360_ALLOW_UNVERIFIED"):
+        monkeypatch.delenv(var, raising=False)
+    models._clear_verified()
+    return home / "models"
+
+
+@pytest.fixture
+def tiny(tmp_path: Path) -> bytes:
+    """Bytes of a tiny ONNX depth model (output = 2·mean(RGB) + 1)."""
+    return g.affine_of_mean(tmp_path / "made" / "tiny.onnx", 2.0, 1.0).read_bytes()
+
+
+def register(
+    monkeypatch: pytest.MonkeyPatch, url: str, sha256: str | None, size: int
+) -> models.ModelEntry:
+    entry = dataclasses.replace(
+        models.get("midas-v21-small"),
+        name="tiny",
+        filename="tiny.onnx",
+        urls=(url,),
+        sha256=sha256,
+        sha256_source="made in the test",
+        size_bytes=size,
+        input_size=(16, 16),
+        multiple_of=1,
+    )
+    monkeypatch.setitem(models.REGISTRY, "tiny", entry)
+    return entry
+
+
+def sha(data: bytes) -> str:
+    return hashlib.sha256(data).hexdigest()
+
+
+def leftovers(folder: Path) -> list[str]:
+    return sorted(p.name for p in folder.iterdir()) if folder.exists() else []
+
+
+# ------------------------------------------------------------------ happy path
+
+
+def test_fetch_downloads_verifies_and_caches(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    server.routes["/tiny.onnx"] = (200, tiny, "ok")
+    register(monkeypatch, server.url("/tiny.onnx"), sha(tiny), len(tiny))
+    assert not models.is_cached("tiny")
+    path = models.fetch("tiny", progress=False)
+    assert path == isolated_cache / "tiny.onnx" and path.read_bytes() == tiny
+    assert leftovers(isolated_cache) == ["tiny.onnx"]  # no temporary files left behind
+    assert models.is_cached("tiny")
+    # Second use: no network, the hash check is remembered for this process.
+    models.ensure("tiny")
+    assert server.requests == ["/tiny.onnx"]
+    est = load_estimator("tiny")
+    assert isinstance(est, OnnxEstimator) and est.sha256 == sha(tiny)
+    out = est.predict(np.full((1, 16, 16, 3), 255, np.uint8))
+    np.testing.assert_allclose(out, 3.0, rtol=1e-6)  # 2 * 1 + 1 (normalisation baked in)
+
+
+def test_manual_copy_in_model_dir_is_found_and_verified(
+    tmp_path: Path, tiny: bytes, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    manual = tmp_path / "manual"
+    manual.mkdir()
+    (manual / "tiny.onnx").write_bytes(tiny)
+    monkeypatch.setenv("M360_MODEL_DIR", str(manual))
+    monkeypatch.setenv("M360_OFFLINE", "1")
+    register(monkeypatch, "http://127.0.0.1:9/never", sha(tiny), len(tiny))
+    assert models.ensure("tiny") == manual / "tiny.onnx"
+
+
+def test_cache_dir_follows_m360_home_else_the_platform_cache(
+    monkeypatch: pytest.MonkeyPatch, tmp_path: Path
+) -> None:
+    assert models.cache_dir() == tmp_path / "m360home" / "models"
+    monkeypatch.delenv("M360_HOME")
+    import platformdirs
+
+    assert models.cache_dir() == Path(platformdirs.user_cache_dir("m360")) / "models"
+
+
+# ------------------------------------------------------------------ failures, one message each
+
+
+def test_hash_mismatch_on_download_saves_nothing(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    server.routes["/tiny.onnx"] = (200, tiny + b"tampered", "ok")
+    register(monkeypatch, server.url("/tiny.onnx"), sha(tiny), len(tiny))
+    with pytest.raises(ModelError) as info:
+        models.fetch("tiny", progress=False)
+    msg = str(info.value)
+    assert "fails its hash check" in msg and sha(tiny) in msg and "Nothing was saved" in msg
+    assert str(isolated_cache / "tiny.onnx") in msg  # where to put a manual copy
+    assert leftovers(isolated_cache) == []
+
+
+def test_hash_mismatch_of_a_cached_file(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    other = g.affine_of_mean(isolated_cache / "tiny.onnx", 5.0, 0.0).read_bytes()
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(tiny), len(other))
+    with pytest.raises(ModelError) as info:
+        models.ensure("tiny")
+    msg = str(info.value)
+    assert re.search(rf"tiny.onnx fails its hash check: expected sha256 {sha(tiny)}, got", msg)
+    assert sha(other) in msg and "m360 models fetch tiny" in msg and "truncated" not in msg
+
+
+def test_truncated_download_is_refused(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    server.routes["/tiny.onnx"] = (200, tiny, "truncate")
+    register(monkeypatch, server.url("/tiny.onnx"), sha(tiny), len(tiny))
+    with pytest.raises(ModelError, match=r"could not download model 'tiny' \(expected sha256"):
+        models.fetch("tiny", progress=False)
+    assert leftovers(isolated_cache) == []
+
+
+def test_truncated_cached_file_is_refused(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    isolated_cache.mkdir(parents=True)
+    (isolated_cache / "tiny.onnx").write_bytes(tiny[: len(tiny) // 2])
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(tiny), len(tiny))
+    with pytest.raises(ModelError, match=r"fails its hash check \(it is \d+ bytes.*truncated\?\)"):
+        models.ensure("tiny")
+
+
+def test_html_error_page_saved_as_onnx(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    page = b"<!DOCTYPE html><html><body>Rate limit exceeded</body></html>"
+    server.routes["/tiny.onnx"] = (200, page, "ok")
+    register(monkeypatch, server.url("/tiny.onnx"), sha(tiny), len(tiny))
+    with pytest.raises(ModelError, match="fails its hash check"):
+        models.fetch("tiny", progress=False)
+    assert leftovers(isolated_cache) == []
+    # The same page already in the cache (e.g. saved by a browser): named as HTML.
+    isolated_cache.mkdir(parents=True, exist_ok=True)
+    (isolated_cache / "tiny.onnx").write_bytes(page)
+    with pytest.raises(ModelError, match=r"fails its hash check; it is an HTML/XML page"):
+        models.ensure("tiny")
+
+
+def test_offline_and_missing_never_touches_the_network(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    server.routes["/tiny.onnx"] = (200, tiny, "ok")
+    register(monkeypatch, server.url("/tiny.onnx"), sha(tiny), len(tiny))
+    monkeypatch.setenv("M360_OFFLINE", "1")
+    with pytest.raises(ModelError) as info:
+        models.ensure("tiny")
+    msg = str(info.value)
+    assert "M360_OFFLINE=1 forbids downloading" in msg and sha(tiny) in msg
+    assert str(isolated_cache / "tiny.onnx") in msg and server.url("/tiny.onnx") in msg
+    assert server.requests == []
+
+
+def test_no_network_names_the_url_and_where_to_put_the_file(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    closed = LocalServer()  # bound, never started, then closed: connections are refused
+    url = closed.url("/tiny.onnx")
+    closed.httpd.server_close()
+    register(monkeypatch, url, sha(tiny), len(tiny))
+    with pytest.raises(ModelError) as info:
+        models.fetch("tiny", progress=False)
+    msg = str(info.value)
+    assert "could not download model 'tiny'" in msg and url in msg
+    assert f"put it at {isolated_cache / 'tiny.onnx'}" in msg
+
+
+def test_unpublished_hash_is_refused_unless_allowed(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    g.affine_of_mean(isolated_cache / "tiny.onnx", 2.0, 1.0)
+    register(monkeypatch, "http://127.0.0.1:9/x", None, len(tiny))
+    with pytest.raises(ModelError, match=rf"no published sha256.*actual sha256 is {sha(tiny)}"):
+        models.ensure("tiny")
+    monkeypatch.setenv("M360_ALLOW_UNVERIFIED", "1")
+    with pytest.warns(UserWarning, match=rf"WITHOUT hash verification.*{sha(tiny)}"):
+        assert models.ensure("tiny") == isolated_cache / "tiny.onnx"
+
+
+def test_unknown_name() -> None:
+    with pytest.raises(ModelError, match="unknown model 'midas': registered models are"):
+        models.get("midas")
+
+
+# ------------------------------------------------------------------ the registry itself
+
+
+def test_registry_entries_are_complete() -> None:
+    assert models.DEFAULT_MODEL in models.REGISTRY
+    assert models.get(models.DEFAULT_MODEL).sha256 is not None
+    required = {"midas-v21-small", "midas-v21-large", "dpt-hybrid", "dpt-large"}
+    assert required | {"depth-anything-v2-small"} <= set(models.names())
+    for entry in models.REGISTRY.values():
+        assert entry.urls and all(u.startswith("https://") for u in entry.urls), entry.name
+        assert entry.sha256 is None or re.fullmatch(r"[0-9a-f]{64}", entry.sha256), entry.name
+        assert entry.sha256_source and entry.licence and entry.description
+        assert entry.output_kind in OUTPUT_KINDS
+        assert entry.resize in ("upper_bound", "lower_bound") and entry.multiple_of in (14, 32)
+    da = models.get("depth-anything-v2-small")
+    assert da.input_size == (518, 518) and da.multiple_of == 14 and "Apache-2.0" in da.licence
+    assert "CC-BY-NC" in da.licence  # Base/Large are non-commercial
+    assert models.get("midas-v21-small").input_size == (256, 256)
+    assert all(models.get(n).input_size == (384, 384) for n in required - {"midas-v21-small"})
+
+
+def test_list_models_reports_cached_state(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(tiny), len(tiny))
+    g.affine_of_mean(isolated_cache / "tiny.onnx", 2.0, 1.0)
+    rows = {r["name"]: r for r in models.list_models()}
+    assert rows["tiny"]["cached"] is True and rows["midas-v21-small"]["cached"] is False
+    assert rows["midas-v21-small"]["licence"] == "MIT"
+
+
+# ------------------------------------------------------------------ real weights (opt-in)
+
+#: Read before the autouse fixture clears M360_MODEL_DIR for the other tests.
+REAL_MODEL_DIR = os.environ.get("M360_MODEL_DIR")
+
+
+@pytest.mark.parametrize("name", list(models.REGISTRY))
+def test_real_model_when_available(name: str, monkeypatch: pytest.MonkeyPatch) -> None:
+    entry = models.get(name)
+    if not REAL_MODEL_DIR or not (Path(REAL_MODEL_DIR) / entry.filename).is_file():
+        pytest.skip(f"real weights: set M360_MODEL_DIR to a folder holding {entry.filename}")
+    monkeypatch.setenv("M360_MODEL_DIR", REAL_MODEL_DIR)
+    monkeypatch.setenv("M360_OFFLINE", "1")
+    est = load_estimator(name, threads=2)
+    rgb, depth = m360.synthetic.render(m360.synthetic.room(0), 512)
+    res = m360.estimate(rgb, est, align="none", blend="mean")
+    assert np.isfinite(res.disparity).mean() > 0.99
+    # A real network ranks near and far correctly on a rendered room, even unaligned.
+    valid = np.isfinite(res.disparity)
+    corr = np.corrcoef(res.disparity[valid], 1.0 / depth[valid])[0, 1]
+    assert corr > 0.5, corr
