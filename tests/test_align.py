@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 from conftest import erp_depth, layout, tangent_disparity
 from m360.errors import InputError
+from m360.stitch import MULTISCALE
 
 WIDTH = 1024
 SEEDS = (0, 1, 2)
@@ -86,8 +87,15 @@ def test_details_report_and_grids() -> None:
     res = m360.stitch(tangent_disparity(0, 512), lay, blend="mean", return_details=True)
     assert isinstance(res, m360.StitchResult)
     levels = res.report["align"]
-    assert [lvl["grid"] for lvl in levels] == [(4, 3), (8, 7), (16, 14)]
-    assert [g.shape for g in res.grids] == [(20, 3, 4, 2), (20, 7, 8, 2), (20, 14, 16, 2)]
+    assert [lvl["grid"] for lvl in levels] == [(4, 3), (8, 7)]
+    assert [g.shape for g in res.grids] == [(20, 3, 4, 2), (20, 7, 8, 2)]
+    paper = m360.stitch(
+        tangent_disparity(0, 512), lay, blend="mean", energy="paper", return_details=True
+    )
+    assert isinstance(paper, m360.StitchResult)
+    assert [g.shape for g in paper.grids] == [(20, 3, 4, 2), (20, 7, 8, 2), (20, 14, 16, 2)]
+    three = m360.stitch(tangent_disparity(0, 512), lay, MULTISCALE, "mean")
+    assert isinstance(three, np.ndarray)
     for lvl in levels:
         assert lvl["converged"]
         assert lvl["gradient_norm"] <= 1e-6 * max(1.0, abs(lvl["energy"]))

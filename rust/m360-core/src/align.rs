@@ -283,6 +283,10 @@ pub struct Problem {
     scale_weight: f64,
     /// Weight of Σ o²: fixes the global offset, which no other term sees (see `GAUGE`).
     gauge_weight: f64,
+    /// Jᵀ in compressed rows: for unknown i, `jt[jt_start[i]..jt_start[i + 1]]` lists the
+    /// (sample, coefficient) pairs of its residuals, in sample order (a deterministic gather).
+    jt_start: Vec<usize>,
+    jt: Vec<(u32, f64)>,
 }
 
 /// The data and smoothness terms are unchanged by adding one constant to every offset, and no
@@ -418,6 +422,28 @@ impl Problem {
                 }
             }
         }
+        let unknowns = 2 * n * per;
+        let mut jt_start = vec![0usize; unknowns + 1];
+        for nd in &nodes {
+            for &node in nd {
+                jt_start[2 * node as usize + 1] += 1;
+                jt_start[2 * node as usize + 2] += 1;
+            }
+        }
+        for i in 0..unknowns {
+            jt_start[i + 1] += jt_start[i];
+        }
+        let mut fill = jt_start.clone();
+        let mut jt = vec![(0u32, 0.0f64); jt_start[unknowns]];
+        for (k, nd) in nodes.iter().enumerate() {
+            for (j, &node) in nd.iter().enumerate() {
+                for (d, coef) in [(0, coef_s[k][j]), (1, coef_o[k][j])] {
+                    let i = 2 * node as usize + d;
+                    jt[fill[i]] = (k as u32, coef);
+                    fill[i] += 1;
+                }
+            }
+        }
         Self {
             params,
             tangents: n,
@@ -427,6 +453,8 @@ impl Problem {
             edges,
             scale_weight,
             gauge_weight: GAUGE,
+            jt_start,
+            jt,
         }
     }
 
@@ -490,45 +518,32 @@ impl Problem {
 
     /// Energy at `x`, and its gradient into `grad` when given. Any s ≤ 0 gives +∞.
     ///
-    /// The data term is reduced over fixed chunks in index order, so the result does not
-    /// depend on the number of threads.
+    /// Residuals are computed in parallel, the data term is reduced over fixed chunks in index
+    /// order and the gradient gathered per unknown through Jᵀ in sample order, so the result
+    /// does not depend on the number of threads.
     pub fn energy(&self, x: &[f64], grad: Option<&mut [f64]>) -> f64 {
         const CHUNK: usize = 4096;
         let inv_z = 1.0 / self.samples().max(1) as f64;
-        let want_grad = grad.is_some();
-        let n = self.len();
-        let partial: Vec<(f64, Vec<f64>)> = (0..self.samples().div_ceil(CHUNK))
+        let residuals: Vec<f64> = (0..self.samples())
             .into_par_iter()
-            .map(|c| {
-                let mut g = if want_grad { vec![0.0; n] } else { Vec::new() };
-                let mut e = 0.0;
-                for k in c * CHUNK..((c + 1) * CHUNK).min(self.samples()) {
-                    let r = self.residual(k, x);
-                    e += r * r;
-                    if want_grad {
-                        let (nd, cs, co) = (&self.nodes[k], &self.coef_s[k], &self.coef_o[k]);
-                        for j in 0..8 {
-                            let i = 2 * nd[j] as usize;
-                            g[i] += 2.0 * r * cs[j] * inv_z;
-                            g[i + 1] += 2.0 * r * co[j] * inv_z;
-                        }
-                    }
-                }
-                (e, g)
-            })
+            .map(|k| self.residual(k, x))
             .collect();
-        let mut energy = 0.0;
+        let partial: Vec<f64> = residuals
+            .par_chunks(CHUNK)
+            .map(|c| c.iter().map(|r| r * r).sum())
+            .collect();
+        let mut energy = partial.iter().sum::<f64>() * inv_z;
         let mut gradient = grad;
         if let Some(g) = gradient.as_deref_mut() {
-            g.fill(0.0);
-        }
-        for (e, g_part) in partial {
-            energy += e * inv_z;
-            if let Some(g) = gradient.as_deref_mut() {
-                for (gi, pi) in g.iter_mut().zip(&g_part) {
-                    *gi += pi;
-                }
-            }
+            g.par_iter_mut().enumerate().for_each(|(i, gi)| {
+                let terms = &self.jt[self.jt_start[i]..self.jt_start[i + 1]];
+                *gi = 2.0
+                    * inv_z
+                    * terms
+                        .iter()
+                        .map(|&(k, c)| residuals[k as usize] * c)
+                        .sum::<f64>();
+            });
         }
         for &(p, q, wgt) in &self.edges {
             let (p, q) = (2 * p as usize, 2 * q as usize);
@@ -541,7 +556,7 @@ impl Problem {
                 g[q + 1] -= 2.0 * wgt * dof;
             }
         }
-        for node in 0..n / 2 {
+        for node in 0..self.len() / 2 {
             let (s, o) = (x[2 * node], x[2 * node + 1]);
             if s <= 0.0 {
                 return f64::INFINITY;
@@ -1145,5 +1160,50 @@ mod tests {
             .map(|(x, y)| (x - y).abs())
             .fold(0.0f32, f32::max);
         assert!(worst < 1e-4, "{worst}");
+    }
+
+    /// Timing breakdown of one Newton level at 2K: `cargo test --release -p m360-core
+    /// newton_timing -- --ignored --nocapture`.
+    #[test]
+    #[ignore]
+    fn newton_timing() {
+        let layout = Layout::icosahedron(2048, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let mut maps = Vec::with_capacity(20 * h * w);
+        for (t, cam) in layout.cameras.iter().enumerate() {
+            for r in 0..h {
+                for c in 0..w {
+                    let d = cam.pixel_direction(c as f64, r as f64);
+                    maps.push(((0.5 + random(1, t)) * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z)) as f32);
+                }
+            }
+        }
+        standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
+        let overlaps = Overlaps::build(&layout, 0.01, 0.0);
+        for (cols, rows) in [(4, 3), (8, 7), (16, 14)] {
+            let params = LevelParams {
+                cols,
+                rows,
+                energy: Energy::Normalized,
+                smoothness: 1.0,
+                scale: 0.01,
+                offsets: Offsets::Perspective,
+            };
+            let t = std::time::Instant::now();
+            let problem = Problem::new(&layout, &maps, &overlaps, params);
+            let t_problem = t.elapsed();
+            let t = std::time::Instant::now();
+            let mut system = NewtonSystem::new(&problem).expect("system");
+            let t_system = t.elapsed();
+            let x = problem.identity();
+            let mut g = vec![0.0; x.len()];
+            let t = std::time::Instant::now();
+            problem.energy(&x, Some(&mut g));
+            let t_energy = t.elapsed();
+            let t = std::time::Instant::now();
+            system.step(&problem, &x, &g).expect("step");
+            let t_step = t.elapsed();
+            println!("{cols}x{rows}: samples {} problem {t_problem:?} system {t_system:?} energy+grad {t_energy:?} step {t_step:?} nnz(A) {} unknowns {}", problem.samples(), system.constant.len(), problem.len());
+        }
     }
 }

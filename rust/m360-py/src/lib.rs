@@ -609,6 +609,9 @@ mod _core {
     #[pymodule_init]
     fn init(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {
         use pyo3::types::PyModuleMethods;
+        // faer would otherwise run its own thread pool inside calls that already run on m360's
+        // rayon pool; m360 parallelises over its own data, so faer's kernels run sequentially.
+        faer::set_global_parallelism(faer::Par::Seq);
         m.add("__version__", env!("CARGO_PKG_VERSION"))
     }
 }
