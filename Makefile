@@ -25,7 +25,7 @@ test: install  ## the test suite (pytest)
 	$(PY) -m pytest
 
 rust-test:  ## Rust unit tests of the core
-	cargo test --workspace --release
+	cargo test --workspace
 
 lint: install  ## formatting, clippy, ruff, mypy and the stub check of m360._core
 	cargo fmt --all --check

@@ -62,7 +62,8 @@ impl Texel for u8 {
         let (fx, fy) = (tap.fx as u32, tap.fy as u32);
         let w11 = (fx * fy) >> 15;
         let (w01, w10) = (fx - w11, fy - w11);
-        let w00 = ONE - fx - fy + w11;
+        // w11 ≥ fx + fy − ONE, so adding first never underflows.
+        let w00 = ONE + w11 - fx - fy;
         let v = w00 * p[0] as u32 + w01 * p[1] as u32 + w10 * p[2] as u32 + w11 * p[3] as u32;
         ((v + ONE / 2) >> 15) as u8
     }
