@@ -7,6 +7,8 @@
 //! 3. [`plan`]: per-(layout, ERP size) sampling maps, built once and reused for every image.
 //! 4. [`resample`]: ERP → tangent images and tangent images → ERP, bilinear and parallel.
 //! 5. [`stitch`]: perspective → spherical disparity and the simple blends (mean, nearest face).
+//! 6. [`blend`]: per-face weight maps, radial/frustum blends and the Poisson gradient-domain
+//!    blend (matrix-free conjugate gradients with faer).
 //!
 //! Conventions (world frame x right, y down, z forward; pixel centres at integer coordinates) are
 //! those of `DESIGN.md` §1. This crate knows nothing of Python: the bindings crate validates user
@@ -14,6 +16,7 @@
 //! can happen on valid input through [`CoreError`].
 #![deny(missing_docs)]
 
+pub mod blend;
 pub mod camera;
 pub mod error;
 pub mod layout;

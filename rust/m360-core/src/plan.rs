@@ -1,5 +1,6 @@
 //! Per-(layout, ERP size) sampling maps, built on first use and shared by every later image.
 
+use crate::blend::{weight_maps, Weighting};
 use crate::layout::Layout;
 use crate::resample::{ErpTaps, TangentTaps};
 use std::sync::OnceLock;
@@ -13,6 +14,8 @@ pub struct Plan {
     layout: Layout,
     tangent_taps: OnceLock<TangentTaps>,
     erp_taps: OnceLock<ErpTaps>,
+    frustum_weights: OnceLock<Vec<f32>>,
+    radial_weights: OnceLock<Vec<f32>>,
 }
 
 impl Plan {
@@ -22,6 +25,8 @@ impl Plan {
             layout,
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
+            frustum_weights: OnceLock::new(),
+            radial_weights: OnceLock::new(),
         }
     }
 
@@ -41,9 +46,23 @@ impl Plan {
         self.erp_taps.get_or_init(|| ErpTaps::build(&self.layout))
     }
 
+    /// Per-face blending weights (N·h·w, f32) of the weighted blends (built on first call);
+    /// `None` for the kinds no blend samples (nearest, mean: see [`weight_maps`]).
+    pub fn blend_weights(&self, kind: Weighting) -> Option<&[f32]> {
+        let cell = match kind {
+            Weighting::Frustum => &self.frustum_weights,
+            Weighting::Radial => &self.radial_weights,
+            Weighting::Nearest | Weighting::Mean => return None,
+        };
+        Some(cell.get_or_init(|| weight_maps(&self.layout, kind)))
+    }
+
     /// Bytes held by the maps built so far.
     pub fn memory_bytes(&self) -> usize {
+        let weights = |c: &OnceLock<Vec<f32>>| c.get().map_or(0, |v| v.len() * 4);
         self.tangent_taps.get().map_or(0, TangentTaps::memory_bytes)
             + self.erp_taps.get().map_or(0, ErpTaps::memory_bytes)
+            + weights(&self.frustum_weights)
+            + weights(&self.radial_weights)
     }
 }
