@@ -98,9 +98,10 @@ def stitch(
 
         - ``"poisson"`` (default): gradient-domain blend, minimising
           ``Σ_a Σ_x ω_a(x)‖∇B(x) - ∇D_a(x)‖² + λ Σ_x (B(x) - T(x))²`` with ω_a the frustum
-          weights, forward differences on the ERP grid (periodic in longitude, no edge across a
-          pole), λ = 0.1 and T the fidelity target (``blend_options["fidelity"]``); solved to a
-          relative residual ≤ 1e-6.
+          weights (taken at each difference's midpoint, the mean of its two ends, so both poles
+          and both longitude directions are treated alike), forward differences on the ERP grid
+          (periodic in longitude, no edge across a pole), λ = 0.1 and T the fidelity target
+          (``blend_options["fidelity"]``); solved to a relative residual ≤ 1e-6.
         - ``"frustum"``: weights 1 in the centre of each tangent image, falling linearly to 0 at
           its border, the ramp starting 30 % of the way in from each corner along the diagonal;
           the fast choice, seam-free.

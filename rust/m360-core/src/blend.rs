@@ -1311,4 +1311,60 @@ mod tests {
             .zip(&two)
             .all(|(a, b)| a.to_bits() == b.to_bits()));
     }
+
+    /// Measures faer's sparse Cholesky (AMD ordering, supernodal) on the 2K system against the
+    /// fused CG; run with `cargo test --release -- --ignored --nocapture cholesky`.
+    #[test]
+    #[ignore = "timing, not a check"]
+    fn cholesky_versus_cg_at_2k() {
+        use faer::linalg::solvers::Solve;
+        use faer::sparse::{SparseColMat, Triplet};
+        let (h, w) = (1024, 2048);
+        let n = h * w;
+        let mut r = rng(5);
+        let values: Vec<f32> = (0..3 * n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        let weights: Vec<f32> = (0..3 * n).map(|_| r() as f32).collect();
+        let target: Vec<f32> = (0..n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        let source = LayerSource {
+            values: &values,
+            weights: &weights,
+            layers: 3,
+            height: h,
+            width: w,
+        };
+        let system = assemble(&source, h, w, POISSON_LAMBDA, Target::Given(&target), None);
+        let t0 = Instant::now();
+        let mut triplets = Vec::with_capacity(3 * n);
+        for p in 0..n {
+            let (i, j) = (p / w, p % w);
+            triplets.push(Triplet::new(p, p, system.diag[p]));
+            let right = i * w + (j + 1) % w;
+            triplets.push(Triplet::new(
+                p.max(right),
+                p.min(right),
+                -(system.right[p] as f64),
+            ));
+            if i + 1 < h {
+                triplets.push(Triplet::new(p + w, p, -(system.down[p] as f64)));
+            }
+        }
+        let a = SparseColMat::<usize, f64>::try_new_from_triplets(n, n, &triplets).expect("csc");
+        let t_build = t0.elapsed().as_secs_f64();
+        let t1 = Instant::now();
+        let llt = a.sp_cholesky(faer::Side::Lower).expect("llt");
+        let t_factor = t1.elapsed().as_secs_f64();
+        let t2 = Instant::now();
+        let x = llt.solve(MatRef::from_column_major_slice(&system.rhs, n, 1));
+        let t_solve = t2.elapsed().as_secs_f64();
+        let xs: Vec<f64> = (0..n).map(|p| x[(p, 0)]).collect();
+        let t3 = Instant::now();
+        let mut y: Vec<f64> = target.iter().map(|&t| t as f64).collect();
+        let (its, res, _) = solve_fused(&system, &mut y, &PoissonParams::default()).expect("cg");
+        let t_cg = t3.elapsed().as_secs_f64();
+        println!(
+            "2K: CSC build {t_build:.2}s, symbolic+numeric Cholesky {t_factor:.2}s, solve \
+             {t_solve:.2}s, residual {:.1e}; fused CG {its} it {t_cg:.2}s residual {res:.1e}",
+            system.relative_residual(&xs)
+        );
+    }
 }
