@@ -159,7 +159,8 @@ def test_details() -> None:
     ("kwargs", "match"),
     [
         ({"align": "bogus"}, "not supported"),
-        ({"blend": "poisson"}, "not available"),
+        ({"blend": "bogus"}, "not supported"),
+        ({"blend": "mean", "blend_options": {"fidelity": "nn"}}, "blend='poisson' only"),
         ({"blend": 3}, "not supported"),
         ({"mask": np.ones((20, 2, 2), bool)}, "mask"),
         ({"mask": "yes"}, "mask"),

@@ -4,7 +4,14 @@ from typing import Any, final
 import numpy as np
 import numpy.typing as npt
 
-__all__ = ["Plan", "__version__", "get_num_threads", "icosahedron_cameras", "set_num_threads"]
+__all__ = [
+    "Plan",
+    "__version__",
+    "get_num_threads",
+    "icosahedron_cameras",
+    "poisson_blend",
+    "set_num_threads",
+]
 __version__: str
 
 def set_num_threads(threads: int | None = None) -> None: ...
@@ -60,5 +67,23 @@ class Plan:
         offsets: str,
     ) -> dict[str, Any]: ...
     def blend(
-        self, tangents: npt.NDArray[np.float32], blend: str
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32]]: ...
+        self,
+        tangents: npt.NDArray[np.float32],
+        blend: str,
+        fidelity: str = "frustum",
+        lam: float = 0.1,
+        tol: float = 1e-6,
+        max_iterations: int = 2000,
+        solver: str = "fused",
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, Any]]: ...
+    def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
+
+def poisson_blend(
+    values: npt.NDArray[np.float32],
+    weights: npt.NDArray[np.float32],
+    target: npt.NDArray[np.float32],
+    lam: float = 0.1,
+    tol: float = 1e-6,
+    max_iterations: int = 2000,
+    solver: str = "fused",
+) -> tuple[npt.NDArray[np.float64], dict[str, Any]]: ...

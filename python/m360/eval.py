@@ -8,13 +8,19 @@ Optionally exclude a cap around each pole and weight pixels by solid angle (cos 
 
 from __future__ import annotations
 
+import threading
+from collections import OrderedDict
 from collections.abc import Mapping
+from typing import TYPE_CHECKING
 
 import numpy as np
 
 from m360.errors import InputError
 
-__all__ = ["depth_metrics", "fit_scale_shift", "format_metrics"]
+if TYPE_CHECKING:
+    from m360.geometry import Layout
+
+__all__ = ["depth_metrics", "fit_scale_shift", "format_metrics", "seam_score"]
 
 WEIGHTINGS = ("uniform", "solid_angle")
 DISPARITY_FLOOR = 1e-3
@@ -226,3 +232,135 @@ def format_metrics(metrics: Mapping[str, float]) -> str:
             value = metrics[key]
             parts.append(f"{label} {fmt.format(int(value) if fmt == '{:d}' else float(value))}")
     return "  ".join(parts)
+
+
+# --------------------------------------------------------------------------------------------
+# Seams.
+
+_SEAM_MASKS: OrderedDict[tuple[str, int], tuple[np.ndarray, np.ndarray]] = OrderedDict()
+_SEAM_LOCK = threading.Lock()
+
+
+def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
+    """Square dilation by ``radius`` px, wrapping in longitude, not across the top/bottom."""
+    out = mask.copy()
+    for dx in range(-radius, radius + 1):
+        if dx:
+            out |= np.roll(mask, dx, axis=1)
+    grown = out.copy()
+    for dy in range(1, radius + 1):
+        grown[dy:] |= out[:-dy]
+        grown[:-dy] |= out[dy:]
+    return grown
+
+
+def _edges(labels: np.ndarray) -> np.ndarray:
+    """Pixels whose right or lower neighbour (right wraps) has another label, and those
+    neighbours."""
+    right = labels != np.roll(labels, -1, axis=1)
+    down = np.zeros_like(right)
+    down[:-1] = labels[:-1] != labels[1:]
+    edge = right | down
+    edge |= np.roll(right, 1, axis=1)
+    edge[1:] |= down[:-1]
+    return edge
+
+
+def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:
+    from m360.geometry import plan_for
+
+    key = (layout.key, band)
+    with _SEAM_LOCK:
+        if key in _SEAM_MASKS:
+            _SEAM_MASKS.move_to_end(key)
+            return _SEAM_MASKS[key]
+    plan = plan_for(layout)
+    n = len(layout)
+    h, w = layout.tangent_shape
+    borders = np.zeros(layout.erp_shape, bool)
+    tiles = np.full((n, h, w), np.nan, np.float32)
+    for k in range(n):
+        tiles[k] = 1.0
+        inside = np.isfinite(plan.blend(tiles, "nn")[0])
+        tiles[k] = np.nan
+        borders |= _edges(inside)
+    ids = np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None], (n, h, w))
+    owner = np.rint(plan.blend(np.ascontiguousarray(ids), "nn")[0])
+    masks = (_dilate(borders, band), _dilate(_edges(owner), band))
+    with _SEAM_LOCK:
+        _SEAM_MASKS[key] = masks
+        while len(_SEAM_MASKS) > 4:
+            _SEAM_MASKS.popitem(last=False)
+    return masks
+
+
+def seam_score(
+    pred_disparity: np.ndarray,
+    gt_disparity: np.ndarray,
+    layout: Layout,
+    *,
+    band: int = 2,
+) -> dict[str, float]:
+    """How much worse a stitch's gradients are along tangent seams than elsewhere.
+
+    The prediction is first mapped onto the ground truth by the least-squares scale and shift
+    (:func:`fit_scale_shift`, over pixels where both are finite). The gradient error of a pixel
+    is ``|∇(s·pred + o) - ∇gt|`` with forward differences on the ERP grid (the horizontal one
+    wraps from column W-1 to 0, the vertical one stops at the last row). It is averaged within
+    ``band`` ERP pixels of the tangent-image borders, within ``band`` pixels of the face
+    triangles (the boundaries of the nearest-face partition), and elsewhere (outside both).
+
+    Parameters
+    ----------
+    pred_disparity : (H, W) float array
+        Stitched disparity (any scale and shift); NaN = no prediction.
+    gt_disparity : (H, W) float array
+        Ground-truth disparity (1/depth); NaN = invalid.
+    layout : Layout
+        The layout of the stitch (``layout.erp_shape == (H, W)``).
+    band : int
+        Half-width of the seam bands in ERP pixels (default 2).
+
+    Returns
+    -------
+    dict[str, float]
+        ``borders`` and ``triangles``: mean gradient error in that band divided by the mean
+        elsewhere (1 = no visible seam, larger = seams); ``elsewhere``: the mean gradient error
+        away from both bands (in ground-truth disparity units).
+    """
+    from m360.geometry import Layout
+
+    if not isinstance(layout, Layout):
+        raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    pred = np.asarray(pred_disparity, dtype=np.float64)
+    gt = np.asarray(gt_disparity, dtype=np.float64)
+    if pred.shape != layout.erp_shape or gt.shape != layout.erp_shape:
+        raise InputError(
+            f"pred_disparity {pred.shape} and gt_disparity {gt.shape} must both have the "
+            f"layout's ERP shape {layout.erp_shape}"
+        )
+    if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or band < 0:
+        raise InputError(f"band must be an integer >= 0, got {band!r}")
+    both = np.isfinite(pred) & np.isfinite(gt)
+    if not both.any():
+        raise InputError("no pixel where both pred_disparity and gt_disparity are finite")
+    scale, shift = fit_scale_shift(pred[both], gt[both])
+    diff = np.where(both, scale * pred + shift - gt, np.nan)
+    ex = np.roll(diff, -1, axis=1) - diff
+    ey = np.zeros_like(diff)
+    ey[:-1] = diff[1:] - diff[:-1]
+    err = np.hypot(ex, ey)
+    ok = np.isfinite(err)
+    borders, triangles = _seam_masks(layout, int(band))
+    rest = ok & ~borders & ~triangles
+    if not rest.any():
+        raise InputError("no valid pixel away from the seams to compare with")
+    elsewhere = float(err[rest].mean())
+
+    def ratio(mask: np.ndarray) -> float:
+        sel = ok & mask
+        if not sel.any() or elsewhere == 0.0:
+            return float("nan")
+        return float(err[sel].mean()) / elsewhere
+
+    return {"borders": ratio(borders), "triangles": ratio(triangles), "elsewhere": elsewhere}

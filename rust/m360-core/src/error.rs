@@ -20,6 +20,10 @@ pub enum CoreError {
         /// The shape that was given.
         actual: Vec<usize>,
     },
+    /// An option value is unusable.
+    InvalidOption(String),
+    /// A numerical solve failed (did not converge, or the system was not positive definite).
+    Solver(String),
 }
 
 impl fmt::Display for CoreError {
@@ -33,6 +37,8 @@ impl fmt::Display for CoreError {
                 expected,
                 actual,
             } => write!(f, "{what} has shape {actual:?}, expected {expected:?}"),
+            CoreError::InvalidOption(msg) => write!(f, "invalid option: {msg}"),
+            CoreError::Solver(msg) => write!(f, "solver failed: {msg}"),
         }
     }
 }

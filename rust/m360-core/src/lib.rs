@@ -8,6 +8,8 @@
 //! 4. [`resample`]: ERP → tangent images and tangent images → ERP, bilinear and parallel.
 //! 5. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
 //! 6. [`stitch`]: perspective → spherical disparity and the simple blends (mean, nearest face).
+//! 7. [`blend`]: per-face weight maps, radial/frustum blends and the Poisson gradient-domain
+//!    blend (matrix-free conjugate gradients).
 //!
 //! Conventions (world frame x right, y down, z forward; pixel centres at integer coordinates) are
 //! those of `DESIGN.md` §1. This crate knows nothing of Python: the bindings crate validates user
@@ -16,6 +18,7 @@
 #![deny(missing_docs)]
 
 pub mod align;
+pub mod blend;
 pub mod camera;
 pub mod error;
 pub mod layout;

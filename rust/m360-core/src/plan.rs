@@ -1,6 +1,7 @@
 //! Per-(layout, ERP size) sampling maps, built on first use and shared by every later image.
 
 use crate::align::Overlaps;
+use crate::blend::{weight_maps, Weighting};
 use crate::layout::Layout;
 use crate::resample::{ErpTaps, TangentTaps};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -19,6 +20,8 @@ pub struct Plan {
     erp_taps: OnceLock<ErpTaps>,
     /// Overlap samples per (sample fraction, pole cap) — a handful of option sets at most.
     overlaps: Mutex<Vec<(OverlapKey, Arc<Overlaps>)>>,
+    frustum_weights: OnceLock<Vec<f32>>,
+    radial_weights: OnceLock<Vec<f32>>,
 }
 
 impl Plan {
@@ -29,6 +32,8 @@ impl Plan {
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
+            frustum_weights: OnceLock::new(),
+            radial_weights: OnceLock::new(),
         }
     }
 
@@ -61,9 +66,23 @@ impl Plan {
         built
     }
 
+    /// Per-face blending weights (N·h·w, f32) of the weighted blends (built on first call);
+    /// `None` for the kinds no blend samples (nearest, mean: see [`weight_maps`]).
+    pub fn blend_weights(&self, kind: Weighting) -> Option<&[f32]> {
+        let cell = match kind {
+            Weighting::Frustum => &self.frustum_weights,
+            Weighting::Radial => &self.radial_weights,
+            Weighting::Nearest | Weighting::Mean => return None,
+        };
+        Some(cell.get_or_init(|| weight_maps(&self.layout, kind)))
+    }
+
     /// Bytes held by the maps built so far.
     pub fn memory_bytes(&self) -> usize {
+        let weights = |c: &OnceLock<Vec<f32>>| c.get().map_or(0, |v| v.len() * 4);
         self.tangent_taps.get().map_or(0, TangentTaps::memory_bytes)
             + self.erp_taps.get().map_or(0, ErpTaps::memory_bytes)
+            + weights(&self.frustum_weights)
+            + weights(&self.radial_weights)
     }
 }

@@ -449,6 +449,74 @@ impl ErpTaps {
     }
 }
 
+impl ErpTaps {
+    /// Like [`ErpTaps::visit_row`], but each sample also carries the bilinear value of a second
+    /// per-tangent map (`weights`, same layout as `tangents`) at the same position: the blending
+    /// weight of that face there. Calls `visit(j, samples)` nearest face first.
+    ///
+    /// # Panics
+    /// If `tangents` or `weights` is not the size the taps were built for.
+    #[inline]
+    pub fn visit_row_weighted(
+        &self,
+        tangents: &[f32],
+        weights: &[f32],
+        i: usize,
+        mut visit: impl FnMut(usize, &[WeightedSample]),
+    ) {
+        let n_all = self.tangent_pixels * self.faces;
+        assert_eq!(tangents.len(), n_all, "tangent stack size mismatch");
+        assert_eq!(weights.len(), n_all, "weight stack size mismatch");
+        let w = self.tangent_width;
+        let row = &self.taps[self.row_start[i]..self.row_start[i + 1]];
+        let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
+        let mut at = 0;
+        let mut samples: Vec<WeightedSample> = Vec::with_capacity(8);
+        for (j, &n) in counts.iter().enumerate() {
+            let n = n as usize;
+            samples.clear();
+            for (t, &tap) in row[at..at + n].iter().enumerate() {
+                if let Some(ahead) = row.get(at + t + PREFETCH_DISTANCE) {
+                    let k = ahead.index as usize;
+                    prefetch(tangents, k);
+                    prefetch(tangents, k + w);
+                }
+                let k = tap.index as usize;
+                let wts = tap.weights();
+                // SAFETY: as in `visit_row`: k + w + 1 < faces·h·w, the length of both stacks
+                // (asserted above).
+                let (v, wt) = unsafe {
+                    let at4 = |s: &[f32]| {
+                        wts[0] * s.get_unchecked(k)
+                            + wts[1] * s.get_unchecked(k + 1)
+                            + wts[2] * s.get_unchecked(k + w)
+                            + wts[3] * s.get_unchecked(k + w + 1)
+                    };
+                    (at4(tangents), at4(weights))
+                };
+                samples.push(WeightedSample {
+                    face: (k / self.tangent_pixels) as u32,
+                    value: v,
+                    weight: wt,
+                });
+            }
+            at += n;
+            visit(j, &samples);
+        }
+    }
+}
+
+/// One tangent's bilinear value at an ERP pixel, with that tangent's blending weight there.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct WeightedSample {
+    /// Index of the tangent (camera) in the layout.
+    pub face: u32,
+    /// Bilinear value; NaN when any of the four neighbours is NaN.
+    pub value: f32,
+    /// Bilinear weight of the face at the same position.
+    pub weight: f32,
+}
+
 /// Cosine of the widest angle between the axis of `cam` and a ray through its image (a corner),
 /// lowered slightly so rounding can never reject a visible direction.
 fn cone_cosine(cam: &TangentCamera) -> f64 {

@@ -4,6 +4,9 @@
 //! are a second line so that a mistake in that validation still gives a Python exception
 //! (`m360.errors.InputError`), never a panic.
 
+use m360_core::blend::{
+    self as core_blend, Fidelity, PoissonParams, PoissonReport, Solver, Weighting,
+};
 use m360_core::layout::Layout;
 use m360_core::resample;
 use m360_core::stitch::{self, Blend};
@@ -14,6 +17,7 @@ use numpy::{
     PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
+use pyo3::types::PyDict;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, RwLock};
 
@@ -29,8 +33,11 @@ impl From<PyCoreError> for PyErr {
         match err.0 {
             e @ (CoreError::InvalidLayout(_)
             | CoreError::ShapeMismatch { .. }
-            | CoreError::Degenerate(_)) => InputError::new_err(e.to_string()),
-            e @ CoreError::NonFinite(_) => SolverError::new_err(e.to_string()),
+            | CoreError::Degenerate(_)
+            | CoreError::InvalidOption(_)) => InputError::new_err(e.to_string()),
+            e @ (CoreError::NonFinite(_) | CoreError::Solver(_)) => {
+                SolverError::new_err(e.to_string())
+            }
         }
     }
 }
@@ -527,21 +534,48 @@ impl Plan {
         Ok(d)
     }
 
-    /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with
-    /// `blend` in {"mean", "nn"}: (disparity (H,W), spread (H,W)) float32.
-    #[allow(clippy::type_complexity)]
+    /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with `blend` in
+    /// {"mean", "nn", "radial", "frustum", "poisson"}: (disparity (H,W) float32, spread (H,W)
+    /// float32, report dict). `fidelity` ("nn", "frustum", "mean"), `lam`, `tol` and
+    /// `max_iterations` apply to "poisson" only.
+    #[pyo3(signature = (tangents, blend, fidelity="frustum", lam=0.1,
+                        tol=1e-6, max_iterations=2000, solver="fused"))]
+    #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn blend<'py>(
         &self,
         py: Python<'py>,
         tangents: PyReadonlyArray3<'py, f32>,
         blend: &str,
-    ) -> PyResult<(Bound<'py, PyArrayDyn<f32>>, Bound<'py, PyArrayDyn<f32>>)> {
+        fidelity: &str,
+        lam: f64,
+        tol: f64,
+        max_iterations: usize,
+        solver: &str,
+    ) -> PyResult<(
+        Bound<'py, PyArrayDyn<f32>>,
+        Bound<'py, PyArrayDyn<f32>>,
+        Bound<'py, PyDict>,
+    )> {
+        enum Mode {
+            Simple(Blend),
+            Weighted(Weighting),
+            Poisson(PoissonParams),
+        }
         let mode = match blend {
-            "mean" => Blend::Mean,
-            "nn" => Blend::Nearest,
+            "mean" => Mode::Simple(Blend::Mean),
+            "nn" => Mode::Simple(Blend::Nearest),
+            "radial" => Mode::Weighted(Weighting::Radial),
+            "frustum" => Mode::Weighted(Weighting::Frustum),
+            "poisson" => Mode::Poisson(PoissonParams {
+                lambda: lam,
+                fidelity: parse_fidelity(fidelity)?,
+                tolerance: tol,
+                max_iterations,
+                solver: parse_solver(solver)?,
+            }),
             _ => {
                 return Err(input_error(format!(
-                    "unknown blend {blend:?}: 'mean' or 'nn'"
+                    "unknown blend {blend:?}: 'mean', 'nn', 'radial', 'frustum' or 'poisson'"
                 )))
             }
         };
@@ -550,15 +584,172 @@ impl Plan {
         let data = contiguous(&tangents, "tangents")?;
         let shape = [layout.erp_height, layout.erp_width];
         let (disparity, spread) = (output_array(py, &shape), output_array(py, &shape));
-        {
+        let report = PyDict::new(py);
+        report.set_item("mode", blend)?;
+        let poisson = {
             let (mut rw_d, mut rw_s) = (disparity.readwrite(), spread.readwrite());
             let (dst_d, dst_s) = (writable(&mut rw_d)?, writable(&mut rw_s)?);
-            detached(py, || {
-                stitch::blend(self.inner.erp_taps(), layout, data, mode, dst_d, dst_s)
-            })?;
+            let plan = &self.inner;
+            detached(py, || match &mode {
+                Mode::Simple(m) => {
+                    stitch::blend(plan.erp_taps(), layout, data, *m, dst_d, dst_s);
+                    Ok(None)
+                }
+                Mode::Weighted(kind) => {
+                    let weights = plan.blend_weights(*kind).unwrap_or_default();
+                    core_blend::weighted_blend(
+                        plan.erp_taps(),
+                        layout,
+                        data,
+                        weights,
+                        dst_d,
+                        dst_s,
+                    );
+                    Ok(None)
+                }
+                Mode::Poisson(params) => {
+                    let weights = plan.blend_weights(Weighting::Frustum).unwrap_or_default();
+                    core_blend::poisson_blend(
+                        plan.erp_taps(),
+                        layout,
+                        data,
+                        weights,
+                        params,
+                        dst_d,
+                        dst_s,
+                    )
+                    .map(Some)
+                }
+            })?
+            .map_err(PyCoreError)?
+        };
+        if let (Some(r), Mode::Poisson(params)) = (poisson, &mode) {
+            fill_report(&report, &r, params, fidelity)?;
         }
-        Ok((disparity, spread))
+        Ok((disparity, spread, report))
     }
+
+    /// Per-face blending weights (N,h,w) float32 of `kind` in {"nn", "mean", "radial",
+    /// "frustum"}, on each tangent's pixel grid.
+    fn blend_weights<'py>(
+        &self,
+        py: Python<'py>,
+        kind: &str,
+    ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let kind = parse_weighting(kind)?;
+        let layout = self.inner.layout();
+        let (h, w) = layout.tangent_shape();
+        let data = detached(py, || match self.inner.blend_weights(kind) {
+            Some(cached) => cached.to_vec(),
+            None => core_blend::weight_maps(layout, kind),
+        })?;
+        to_numpy(py, data, &[layout.cameras.len(), h, w])
+    }
+}
+
+fn parse_fidelity(name: &str) -> PyResult<Fidelity> {
+    match name {
+        "nn" => Ok(Fidelity::Nearest),
+        "frustum" => Ok(Fidelity::Frustum),
+        "mean" => Ok(Fidelity::Mean),
+        _ => Err(input_error(format!(
+            "unknown Poisson fidelity {name:?}: 'frustum', 'nn' or 'mean'"
+        ))),
+    }
+}
+
+fn parse_solver(name: &str) -> PyResult<Solver> {
+    match name {
+        "fused" => Ok(Solver::Fused),
+        "faer" => Ok(Solver::Faer),
+        _ => Err(input_error(format!(
+            "unknown Poisson solver {name:?}: 'fused' or 'faer'"
+        ))),
+    }
+}
+
+fn parse_weighting(name: &str) -> PyResult<Weighting> {
+    match name {
+        "nn" => Ok(Weighting::Nearest),
+        "mean" => Ok(Weighting::Mean),
+        "radial" => Ok(Weighting::Radial),
+        "frustum" => Ok(Weighting::Frustum),
+        _ => Err(input_error(format!(
+            "unknown weights {name:?}: 'nn', 'mean', 'radial' or 'frustum'"
+        ))),
+    }
+}
+
+fn fill_report(
+    report: &Bound<'_, PyDict>,
+    r: &PoissonReport,
+    params: &PoissonParams,
+    fidelity: &str,
+) -> PyResult<()> {
+    let solver = match params.solver {
+        Solver::Fused => "fused",
+        Solver::Faer => "faer",
+    };
+    report.set_item("solver", solver)?;
+    report.set_item("iterations", r.iterations)?;
+    report.set_item("relative_residual", r.relative_residual)?;
+    report.set_item("initial_residual", r.initial_residual)?;
+    report.set_item("tolerance", params.tolerance)?;
+    report.set_item("converged", r.relative_residual <= params.tolerance)?;
+    report.set_item("lambda", params.lambda)?;
+    report.set_item("fidelity", fidelity)?;
+    report.set_item("unknowns", r.unknowns)?;
+    report.set_item("assemble_seconds", r.assemble_seconds)?;
+    report.set_item("solve_seconds", r.solve_seconds)?;
+    Ok(())
+}
+
+/// The Poisson blend of K maps already on an ERP grid: `values` and `weights` (K,H,W) float32
+/// (NaN value = invalid), fidelity `target` (H,W) float32 (NaN only where no layer is valid):
+/// (B (H,W) float64, report dict).
+#[pyfunction]
+#[pyo3(signature = (values, weights, target, lam=0.1,
+                    tol=1e-6, max_iterations=2000, solver="fused"))]
+#[allow(clippy::too_many_arguments)]
+fn poisson_blend<'py>(
+    py: Python<'py>,
+    values: PyReadonlyArray3<'py, f32>,
+    weights: PyReadonlyArray3<'py, f32>,
+    target: PyReadonlyArray2<'py, f32>,
+    lam: f64,
+    tol: f64,
+    max_iterations: usize,
+    solver: &str,
+) -> PyResult<(Bound<'py, PyArrayDyn<f64>>, Bound<'py, PyDict>)> {
+    let shape = values.shape().to_vec();
+    check_shape("weights", weights.shape(), &shape)?;
+    check_shape("target", target.shape(), &shape[1..])?;
+    let (h, w) = (shape[1], shape[2]);
+    let (v, wt, t) = (
+        contiguous(&values, "values")?,
+        contiguous(&weights, "weights")?,
+        contiguous(&target, "target")?,
+    );
+    let params = PoissonParams {
+        lambda: lam,
+        fidelity: Fidelity::Nearest,
+        tolerance: tol,
+        max_iterations,
+        solver: parse_solver(solver)?,
+    };
+    let out = output_array(py, &[h, w]);
+    let report = {
+        let mut rw = out.readwrite();
+        let dst = writable(&mut rw)?;
+        detached(py, || {
+            core_blend::poisson_blend_layers(v, wt, t, h, w, &params, dst)
+        })?
+        .map_err(PyCoreError)?
+    };
+    let dict = PyDict::new(py);
+    dict.set_item("mode", "poisson")?;
+    fill_report(&dict, &report, &params, "given")?;
+    Ok((out, dict))
 }
 
 impl Plan {
@@ -604,7 +795,7 @@ impl Plan {
 #[pymodule]
 mod _core {
     #[pymodule_export]
-    use super::{get_num_threads, icosahedron_cameras, set_num_threads, Plan};
+    use super::{get_num_threads, icosahedron_cameras, poisson_blend, set_num_threads, Plan};
 
     #[pymodule_init]
     fn init(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {

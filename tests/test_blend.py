@@ -1,0 +1,387 @@
+"""Blending (paper §3.4, DESIGN §7): weight maps, weighted blends, the Poisson blend and seams.
+
+Oracles: analytic weight formulas evaluated in numpy from each camera's own intrinsics, ray-cast
+ground truth, and a Poisson system assembled independently with scipy.sparse and solved by
+scipy.sparse.linalg.spsolve.
+"""
+
+from __future__ import annotations
+
+import m360
+import m360._sphere as sph
+import numpy as np
+import pytest
+import scipy.sparse as sp
+import scipy.sparse.linalg as spla
+from conftest import (
+    as_perspective,
+    erp_depth,
+    layout,
+    smooth_field,
+    tangent_directions,
+    tangent_disparity,
+)
+from m360 import _core
+from m360.errors import InputError, SolverError
+from m360.geometry import plan_for
+
+WEIGHTED = ("frustum", "radial", "poisson")
+
+
+def pixel_grid(cam: m360.TangentCamera) -> tuple[np.ndarray, np.ndarray]:
+    return np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height))
+
+
+# ----------------------------------------------------------------------------- weight maps
+
+
+def test_frustum_weights_centre_border_and_ramp_start() -> None:
+    lay = layout(2048)
+    maps = plan_for(lay).blend_weights("frustum")
+    assert maps.shape == (20, *lay.tangent_shape) and maps.dtype == np.float32
+    for k in (0, 7, 19):
+        cam = lay.cameras[k]
+        x, y = pixel_grid(cam)
+        w, h = cam.width, cam.height
+        dx = np.minimum(x + 0.5, w - 0.5 - x) / (0.3 * w)
+        dy = np.minimum(y + 0.5, h - 0.5 - y) / (0.3 * h)
+        np.testing.assert_allclose(maps[k], np.minimum(1.0, np.minimum(dx, dy)), atol=1e-6)
+        # Centre: 1. Border: the outermost pixel centres are half a pixel from the edge.
+        assert maps[k, h // 2, w // 2] == 1.0
+        assert maps[k, 0, w // 2] == pytest.approx(0.5 / (0.3 * h), abs=1e-6)
+        assert maps[k, h // 2, 0] == pytest.approx(0.5 / (0.3 * w), abs=1e-6)
+        assert maps[k, 0, 0] < 0.005
+        # Along the diagonal: 1 from 30 % of the way in, linear before.
+        for t in (0.1, 0.2, 0.29, 0.31, 0.4):
+            c, r = round(t * w - 0.5), round(t * h - 0.5)
+            want = min(1.0, (c + 0.5) / (0.3 * w), (r + 0.5) / (0.3 * h))
+            assert maps[k, r, c] == pytest.approx(want, abs=1e-6)
+            assert (maps[k, r, c] == 1.0) == (t > 0.3 + 1 / w)
+
+
+def test_radial_weights_axis_15_degrees_and_inscribed_edge() -> None:
+    """Reference bug B9 centred these at pixel (200, 200) for every face: the icosahedron's
+    principal point is at row ~230 or ~115, so the centre must follow each face."""
+    lay = layout(2048)
+    maps = plan_for(lay).blend_weights("radial")
+    dirs = tangent_directions(lay)
+    for k in (0, 10):
+        cam = lay.cameras[k]
+        angle = np.degrees(np.arccos(np.clip(dirs[k] @ cam.axis, -1, 1)))
+        w, h = cam.width, cam.height
+        half = min(cam.cx + 0.5, w - 0.5 - cam.cx) / cam.fx
+        half = min(half, (cam.cy + 0.5) / cam.fy, (h - 0.5 - cam.cy) / cam.fy)
+        edge = np.degrees(np.arctan(half))
+        assert 33.5 < edge < 35.0
+        want = np.clip((edge - angle) / (edge - 15.0), 0.0, 1.0)
+        np.testing.assert_allclose(maps[k], want, atol=2e-5)
+        assert (maps[k][angle <= 15.0 - 1e-6] == 1.0).all()
+        assert (maps[k][angle >= edge + 1e-6] == 0.0).all()
+        # The axis pixel is 1 and lies off the image centre row (the B9 bug's centre is 0.x).
+        r, c = round(cam.cy), round(cam.cx)
+        assert maps[k, r, c] == 1.0 and abs(r - h // 2) > 50
+        assert maps[k, h // 2 - 30 if k < 5 else h // 2 + 30, 0] == 0.0
+
+
+def test_nn_weights_are_the_unpadded_triangle() -> None:
+    lay = layout(1024)
+    maps = plan_for(lay).blend_weights("nn")
+    for k in (0, 6, 12, 18):
+        cam = lay.cameras[k]
+        x, y = pixel_grid(cam)
+        gx, gy = (x - cam.cx) / cam.fx, (y - cam.cy) / cam.fy
+        inside = _in_triangle(np.stack([gx, gy], axis=-1), cam.face)
+        agree = (maps[k] == 1.0) == inside
+        assert agree.mean() > 0.999, (k, agree.mean())
+        assert set(np.unique(maps[k])) <= {0.0, 1.0}
+        cr, cc = np.unravel_index(np.argmax(inside), inside.shape)
+        assert maps[k, cr, cc] == 1.0 and maps[k, 0, 0] == 0.0
+    assert (plan_for(lay).blend_weights("mean") == 1.0).all()
+    with pytest.raises(InputError, match="weights"):
+        plan_for(lay).blend_weights("bogus")
+
+
+def _in_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
+    s = np.stack(
+        [
+            (b[0] - a[0]) * (p[..., 1] - a[1]) - (b[1] - a[1]) * (p[..., 0] - a[0])
+            for a, b in ((tri[0], tri[1]), (tri[1], tri[2]), (tri[2], tri[0]))
+        ]
+    )
+    return (s >= 0).all(axis=0) | (s <= 0).all(axis=0)
+
+
+# ------------------------------------------------------------------- clean tangents, seams
+
+
+@pytest.mark.parametrize("blend", ["nn", "mean", "radial", "frustum", "poisson"])
+def test_clean_tangents_stay_at_the_resampling_floor(blend: str) -> None:
+    lay = layout(2048)
+    res = m360.stitch(
+        tangent_disparity(0, 2048), lay, align="none", blend=blend, return_details=True
+    )
+    assert isinstance(res, m360.StitchResult)
+    assert np.isfinite(res.disparity).all() and res.disparity.dtype == np.float32
+    metrics = m360.eval.depth_metrics(res.disparity, erp_depth(0, 2048))
+    print(f"{blend}: {m360.eval.format_metrics(metrics)}")
+    assert metrics["abs_rel"] <= 0.001
+    report = res.report["blend"]
+    assert report["mode"] == blend and report["seconds"] > 0
+    if blend == "poisson":
+        assert report["converged"] and report["relative_residual"] <= 1e-6
+        assert report["iterations"] >= 1 and report["fidelity"] == "frustum"
+
+
+def test_poisson_with_the_papers_fidelity_on_clean_tangents() -> None:
+    lay = layout(2048)
+    disp = m360.stitch(
+        tangent_disparity(0, 2048),
+        lay,
+        align="none",
+        blend="poisson",
+        blend_options={"fidelity": "nn"},
+    )
+    # Measured 0.00103: the D_NN target adds its triangle steps back through the λ term.
+    assert m360.eval.depth_metrics(disp, erp_depth(0, 2048))["abs_rel"] <= 0.0011
+
+
+def _distorted(width: int) -> np.ndarray:
+    """Exact tangents with residual per-tangent affine error and a smooth multiplicative field,
+    as left after alignment (alignment is not part of this branch)."""
+    return m360.synthetic.distort(
+        tangent_disparity(0, width), 1, scale=(0.97, 1.03), shift=0.02, field=0.02
+    )
+
+
+def test_seam_scores_on_aligned_tangents_with_residual_distortion() -> None:
+    lay = layout(2048)
+    gt = 1.0 / erp_depth(0, 2048)
+    tiles = _distorted(2048)
+    scores = {
+        blend: m360.eval.seam_score(m360.stitch(tiles, lay, align="none", blend=blend), gt, lay)
+        for blend in ("nn", "mean", "frustum", "poisson")
+    }
+    print(scores)
+    for blend in ("frustum", "poisson"):
+        assert scores[blend]["borders"] < scores["mean"]["borders"] - 0.3
+        assert scores[blend]["triangles"] < scores["nn"]["triangles"] - 1.0
+        assert scores[blend]["borders"] < 1.5 and scores[blend]["triangles"] < 1.1
+
+
+def test_seam_score_sees_a_step_on_a_border() -> None:
+    lay = layout(512)
+    gt = 1.0 / erp_depth(0, 512)
+    clean = m360.stitch(tangent_disparity(0, 512), lay, align="none", blend="nn")
+    tiles = tangent_disparity(0, 512).copy()
+    tiles[::2] *= 1.1  # every other face off by 10 %: nn shows steps on the triangles
+    stepped = m360.stitch(tiles, lay, align="none", blend="nn")
+    a, b = (m360.eval.seam_score(d, gt, lay) for d in (clean, stepped))
+    assert b["triangles"] > 2 * a["triangles"]
+    assert set(a) == {"borders", "triangles", "elsewhere"}
+    with pytest.raises(InputError, match="ERP shape"):
+        m360.eval.seam_score(clean[:, :10], gt, lay)
+    with pytest.raises(InputError, match="band"):
+        m360.eval.seam_score(clean, gt, lay, band=-1)
+
+
+# ---------------------------------------------------------------- Poisson against scipy
+
+
+def scipy_system(
+    values: np.ndarray, weights: np.ndarray, target: np.ndarray, lam: float = 0.1
+) -> tuple[sp.csr_matrix, np.ndarray]:
+    """The normal equations of Σ_a Σ_e ω̄_a(e)((B_q - B_p) - (D_a(q) - D_a(p)))² + λ‖B - T‖²,
+    forward differences, wrap in longitude, no vertical edge past the last row; ω̄ is the mean
+    of the weights at the edge's two ends."""
+    k, h, w = values.shape
+    n = h * w
+    idx = np.arange(n).reshape(h, w)
+    tails = [idx.ravel(), idx[:-1].ravel()]
+    heads = [np.roll(idx, -1, axis=1).ravel(), idx[1:].ravel()]
+    p = np.concatenate(tails)
+    q = np.concatenate(heads)
+    m = len(p)
+    diff = sp.csr_matrix(
+        (np.r_[-np.ones(m), np.ones(m)], (np.r_[np.arange(m), np.arange(m)], np.r_[p, q])),
+        shape=(m, n),
+    )
+    edge_w = np.zeros(m)
+    edge_g = np.zeros(m)
+    for a in range(k):
+        v = values[a].ravel().astype(np.float64)
+        wt = weights[a].ravel().astype(np.float64)
+        ok = np.isfinite(v[p]) & np.isfinite(v[q])
+        wa = np.where(ok, 0.5 * (wt[p] + wt[q]), 0.0)
+        edge_w += wa
+        edge_g += np.where(ok, wa * (v[q] - v[p]), 0.0)
+    a_mat = (diff.T @ sp.diags(edge_w) @ diff + lam * sp.identity(n)).tocsr()
+    b = diff.T @ edge_g + lam * target.ravel().astype(np.float64)
+    return a_mat, b
+
+
+def _small_problem() -> tuple[m360.Layout, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    lay = layout(128)
+    plan = plan_for(lay)
+    tiles = m360.synthetic.distort(
+        tangent_disparity(0, 128), 2, scale=(0.9, 1.1), shift=0.05, field=0.05
+    )
+    spherical = plan.spherical_disparity(tiles)
+    values = plan.tangents_to_erp(spherical)
+    weights = plan.tangents_to_erp(plan.blend_weights("frustum"))
+    target = plan.blend(spherical, "frustum")[0]
+    return lay, tiles, values, weights, target
+
+
+def test_poisson_satisfies_an_independent_scipy_system() -> None:
+    lay, tiles, values, weights, target = _small_problem()
+    assert lay.erp_shape == (64, 128) and np.isfinite(target).all()
+    a_mat, b = scipy_system(values, weights, target)
+    ref = spla.spsolve(a_mat.tocsc(), b)
+    x, report = _core.poisson_blend(values, weights, target)
+    rel = np.linalg.norm(a_mat @ x.ravel() - b) / np.linalg.norm(b)
+    assert rel <= 1e-6 and report["relative_residual"] <= 1e-6
+    assert report["relative_residual"] == pytest.approx(rel, rel=0.05, abs=1e-9)
+    # The default tolerance already agrees with spsolve to ~1e-6; a tight one to far better.
+    tight, _ = _core.poisson_blend(values, weights, target, tol=1e-11)
+    scale = np.abs(ref).max()
+    assert np.abs(tight.ravel() - ref).max() <= 1e-6 * scale
+    assert np.abs(x.ravel() - ref).max() <= 1e-4 * scale
+    # The tangent path (taps sampled on the fly) solves the same system.
+    out = m360.stitch(tiles, lay, align="none", blend="poisson", blend_options={"tol": 1e-11})
+    assert np.abs(out.ravel() - ref).max() <= 1e-6 * scale
+
+
+def test_fused_and_faer_solvers_agree() -> None:
+    _, _, values, weights, target = _small_problem()
+    x1, r1 = _core.poisson_blend(values, weights, target, tol=1e-10, solver="fused")
+    x2, r2 = _core.poisson_blend(values, weights, target, tol=1e-10, solver="faer")
+    assert r1["solver"] == "fused" and r2["solver"] == "faer"
+    np.testing.assert_allclose(x1, x2, rtol=1e-8)
+
+
+def test_b7_no_dirichlet_row_at_either_pole() -> None:
+    """Reference bug B7 had an implicit Dirichlet 0 below the bottom row only: a constant field
+    sagged there. With no edge across either pole a constant is reproduced exactly."""
+    rng = np.random.default_rng(0)
+    values = np.full((3, 32, 64), 5.0, np.float32)
+    weights = rng.uniform(0.1, 1.0, values.shape).astype(np.float32)
+    x, _ = _core.poisson_blend(values, weights, np.full((32, 64), 5.0, np.float32))
+    np.testing.assert_allclose(x, 5.0, rtol=1e-9)
+
+
+def test_pole_symmetry_at_solver_level() -> None:
+    """The icosahedron layout is not mirror-symmetric top-to-bottom (the lower ring is turned by
+    36°), so the symmetry is tested on ERP-gridded inputs: flipping every input upside down
+    flips the solution."""
+    rng = np.random.default_rng(1)
+    k, h, w = 4, 32, 64
+    values = rng.uniform(1.0, 2.0, (k, h, w)).astype(np.float32)
+    values[rng.uniform(size=values.shape) < 0.2] = np.nan
+    values[0] = 1.5  # every pixel keeps at least one valid layer
+    weights = rng.uniform(0.0, 1.0, (k, h, w)).astype(np.float32)
+    target = rng.uniform(1.0, 2.0, (h, w)).astype(np.float32)
+    x, _ = _core.poisson_blend(values, weights, target, tol=1e-12)
+    flipped, _ = _core.poisson_blend(
+        np.ascontiguousarray(values[:, ::-1]),
+        np.ascontiguousarray(weights[:, ::-1]),
+        np.ascontiguousarray(target[::-1]),
+        tol=1e-12,
+    )
+    np.testing.assert_allclose(flipped[::-1], x, rtol=1e-9)
+    # And the same for a reversal of longitude (a mirror about a meridian): with the weight of
+    # an edge taken at its midpoint, the edge set and weights map onto each other.
+    mirrored, _ = _core.poisson_blend(
+        np.ascontiguousarray(values[:, :, ::-1]),
+        np.ascontiguousarray(weights[:, :, ::-1]),
+        np.ascontiguousarray(target[:, ::-1]),
+        tol=1e-12,
+    )
+    np.testing.assert_allclose(mirrored[:, ::-1], x, rtol=1e-9)
+
+
+@pytest.mark.parametrize("blend", WEIGHTED)
+def test_no_jump_at_the_longitude_wrap_and_across_the_poles(blend: str) -> None:
+    lay = layout(1024)
+    tiles = as_perspective(smooth_field(tangent_directions(lay)), lay)
+    out = m360.stitch(tiles, lay, align="none", blend=blend)
+    want = smooth_field(sph.erp_directions(*lay.erp_shape))
+    jump = np.abs(out[:, 0] - out[:, -1])
+    assert np.abs(jump - np.abs(want[:, 0] - want[:, -1])).max() < 2e-3
+    h, w = lay.erp_shape
+    for row in (0, h - 1):
+        across = np.abs(out[row] - np.roll(out[row], w // 2))
+        assert np.abs(across - np.abs(want[row] - np.roll(want[row], w // 2))).max() < 3e-3
+    assert np.abs(out - want).max() < 3e-3
+
+
+@pytest.mark.parametrize("blend", ["frustum", "radial", "poisson"])
+def test_same_result_with_one_and_two_threads(blend: str) -> None:
+    lay = layout(1024)
+    tiles = _distorted(1024)
+    outs = []
+    try:
+        for n in (1, 2):
+            m360.set_num_threads(n)
+            outs.append(m360.stitch(tiles, lay, align="none", blend=blend, return_details=True))
+    finally:
+        m360.set_num_threads(None)
+    np.testing.assert_array_equal(outs[0].disparity, outs[1].disparity)
+    np.testing.assert_array_equal(outs[0].confidence, outs[1].confidence)
+    if blend == "poisson":
+        assert outs[0].report["blend"]["iterations"] == outs[1].report["blend"]["iterations"]
+
+
+def test_masked_faces_and_uncovered_pixels() -> None:
+    lay = layout(512)
+    tiles = tangent_disparity(0, 512)
+    mask = np.zeros(tiles.shape, bool)
+    mask[:10] = True
+    for blend in WEIGHTED:
+        out = m360.stitch(tiles, lay, align="none", blend=blend, mask=mask)
+        ref = m360.stitch(tiles, lay, align="none", blend="nn", mask=mask)
+        np.testing.assert_array_equal(np.isnan(out), np.isnan(ref))
+        assert np.isnan(out).any() and np.isfinite(out).any()
+
+
+@pytest.mark.parametrize(
+    ("options", "match"),
+    [
+        ({"fidelity": "bogus"}, "fidelity"),
+        ({"lam": 0}, "lam"),
+        ({"tol": 2.0}, "tol"),
+        ({"max_iterations": 0}, "max_iterations"),
+        ({"solver": "lu"}, "solver"),
+        ({"nope": 1}, "unknown"),
+        ("fast", "mapping"),
+    ],
+)
+def test_bad_blend_options(options: object, match: str) -> None:
+    lay = layout(512)
+    with pytest.raises(InputError, match=match):
+        m360.stitch(
+            tangent_disparity(0, 512),
+            lay,
+            align="none",
+            blend="poisson",
+            blend_options=options,  # type: ignore[arg-type]
+        )
+
+
+def test_unconverged_solve_raises_solver_error() -> None:
+    lay = layout(512)
+    with pytest.raises(SolverError, match="did not converge"):
+        m360.stitch(
+            _distorted(512),
+            lay,
+            align="none",
+            blend="poisson",
+            blend_options={"max_iterations": 1, "tol": 1e-12},
+        )
+
+
+def test_layered_poisson_rejects_bad_input() -> None:
+    values = np.ones((2, 4, 8), np.float32)
+    with pytest.raises(InputError, match="target"):
+        _core.poisson_blend(values, values, np.full((4, 8), np.nan, np.float32))
+    with pytest.raises(InputError, match="shape"):
+        _core.poisson_blend(values, values[:1], np.ones((4, 8), np.float32))
