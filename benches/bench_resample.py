@@ -184,6 +184,8 @@ def main() -> None:
         f"{meta.get('cpu_count')} cpus, m360 threads {meta['m360_threads']}, "
         f"cv2 threads {meta['cv2_threads']}; median of {args.repeats} runs"
     )
+    # Peak RSS first: a child started later inherits this process's high-water mark.
+    rss = [] if args.no_rss else peak_rss(args.sizes)
     rows, json_rows = [], []
     for size in args.sizes:
         for width, op, impl, t, baseline in bench_size(size, args.repeats, args.e2p_repeats):
@@ -195,8 +197,7 @@ def main() -> None:
         ["ERP width", "operation", "implementation", "median s", "IQR s", "ratio"],
         rows,
     )
-    if not args.no_rss:
-        rss = peak_rss(args.sizes)
+    if rss:
         json_rows += [{"erp_width": r[0], "op": "stitch peak RSS MB", "value": r[1]} for r in rss]
         h.print_table(
             "peak RSS of a fresh process running stitch(align='none', blend='mean')",

@@ -245,6 +245,17 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
     Ok(out)
 }
 
+/// Bilinear weights of the top-left, top-right, bottom-left and bottom-right corners.
+#[inline]
+fn bilinear_weights(fx: f64, fy: f64) -> [f64; 4] {
+    [
+        (1.0 - fx) * (1.0 - fy),
+        fx * (1.0 - fy),
+        (1.0 - fx) * fy,
+        fx * fy,
+    ]
+}
+
 /// Bilinear node weights of a continuous pixel position in a `cols`×`rows` grid spanning an
 /// image of `w`×`h` pixels: the top-left node (col, row) and the fractions.
 #[inline]
@@ -338,10 +349,11 @@ impl Problem {
                     return None;
                 }
                 let c = corners.map(|v| v as f64);
-                let db = (1.0 - fx) * (1.0 - fy) * c[0]
-                    + fx * (1.0 - fy) * c[1]
-                    + (1.0 - fx) * fy * c[2]
-                    + fx * fy * c[3];
+                let db: f64 = bilinear_weights(fx, fy)
+                    .iter()
+                    .zip(&c)
+                    .map(|(w, v)| w * v)
+                    .sum();
                 let (ca, ra, ax, ay) =
                     grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
                 let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
@@ -356,18 +368,8 @@ impl Problem {
                     node(b, cb, rb + 1),
                     node(b, cb + 1, rb + 1),
                 ];
-                let wa = [
-                    (1.0 - ax) * (1.0 - ay),
-                    ax * (1.0 - ay),
-                    (1.0 - ax) * ay,
-                    ax * ay,
-                ];
-                let wb = [
-                    (1.0 - bx) * (1.0 - by),
-                    bx * (1.0 - by),
-                    (1.0 - bx) * by,
-                    bx * by,
-                ];
+                let wa = bilinear_weights(ax, ay);
+                let wb = bilinear_weights(bx, by);
                 let fa = offset_factor(
                     params.offsets,
                     &layout.cameras[a],
@@ -874,12 +876,7 @@ pub fn apply_fields(layout: &Layout, maps: &mut [f32], x: &[f64], params: &Level
             for (xp, v) in row.iter_mut().enumerate() {
                 let (c0, r0, fx, fy) = grid_cell(xp as f64, y as f64, w, h, cols, rows);
                 let node = |c: usize, r: usize| 2 * (t * per + r * cols + c);
-                let wts = [
-                    (1.0 - fx) * (1.0 - fy),
-                    fx * (1.0 - fy),
-                    (1.0 - fx) * fy,
-                    fx * fy,
-                ];
+                let wts = bilinear_weights(fx, fy);
                 let ids = [
                     node(c0, r0),
                     node(c0 + 1, r0),

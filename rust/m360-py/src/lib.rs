@@ -180,6 +180,28 @@ enum ErpImage<'py> {
     F32(PyReadonlyArray3<'py, f32>),
 }
 
+fn parse_energy(name: &str) -> PyResult<m360_core::align::Energy> {
+    use m360_core::align::Energy;
+    match name {
+        "paper" => Ok(Energy::Paper),
+        "normalized" => Ok(Energy::Normalized),
+        _ => Err(input_error(format!(
+            "unknown energy {name:?}: 'normalized' or 'paper'"
+        ))),
+    }
+}
+
+fn parse_offsets(name: &str) -> PyResult<m360_core::align::Offsets> {
+    use m360_core::align::Offsets;
+    match name {
+        "perspective" => Ok(Offsets::Perspective),
+        "spherical" => Ok(Offsets::Spherical),
+        _ => Err(input_error(format!(
+            "unknown offsets {name:?}: 'perspective' or 'spherical'"
+        ))),
+    }
+}
+
 // ---------------------------------------------------------------------------------------------
 // Layouts and plans.
 
@@ -386,20 +408,12 @@ impl Plan {
         Vec<Bound<'py, pyo3::types::PyDict>>,
         Vec<Bound<'py, PyArrayDyn<f64>>>,
     )> {
-        use m360_core::align::{self, AlignOptions, Energy, LevelParams, Offsets, Solver};
+        use m360_core::align::{self, AlignOptions, LevelParams, Solver};
         let layout = self.inner.layout();
         let (h, w) = layout.tangent_shape();
         self.check_tangents("maps", maps.shape())?;
-        let energy = match energy {
-            "paper" => Energy::Paper,
-            "normalized" => Energy::Normalized,
-            _ => return Err(input_error(format!("unknown energy {energy:?}"))),
-        };
-        let offsets = match offsets {
-            "perspective" => Offsets::Perspective,
-            "spherical" => Offsets::Spherical,
-            _ => return Err(input_error(format!("unknown offsets {offsets:?}"))),
-        };
+        let energy = parse_energy(energy)?;
+        let offsets = parse_offsets(offsets)?;
         let solver = match solver {
             "lbfgs" => Solver::Lbfgs,
             "newton" => Solver::Newton,
@@ -480,19 +494,11 @@ impl Plan {
         pole_cap_deg: f64,
         offsets: &str,
     ) -> PyResult<Bound<'py, pyo3::types::PyDict>> {
-        use m360_core::align::{self, Energy, LevelParams, Offsets, Problem};
+        use m360_core::align::{self, LevelParams, Problem};
         let layout = self.inner.layout();
         self.check_tangents("maps", maps.shape())?;
-        let energy = match energy {
-            "paper" => Energy::Paper,
-            "normalized" => Energy::Normalized,
-            _ => return Err(input_error(format!("unknown energy {energy:?}"))),
-        };
-        let offsets = match offsets {
-            "perspective" => Offsets::Perspective,
-            "spherical" => Offsets::Spherical,
-            _ => return Err(input_error(format!("unknown offsets {offsets:?}"))),
-        };
+        let energy = parse_energy(energy)?;
+        let offsets = parse_offsets(offsets)?;
         let params = LevelParams {
             cols: grid.0,
             rows: grid.1,
