@@ -10,8 +10,8 @@ tile so the sizing can be checked on any machine (``--layers`` changes it).
 
 Tables:
 1. per stage (project, network, convert, align, blend, total) at each ERP size, and the share of
-   everything except the network (target ≤ 25 % at 2K). Alignment and the frustum/Poisson blends
-   are not in this build: stitching uses ``align="none", blend="mean"``.
+   everything except the network (target ≤ 25 % at 2K). Stitching uses the default
+   ``align="multiscale"`` and ``blend="frustum"`` (the issue's setting).
 2. the network stage alone: one tangent at a time vs all 20 in one batch, threads 1 vs 2, with
    the peak RSS of a fresh interpreter doing only that.
 
