@@ -291,12 +291,12 @@ fn erp_index_wrapped(i: i64, j: i64, height: usize, width: usize) -> u32 {
 /// nearest face (for the icosahedron, the face whose triangle contains the pixel).
 #[derive(Debug, Clone)]
 pub struct ErpTaps {
-    /// Index into `taps` of the first tap of each ERP row; H + 1 entries.
-    row_start: Vec<usize>,
     /// Number of taps of each ERP pixel.
     counts: Vec<u8>,
-    /// Taps into the flat tangent stack (face·h·w + y·w + x of the top-left neighbour).
-    taps: Vec<Tap>,
+    /// Per ERP row, its pixels' taps into the flat tangent stack (face·h·w + y·w + x of the
+    /// top-left neighbour). Kept as built, row by row: gathering them into one array would
+    /// cost a second copy of the largest structure of the plan.
+    rows: Vec<Vec<Tap>>,
     tangent_width: usize,
     tangent_pixels: usize,
     faces: usize,
@@ -357,21 +357,15 @@ impl ErpTaps {
                 (counts, taps)
             })
             .collect();
-        let mut row_start = Vec::with_capacity(eh + 1);
-        row_start.push(0);
-        for (_, taps) in &rows {
-            row_start.push(row_start.last().copied().unwrap_or(0) + taps.len());
-        }
         let mut counts = Vec::with_capacity(eh * ew);
-        let mut taps = Vec::with_capacity(row_start[eh]);
+        let mut taps = Vec::with_capacity(eh);
         for (row_counts, row_taps) in rows {
             counts.extend(row_counts);
-            taps.extend(row_taps);
+            taps.push(row_taps);
         }
         Self {
-            row_start,
             counts,
-            taps,
+            rows: taps,
             tangent_width: w,
             tangent_pixels: h * w,
             faces: layout.cameras.len(),
@@ -381,17 +375,17 @@ impl ErpTaps {
 
     /// Bytes held by the map.
     pub fn memory_bytes(&self) -> usize {
-        self.taps.len() * std::mem::size_of::<Tap>() + self.counts.len() + self.row_start.len() * 8
+        self.len() * std::mem::size_of::<Tap>() + self.counts.len() + self.rows.len() * 24
     }
 
     /// Total number of (ERP pixel, tangent) pairs.
     pub fn len(&self) -> usize {
-        self.taps.len()
+        self.rows.iter().map(Vec::len).sum()
     }
 
     /// Whether no ERP pixel is seen by any tangent.
     pub fn is_empty(&self) -> bool {
-        self.taps.is_empty()
+        self.rows.iter().all(Vec::is_empty)
     }
 
     /// Number of tangents that see each ERP pixel (H·W, row-major).
@@ -418,7 +412,7 @@ impl ErpTaps {
             "tangent stack size mismatch"
         );
         let w = self.tangent_width;
-        let row = &self.taps[self.row_start[i]..self.row_start[i + 1]];
+        let row = &self.rows[i];
         let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
         let mut at = 0;
         let mut samples: Vec<(usize, f32)> = Vec::with_capacity(8);
@@ -468,7 +462,7 @@ impl ErpTaps {
         assert_eq!(tangents.len(), n_all, "tangent stack size mismatch");
         assert_eq!(weights.len(), n_all, "weight stack size mismatch");
         let w = self.tangent_width;
-        let row = &self.taps[self.row_start[i]..self.row_start[i + 1]];
+        let row = &self.rows[i];
         let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
         let mut at = 0;
         let mut samples: Vec<WeightedSample> = Vec::with_capacity(8);
