@@ -400,50 +400,17 @@ impl ErpTaps {
     /// # Panics
     /// If `tangents` is not the size the taps were built for (the bindings check shapes first).
     #[inline]
-    pub fn visit_row(
-        &self,
-        tangents: &[f32],
-        i: usize,
-        mut visit: impl FnMut(usize, &[(usize, f32)]),
-    ) {
-        assert_eq!(
-            tangents.len(),
-            self.tangent_pixels * self.faces,
-            "tangent stack size mismatch"
-        );
-        let w = self.tangent_width;
-        let row = &self.rows[i];
-        let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
-        let mut at = 0;
-        let mut samples: Vec<(usize, f32)> = Vec::with_capacity(8);
-        for (j, &n) in counts.iter().enumerate() {
-            let n = n as usize;
-            samples.clear();
-            for (t, &tap) in row[at..at + n].iter().enumerate() {
-                if let Some(ahead) = row.get(at + t + PREFETCH_DISTANCE) {
-                    let k = ahead.index as usize;
-                    prefetch(tangents, k);
-                    prefetch(tangents, k + w);
-                }
-                let k = tap.index as usize;
-                let wts = tap.weights();
-                // SAFETY: taps point at a top-left neighbour with x0 <= w − 2 and y0 <= h − 2 of
-                // a face < faces, so k + w + 1 < faces·h·w == tangents.len() (asserted above).
-                let v = unsafe {
-                    wts[0] * tangents.get_unchecked(k)
-                        + wts[1] * tangents.get_unchecked(k + 1)
-                        + wts[2] * tangents.get_unchecked(k + w)
-                        + wts[3] * tangents.get_unchecked(k + w + 1)
-                };
-                samples.push((k / self.tangent_pixels, v));
-            }
-            at += n;
-            visit(j, &samples);
-        }
+    pub fn visit_row(&self, tangents: &[f32], i: usize, visit: impl FnMut(usize, &[(usize, f32)])) {
+        self.assert_stack(tangents, "tangent");
+        // SAFETY: `tangents` has the size the taps were built for (asserted above).
+        let sample = |tap: Tap| {
+            (tap.index as usize / self.tangent_pixels, unsafe {
+                self.lerp(tangents, tap)
+            })
+        };
+        self.walk_row(tangents, i, sample, visit);
     }
-}
 
-impl ErpTaps {
     /// Like [`ErpTaps::visit_row`], but each sample also carries the bilinear value of a second
     /// per-tangent map (`weights`, same layout as `tangents`) at the same position: the blending
     /// weight of that face there. Calls `visit(j, samples)` nearest face first.
@@ -456,43 +423,70 @@ impl ErpTaps {
         tangents: &[f32],
         weights: &[f32],
         i: usize,
-        mut visit: impl FnMut(usize, &[WeightedSample]),
+        visit: impl FnMut(usize, &[WeightedSample]),
     ) {
-        let n_all = self.tangent_pixels * self.faces;
-        assert_eq!(tangents.len(), n_all, "tangent stack size mismatch");
-        assert_eq!(weights.len(), n_all, "weight stack size mismatch");
+        self.assert_stack(tangents, "tangent");
+        self.assert_stack(weights, "weight");
+        let sample = |tap: Tap| WeightedSample {
+            face: (tap.index as usize / self.tangent_pixels) as u32,
+            // SAFETY: both stacks have the size the taps were built for (asserted above).
+            value: unsafe { self.lerp(tangents, tap) },
+            weight: unsafe { self.lerp(weights, tap) },
+        };
+        self.walk_row(tangents, i, sample, visit);
+    }
+
+    fn assert_stack(&self, stack: &[f32], what: &str) {
+        assert_eq!(
+            stack.len(),
+            self.tangent_pixels * self.faces,
+            "{what} stack size mismatch"
+        );
+    }
+
+    /// Bilinear value of a tangent stack at `tap`.
+    ///
+    /// # Safety
+    /// `stack` must be faces·h·w long: taps point at a top-left neighbour with x0 ≤ w − 2 and
+    /// y0 ≤ h − 2 of a face < faces, so all four neighbours are then in bounds.
+    #[inline(always)]
+    unsafe fn lerp(&self, stack: &[f32], tap: Tap) -> f32 {
+        let (k, w, wts) = (tap.index as usize, self.tangent_width, tap.weights());
+        debug_assert!(k + w + 1 < stack.len());
+        // SAFETY: see the function's contract.
+        unsafe {
+            wts[0] * stack.get_unchecked(k)
+                + wts[1] * stack.get_unchecked(k + 1)
+                + wts[2] * stack.get_unchecked(k + w)
+                + wts[3] * stack.get_unchecked(k + w + 1)
+        }
+    }
+
+    /// Walk ERP row `i`: for each pixel, `sample` each of its taps (nearest face first) and
+    /// `visit(j, samples)`; the tangent rows of taps further along are prefetched from `ahead_in`.
+    #[inline(always)]
+    fn walk_row<S>(
+        &self,
+        ahead_in: &[f32],
+        i: usize,
+        mut sample: impl FnMut(Tap) -> S,
+        mut visit: impl FnMut(usize, &[S]),
+    ) {
         let w = self.tangent_width;
         let row = &self.rows[i];
         let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
         let mut at = 0;
-        let mut samples: Vec<WeightedSample> = Vec::with_capacity(8);
+        let mut samples: Vec<S> = Vec::with_capacity(MAX_FACES_PER_PIXEL);
         for (j, &n) in counts.iter().enumerate() {
             let n = n as usize;
             samples.clear();
             for (t, &tap) in row[at..at + n].iter().enumerate() {
                 if let Some(ahead) = row.get(at + t + PREFETCH_DISTANCE) {
                     let k = ahead.index as usize;
-                    prefetch(tangents, k);
-                    prefetch(tangents, k + w);
+                    prefetch(ahead_in, k);
+                    prefetch(ahead_in, k + w);
                 }
-                let k = tap.index as usize;
-                let wts = tap.weights();
-                // SAFETY: as in `visit_row`: k + w + 1 < faces·h·w, the length of both stacks
-                // (asserted above).
-                let (v, wt) = unsafe {
-                    let at4 = |s: &[f32]| {
-                        wts[0] * s.get_unchecked(k)
-                            + wts[1] * s.get_unchecked(k + 1)
-                            + wts[2] * s.get_unchecked(k + w)
-                            + wts[3] * s.get_unchecked(k + w + 1)
-                    };
-                    (at4(tangents), at4(weights))
-                };
-                samples.push(WeightedSample {
-                    face: (k / self.tangent_pixels) as u32,
-                    value: v,
-                    weight: wt,
-                });
+                samples.push(sample(tap));
             }
             at += n;
             visit(j, &samples);
