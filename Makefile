@@ -37,6 +37,8 @@ lint: install  ## formatting, clippy, ruff, mypy and the stub check of m360._cor
 
 bench: install  ## benchmark tables (see benches/)
 	$(PY) benches/bench_resample.py
+	$(PY) benches/bench_align.py
+	$(PY) benches/bench_blend.py
 	$(PY) benches/bench_estimate.py
 
 clean:  ## remove build products and the virtual environment
