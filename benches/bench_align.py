@@ -201,7 +201,7 @@ def main() -> None:
         json_rows += jr
 
     h.print_table(
-        "whole alignment (align='multiscale', each energy's schedule) + mean blend, distorted tangents",
+        "whole alignment (align='multiscale') + mean blend, distorted tangents",
         [
             "ERP",
             "method",
