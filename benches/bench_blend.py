@@ -22,11 +22,11 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as h
+import blend_scipy
 import m360
 from bench_resample import footprints
 from m360.geometry import clear_plan_cache, plan_for
@@ -50,25 +50,9 @@ def scipy_poisson(layout: m360.Layout, tiles: np.ndarray) -> tuple[h.Timing, int
     values = plan.tangents_to_erp(spherical)
     weights = plan.tangents_to_erp(plan.blend_weights("frustum"))
     target = plan.blend(spherical, "frustum")[0].astype(np.float64).ravel()
-    k, hh, ww = values.shape
-    n = hh * ww
-    idx = np.arange(n).reshape(hh, ww)
-    p = np.concatenate([idx.ravel(), idx[:-1].ravel()])
-    q = np.concatenate([np.roll(idx, -1, axis=1).ravel(), idx[1:].ravel()])
-    m = len(p)
-    rows = np.r_[np.arange(m), np.arange(m)]
-    diff = sp.csr_matrix((np.r_[-np.ones(m), np.ones(m)], (rows, np.r_[p, q])), shape=(m, n))
-    edge_w, edge_g = np.zeros(m), np.zeros(m)
-    for a in range(k):
-        v = values[a].ravel().astype(np.float64)
-        wt = weights[a].ravel().astype(np.float64)
-        ok = np.isfinite(v[p]) & np.isfinite(v[q])
-        wa = np.where(ok, 0.5 * (wt[p] + wt[q]), 0.0)
-        edge_w += wa
-        edge_g += np.where(ok, wa * (v[q] - v[p]), 0.0)
+    a_mat, b = blend_scipy.scipy_system(values, weights, target, lam=0.1)
+    n = len(b)
     del values, weights
-    a_mat = (diff.T @ sp.diags(edge_w) @ diff + 0.1 * sp.identity(n)).tocsr()
-    b = diff.T @ edge_g + 0.1 * target
     inv_diag = 1.0 / a_mat.diagonal()
     jacobi = spla.LinearOperator((n, n), matvec=lambda x: inv_diag * x)
     count = [0]

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 import os
+from collections.abc import Iterator
 
 import m360
 import m360._sphere as sph
@@ -11,6 +12,7 @@ import m360.synthetic as syn
 import numpy as np
 import pytest
 from hypothesis import settings
+from local_http import LocalServer
 
 settings.register_profile("fast", max_examples=50, deadline=None)
 settings.register_profile("slow", max_examples=2000, deadline=None)
@@ -69,3 +71,13 @@ def as_perspective(spherical: np.ndarray, lay: m360.Layout) -> np.ndarray:
     dirs = tangent_directions(lay)
     cosines = np.stack([dirs[k] @ cam.axis for k, cam in enumerate(lay.cameras)])
     return (spherical / cosines).astype(np.float32)
+
+
+@pytest.fixture
+def server() -> Iterator[LocalServer]:
+    """A bounded HTTP server on 127.0.0.1 (see local_http.py), stopped after the test."""
+    srv = LocalServer().start()
+    try:
+        yield srv
+    finally:
+        srv.stop()

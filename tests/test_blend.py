@@ -7,11 +7,13 @@ scipy.sparse.linalg.spsolve.
 
 from __future__ import annotations
 
+import sys
+from pathlib import Path
+
 import m360
 import m360._sphere as sph
 import numpy as np
 import pytest
-import scipy.sparse as sp
 import scipy.sparse.linalg as spla
 from conftest import (
     as_perspective,
@@ -24,6 +26,9 @@ from conftest import (
 from m360 import _core
 from m360.errors import InputError, SolverError
 from m360.geometry import plan_for
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benches"))
+import blend_scipy
 
 WEIGHTED = ("frustum", "radial", "poisson")
 
@@ -187,38 +192,6 @@ def test_seam_score_sees_a_step_on_a_border() -> None:
 # ---------------------------------------------------------------- Poisson against scipy
 
 
-def scipy_system(
-    values: np.ndarray, weights: np.ndarray, target: np.ndarray, lam: float = 0.1
-) -> tuple[sp.csr_matrix, np.ndarray]:
-    """The normal equations of Σ_a Σ_e ω̄_a(e)((B_q - B_p) - (D_a(q) - D_a(p)))² + λ‖B - T‖²,
-    forward differences, wrap in longitude, no vertical edge past the last row; ω̄ is the mean
-    of the weights at the edge's two ends."""
-    k, h, w = values.shape
-    n = h * w
-    idx = np.arange(n).reshape(h, w)
-    tails = [idx.ravel(), idx[:-1].ravel()]
-    heads = [np.roll(idx, -1, axis=1).ravel(), idx[1:].ravel()]
-    p = np.concatenate(tails)
-    q = np.concatenate(heads)
-    m = len(p)
-    diff = sp.csr_matrix(
-        (np.r_[-np.ones(m), np.ones(m)], (np.r_[np.arange(m), np.arange(m)], np.r_[p, q])),
-        shape=(m, n),
-    )
-    edge_w = np.zeros(m)
-    edge_g = np.zeros(m)
-    for a in range(k):
-        v = values[a].ravel().astype(np.float64)
-        wt = weights[a].ravel().astype(np.float64)
-        ok = np.isfinite(v[p]) & np.isfinite(v[q])
-        wa = np.where(ok, 0.5 * (wt[p] + wt[q]), 0.0)
-        edge_w += wa
-        edge_g += np.where(ok, wa * (v[q] - v[p]), 0.0)
-    a_mat = (diff.T @ sp.diags(edge_w) @ diff + lam * sp.identity(n)).tocsr()
-    b = diff.T @ edge_g + lam * target.ravel().astype(np.float64)
-    return a_mat, b
-
-
 def _small_problem() -> tuple[m360.Layout, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     lay = layout(128)
     plan = plan_for(lay)
@@ -235,7 +208,7 @@ def _small_problem() -> tuple[m360.Layout, np.ndarray, np.ndarray, np.ndarray, n
 def test_poisson_satisfies_an_independent_scipy_system() -> None:
     lay, tiles, values, weights, target = _small_problem()
     assert lay.erp_shape == (64, 128) and np.isfinite(target).all()
-    a_mat, b = scipy_system(values, weights, target)
+    a_mat, b = blend_scipy.scipy_system(values, weights, target)
     ref = spla.spsolve(a_mat.tocsc(), b)
     x, report = _core.poisson_blend(values, weights, target)
     rel = np.linalg.norm(a_mat @ x.ravel() - b) / np.linalg.norm(b)

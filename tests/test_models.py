@@ -11,7 +11,6 @@ import dataclasses
 import hashlib
 import os
 import re
-from collections.abc import Iterator
 from pathlib import Path
 
 import m360
@@ -22,15 +21,6 @@ from local_http import LocalServer
 from m360 import models
 from m360.errors import ModelError
 from m360.estimate import OUTPUT_KINDS, OnnxEstimator, load_estimator
-
-
-@pytest.fixture
-def server() -> Iterator[LocalServer]:
-    srv = LocalServer().start()
-    try:
-        yield srv
-    finally:
-        srv.stop()
 
 
 @pytest.fixture(autouse=True)
