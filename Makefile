@@ -40,6 +40,7 @@ bench: install  ## benchmark tables (see benches/)
 	$(PY) benches/bench_align.py
 	$(PY) benches/bench_blend.py
 	$(PY) benches/bench_estimate.py
+	$(PY) benches/bench_batch.py
 
 clean:  ## remove build products and the virtual environment
 	rm -rf target $(VENV) out

@@ -9,34 +9,41 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 >>> tiles = m360.erp_to_tangents(erp, layout)             # (20, 346, 400[, C])
 >>> disp = m360.stitch(tangent_disparity, layout, align="none", blend="mean")
 >>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
+>>> m360.save(result, "out/pano", formats=("npy", "exr"))      # m360.load("out/pano") reads it
+>>> report = m360.batch.run(["photos/"], "out/", workers=2)     # many images, resumable
 """
 
 from __future__ import annotations
 
-from . import eval, io, models, synthetic
+from . import batch, eval, io, models, synthetic
 from ._core import __version__, get_num_threads, set_num_threads
-from .errors import InputError, M360Error, ModelError, SolverError
+from .errors import AspectRatioError, InputError, M360Error, ModelError, ReadError, SolverError
 from .estimate import EstimateResult, estimate
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
-from .io import save
+from .io import SavedResult, load, save
 from .stitch import StitchResult, stitch
 
 __all__ = [
+    "AspectRatioError",
     "EstimateResult",
     "InputError",
     "Layout",
     "M360Error",
     "ModelError",
+    "ReadError",
+    "SavedResult",
     "SolverError",
     "StitchResult",
     "TangentCamera",
     "__version__",
+    "batch",
     "clear_plan_cache",
     "erp_to_tangents",
     "estimate",
     "eval",
     "get_num_threads",
     "io",
+    "load",
     "models",
     "save",
     "set_num_threads",

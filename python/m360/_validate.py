@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import InputError
+from .errors import AspectRatioError, InputError
 
 
 def as_array(value: Any, name: str) -> np.ndarray:
@@ -47,7 +47,7 @@ def check_shape(array: np.ndarray, name: str, dims: Sequence[str], **expected: i
 def check_erp_shape(height: int, width: int, name: str) -> None:
     """ERP images are H x 2H."""
     if width != 2 * height:
-        raise InputError(
+        raise AspectRatioError(
             f"{name} is {height}x{width} (HxW) but an equirectangular image must have "
             f"W == 2H (expected width {2 * height} for height {height})"
         )

@@ -1,26 +1,28 @@
-"""Command line: ``m360 demo``, ``m360 run``, ``m360 models``.
+"""Command line: ``m360 demo``, ``m360 run``, ``m360 eval``, ``m360 models``.
 
-``m360 run`` processes one image after another with :func:`m360.estimate.run_image` (the
-per-image job that batch and Ray engines will call); folders, manifests, resume and workers come
-with the batch module.
+``m360 run`` is :func:`m360.batch.run` (folders, manifests, resume, workers, failures.jsonl);
+exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors,
+130 interrupted (Ctrl-C; rerun to finish).
 """
 
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
 
 import cv2
+import numpy as np
 
-from . import __version__, models, synthetic
-from .errors import M360Error
-from .estimate import OUTPUT_KINDS, SimulatedEstimator, estimate, run_image
+from . import __version__, batch, models, synthetic
+from .errors import InputError, M360Error, ModelError
+from .estimate import OUTPUT_KINDS, SimulatedEstimator, estimate
 from .eval import depth_metrics, format_metrics
 from .geometry import Layout
-from .io import save, save_npy, save_png
+from .io import SAVE_FORMATS, load, output_stem, read_array, save, save_npy, save_png
 from .stitch import ALIGN_MODES, BLEND_MODES
 
 
@@ -59,22 +61,60 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     run = commands.add_parser(
         "run",
-        help="estimate the depth of panoramas",
+        help="estimate the depth of panoramas (files, folders, manifests)",
         description=(
-            "Estimate the depth of each equirectangular image (W == 2H) and write "
-            "OUT/STEM.disparity.npy, OUT/STEM.depth.npy (float32, NaN = invalid), a colour "
-            "preview OUT/STEM.preview.png and the sidecar OUT/STEM.json. The model is "
-            "downloaded and verified on first use (see `m360 models`)."
+            "Estimate the depth of each equirectangular image (W == 2H) and write, per image, "
+            "OUT/STEM.disparity.EXT and OUT/STEM.depth.EXT per format (float32, NaN = invalid; "
+            "png16: 0 = invalid, scale in the sidecar), a colour preview OUT/STEM.preview.png "
+            "and last the sidecar OUT/STEM.json. INPUTS are image files, folders, or manifests "
+            "(.txt: a path per line; .csv: input[,output]). A rerun skips images already done "
+            "with the same input and options; failures go to OUT/failures.jsonl and the run "
+            "goes on. The model is downloaded and verified on first use (see `m360 models`)."
         ),
     )
-    run.add_argument("inputs", nargs="+", type=Path, help="panorama image files")
+    run.add_argument("inputs", nargs="+", type=Path, help="images, folders or manifests")
     run.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     run.add_argument(
         "--model",
         default=models.DEFAULT_MODEL,
         help=f"registry name or path to an .onnx file (default {models.DEFAULT_MODEL})",
     )
-    run.add_argument("--threads", type=int, default=None, help="ONNX Runtime intra-op threads")
+    run.add_argument(
+        "--formats",
+        type=_formats,
+        default=("npy",),
+        help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
+    )
+    run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
+    run.add_argument("--workers", type=int, default=1, help="processes working at once")
+    run.add_argument(
+        "--threads",
+        type=int,
+        default=None,
+        help="ONNX Runtime intra-op threads per worker (with --workers > 1 also the core's)",
+    )
+    again = run.add_mutually_exclusive_group()
+    again.add_argument(
+        "--resume",
+        dest="resume",
+        action="store_true",
+        default=True,
+        help="skip images already done with the same input and options (default)",
+    )
+    again.add_argument("--overwrite", dest="resume", action="store_false", help="redo every image")
+    run.add_argument("--recursive", action="store_true", help="also look in sub-folders")
+    run.add_argument(
+        "--fix-aspect",
+        action="store_true",
+        help="resize images that are not W == 2H to W x W/2 (default: they fail)",
+    )
+    run.add_argument("--no-progress", action="store_true", help="no progress bar")
+    run.add_argument(
+        "--engine",
+        choices=("local",),
+        default="local",
+        help="where images run: local processes (Ray is not in this version)",
+    )
     run.add_argument(
         "--input-size",
         type=int,
@@ -97,6 +137,28 @@ def main(argv: Sequence[str] | None = None) -> int:
     )
     _stitch_options(run)
 
+    ev = commands.add_parser(
+        "eval",
+        help="the paper's depth metrics of a prediction against ground truth",
+        description=(
+            "Print AbsRel, RMSE, log10 and the delta accuracies of PRED against GT after a "
+            "least-squares scale and shift of the disparity (DESIGN.md §5). PRED is an m360 "
+            "output (its stem, sidecar or any of its files) or an array file (.npy, .pfm, "
+            ".exr); GT is an array file of radial depth (or disparity with --gt-kind)."
+        ),
+    )
+    ev.add_argument("pred", type=Path, help="m360 output or array file")
+    ev.add_argument("gt", type=Path, help="ground-truth array file (.npy, .pfm, .exr)")
+    ev.add_argument("--pred-kind", choices=("disparity", "depth"), default="disparity")
+    ev.add_argument("--gt-kind", choices=("depth", "disparity"), default="depth")
+    ev.add_argument(
+        "--pole-cap", type=float, default=0.0, help="ignore this many degrees at each pole"
+    )
+    ev.add_argument(
+        "--weighting", choices=("uniform", "solid_angle"), default="uniform", help="pixel weights"
+    )
+    ev.add_argument("--json", action="store_true", help="print the metrics as JSON")
+
     mod = commands.add_parser("models", help="list, fetch or locate depth models")
     mod_commands = mod.add_subparsers(dest="action")
     fetch = mod_commands.add_parser("fetch", help="download and verify models")
@@ -105,17 +167,38 @@ def main(argv: Sequence[str] | None = None) -> int:
     where = mod_commands.add_parser("path", help="print where a model's file is (or goes)")
     where.add_argument("name", choices=models.names(), metavar="NAME")
 
-    args = parser.parse_args(argv)
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage error (2) or --help/--version (0)
+        return int(exc.code or 0)
     try:
         if args.command == "demo":
             return _demo(args.output, args.width, args.seed, args.noise, args.align, args.blend)
         if args.command == "run":
-            providers = args.providers.split(",") if args.providers else None
-            return _run(args, providers)
+            return _run(args)
+        if args.command == "eval":
+            return _eval(args)
         return _models_command(args)
+    except ModelError as exc:
+        print(f"m360: error: {exc}", file=sys.stderr)
+        return 1
+    except InputError as exc:  # before any image ran: the command itself is wrong
+        print(f"m360: error: {exc}", file=sys.stderr)
+        return 2
     except M360Error as exc:
         print(f"m360: error: {exc}", file=sys.stderr)
         return 1
+
+
+def _formats(text: str) -> tuple[str, ...]:
+    chosen = tuple(f.strip() for f in text.split(",") if f.strip())
+    unknown = [f for f in chosen if f not in SAVE_FORMATS]
+    if unknown or not chosen:
+        raise argparse.ArgumentTypeError(
+            f"unknown format(s) {', '.join(unknown) or '(none)'}; "
+            f"choose from {', '.join(SAVE_FORMATS)}"
+        )
+    return chosen
 
 
 def _stitch_options(parser: argparse.ArgumentParser) -> None:
@@ -162,30 +245,73 @@ def _demo(out: Path, width: int, seed: int, noise: float, align: str, blend: str
     return 0
 
 
-def _run(args: argparse.Namespace, providers: list[str] | None) -> int:
-    failures = 0
-    for path in args.inputs:
-        try:
-            summary = run_image(
-                path,
-                args.output,
-                model=args.model,
-                align=args.align,
-                blend=args.blend,
-                threads=args.threads,
-                providers=providers,
-                input_size=tuple(args.input_size) if args.input_size else None,
-                output_kind=args.output_kind,
-            )
-        except M360Error as exc:
-            failures += 1
-            print(f"m360: {path}: error: {exc}", file=sys.stderr)
-            continue
-        total = summary["timings"]["total"]
-        print(f"{path} -> {summary['outputs']['sidecar']} ({total:.2f} s)")
-    if failures:
-        print(f"m360: {failures} of {len(args.inputs)} images failed", file=sys.stderr)
-    return 1 if failures else 0
+def _run(args: argparse.Namespace) -> int:
+    def report_failure(outcome: batch.ImageOutcome) -> None:
+        if outcome.status == "failed":
+            _log(f"m360: {outcome.input}: {outcome.error}: {outcome.message}")
+
+    report = batch.run(
+        args.inputs,
+        args.output,
+        model=args.model,
+        align=args.align,
+        blend=args.blend,
+        formats=args.formats,
+        preview=not args.no_preview,
+        workers=args.workers,
+        threads=args.threads,
+        resume=args.resume,
+        recursive=args.recursive,
+        fix_aspect=args.fix_aspect,
+        progress=not args.no_progress,
+        on_outcome=report_failure,
+        providers=args.providers.split(",") if args.providers else None,
+        input_size=tuple(args.input_size) if args.input_size else None,
+        output_kind=args.output_kind,
+    )
+    print(report.summary(), file=sys.stderr)
+    return report.exit_code
+
+
+def _log(line: str) -> None:
+    """A line on stderr that does not tear the progress bar."""
+    from tqdm import tqdm
+
+    tqdm.write(line, file=sys.stderr)
+
+
+def _eval(args: argparse.Namespace) -> int:
+    pred = _read_map(args.pred, args.pred_kind, allow_output=True)
+    gt = _read_map(args.gt, args.gt_kind, allow_output=False)
+    if pred.shape != gt.shape:
+        raise InputError(f"PRED is {pred.shape} but GT is {gt.shape}")
+    with np.errstate(divide="ignore", invalid="ignore"):
+        gt_depth = gt if args.gt_kind == "depth" else np.where(gt > 0, 1.0 / gt, np.nan)
+        disparity = (
+            pred if args.pred_kind == "disparity" else np.where(pred > 0, 1.0 / pred, np.nan)
+        )
+    metrics = depth_metrics(
+        disparity, gt_depth, pole_cap_deg=args.pole_cap, weighting=args.weighting
+    )
+    if args.json:
+        print(json.dumps(metrics, indent=2))
+    else:
+        print(format_metrics(metrics))
+    return 0
+
+
+def _inverse(values: np.ndarray) -> np.ndarray:
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(values > 0, 1.0 / values, np.nan)
+
+
+def _read_map(path: Path, kind: str, *, allow_output: bool) -> np.ndarray:
+    """An m360 output's ``kind`` map (when ``path`` names one with a sidecar) or an array file."""
+    stem = output_stem(path)
+    if allow_output and stem.with_name(stem.name + ".json").is_file():
+        values: np.ndarray = getattr(load(stem), kind)
+        return values
+    return read_array(path)
 
 
 def _models_command(args: argparse.Namespace) -> int:

@@ -7,7 +7,7 @@ bindings import them from here), so there is one hierarchy whichever layer finds
 
 from __future__ import annotations
 
-__all__ = ["InputError", "M360Error", "ModelError", "SolverError"]
+__all__ = ["AspectRatioError", "InputError", "M360Error", "ModelError", "ReadError", "SolverError"]
 
 
 class M360Error(Exception):
@@ -16,6 +16,14 @@ class M360Error(Exception):
 
 class InputError(M360Error, ValueError):
     """An argument is unusable: wrong shape, dtype, size, NaN where not allowed, bad option."""
+
+
+class ReadError(InputError):
+    """A file cannot be read: missing, empty, truncated, corrupt, or of an unsupported kind."""
+
+
+class AspectRatioError(InputError):
+    """An equirectangular image is not W == 2H (``m360 run --fix-aspect`` resizes it)."""
 
 
 class ModelError(M360Error):

@@ -45,7 +45,6 @@ __all__ = [
     "estimate",
     "load_estimator",
     "ray_norms",
-    "run_image",
     "to_perspective_disparity",
 ]
 
@@ -803,39 +802,3 @@ def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
     else:
         info["sha256"] = None
     return info
-
-
-def run_image(
-    path: str | os.PathLike[str],
-    out_dir: str | os.PathLike[str],
-    *,
-    stem: str | None = None,
-    model: str | os.PathLike[str] | Estimator = _models.DEFAULT_MODEL,
-    formats: Sequence[str] = ("npy",),
-    preview: bool = True,
-    **options: Any,
-) -> dict[str, Any]:
-    """Estimate one panorama file and write its outputs: the per-image job of ``m360 run``.
-
-    Reads ``path`` (read-only), runs :func:`estimate` with ``model`` and ``options``, and writes
-    ``OUT/STEM.disparity.npy``, ``OUT/STEM.depth.npy``, ``OUT/STEM.preview.png`` and the sidecar
-    ``OUT/STEM.json`` with :func:`m360.io.save` (``STEM`` defaults to the input's file stem).
-
-    Returns
-    -------
-    dict
-        ``input``, ``outputs`` (role → path), ``timings``, ``model``.
-    """
-    from .io import load_image, save
-
-    source = Path(path)
-    rgb = load_image(source)
-    result = estimate(rgb, model, **options)
-    target = Path(out_dir) / (stem or source.stem)
-    written = save(result, target, formats=formats, preview=preview, extra={"input": str(source)})
-    return {
-        "input": str(source),
-        "outputs": {role: str(p) for role, p in written.items()},
-        "timings": result.timings,
-        "model": result.model,
-    }

@@ -1,36 +1,65 @@
-"""Reading panoramas and writing results without ever leaving a half-written file behind."""
+"""Reading panoramas, writing results and reading them back, never leaving a half-written file.
+
+Every output file is written to a temporary name in its target folder and renamed onto its final
+name (atomic on one file system). :func:`save` writes the sidecar ``STEM.json`` last, so a sidecar
+means the whole set is there; :func:`load` refuses a stem without one.
+"""
 
 from __future__ import annotations
 
 import contextlib
 import datetime
+import glob
+import io as _bytes_io
 import json
 import os
 import tempfile
 from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from .errors import InputError
+from ._validate import check_erp_shape
+from .errors import AspectRatioError, InputError, ReadError
 
 __all__ = [
     "ERP_CONVENTION",
+    "IMAGE_SUFFIXES",
     "SAVE_FORMATS",
+    "SavedResult",
     "atomic_path",
     "colorize",
+    "decode_image",
+    "fix_aspect_ratio",
+    "listed_files",
+    "load",
     "load_image",
+    "output_stem",
+    "read_array",
+    "read_image",
+    "read_input_bytes",
+    "read_sidecar",
+    "remove_stale_temporaries",
     "save",
     "save_json",
     "save_npy",
     "save_png",
+    "write_array",
 ]
 
-#: Formats :func:`save` writes in this version (PNG16/PFM/EXR come with the batch module).
-SAVE_FORMATS = ("npy",)
-_PLANNED_FORMATS = ("png16", "pfm", "exr")
+#: Array formats :func:`save` writes (and :func:`load` reads back, in this order of preference).
+SAVE_FORMATS = ("npy", "pfm", "exr", "png16")
+#: The quantities :func:`save` writes per format.
+QUANTITIES = ("disparity", "depth")
+#: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
+FORMAT_SUFFIXES = {"npy": ".npy", "pfm": ".pfm", "exr": ".exr", "png16": ".png"}
+#: Input images :func:`read_image` decodes (and batch folders collect).
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
+#: PNG16 codes: 0 = invalid, 1..65535 = the finite range, linearly.
+_PNG16_STEPS = 65534
 
 #: The ERP convention written into every sidecar (DESIGN.md §1).
 ERP_CONVENTION = {
@@ -40,8 +69,12 @@ ERP_CONVENTION = {
     "direction": "(cos(lat) sin(lon), -sin(lat), cos(lat) cos(lon)); x right, y down, z forward",
     "disparity": "spherical, 1/distance",
     "depth": "radial distance |P|",
-    "invalid": "NaN in .npy",
+    "invalid": "NaN in npy/pfm/exr; 0 in png16",
 }
+
+
+# --------------------------------------------------------------------------------------------
+# Atomic writes.
 
 
 @contextlib.contextmanager
@@ -49,7 +82,8 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
     """Yield a temporary path next to ``path``; rename it onto ``path`` only if the block succeeds.
 
     The temporary file lives in the target folder so the final rename is atomic (same file
-    system); on any exception it is removed and ``path`` is left as it was.
+    system); on any exception (KeyboardInterrupt included) it is removed and ``path`` is left as
+    it was. Temporary names are ``.NAME.XXXXXXXX.tmp``.
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
@@ -72,25 +106,306 @@ def _umask() -> int:
     return mask
 
 
+def _write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
+    target = Path(path)
+    with atomic_path(target) as tmp:
+        tmp.write_bytes(data)
+    return target
+
+
 def save_npy(path: str | os.PathLike[str], array: np.ndarray) -> Path:
     """Write ``array`` as .npy atomically; returns the path."""
-    target = Path(path)
-    with atomic_path(target) as tmp, open(tmp, "wb") as f:
-        np.save(f, array)
-    return target
+    buffer = _bytes_io.BytesIO()
+    np.save(buffer, array, allow_pickle=False)
+    return _write_bytes(path, buffer.getvalue())
 
 
 def save_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     """Write a uint8/uint16 image (H,W) or (H,W,3) BGR as PNG atomically; returns the path."""
-    ok, encoded = cv2.imencode(".png", image)
+    return _write_bytes(path, _encode(".png", image))
+
+
+def save_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> Path:
+    """Write ``data`` as indented UTF-8 JSON atomically; returns the path."""
+    text = json.dumps(data, indent=2, sort_keys=False, default=_json_default, allow_nan=False)
+    return _write_bytes(path, (text + "\n").encode("utf-8"))
+
+
+def _json_default(obj: Any) -> Any:
+    if isinstance(obj, np.generic):
+        return obj.item()
+    if isinstance(obj, np.ndarray):
+        return obj.tolist()
+    if isinstance(obj, Path):
+        return str(obj)
+    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
+
+
+def _encode(extension: str, image: np.ndarray) -> bytes:
+    problem = (
+        f"cannot encode an array of shape {image.shape} and dtype {image.dtype} as "
+        f"{extension[1:].upper()}"
+    )
+    try:
+        ok, encoded = cv2.imencode(extension, image)
+    except cv2.error as exc:
+        raise InputError(f"{problem}: {exc}") from exc
     if not ok:
-        raise InputError(
-            f"cannot encode an image of shape {image.shape} and dtype {image.dtype} as PNG"
-        )
+        raise InputError(problem)
+    return bytes(encoded)
+
+
+# --------------------------------------------------------------------------------------------
+# Float maps in each format. Writers return the path; readers return (H, W) float32.
+
+
+def write_array(path: str | os.PathLike[str], values: np.ndarray, fmt: str) -> dict[str, Any]:
+    """Write one (H, W) float map in ``fmt`` (npy, pfm, exr, png16) atomically.
+
+    npy, pfm and exr store float32 bit-exactly (NaN = invalid). png16 stores
+    ``code = 1 + round((v - offset) / scale)`` with ``offset`` the minimum and
+    ``scale = (max - min) / 65534`` of the finite values, 0 = invalid: reading it back is within
+    ``scale / 2`` (plus float32 rounding). Returns what a reader needs besides the file
+    (png16: ``offset``, ``scale``; others: nothing).
+    """
+    values = np.ascontiguousarray(values, dtype=np.float32)
+    if fmt == "npy":
+        save_npy(path, values)
+    elif fmt == "pfm":
+        _write_bytes(path, _encode(".pfm", values))
+    elif fmt == "exr":
+        _write_exr(path, values)
+    elif fmt == "png16":
+        codes, offset, scale = _png16_codes(values)
+        save_png(path, codes)
+        return {"offset": offset, "scale": scale, "invalid": 0}
+    else:
+        raise InputError(f"format {fmt!r} is not supported; choose from {SAVE_FORMATS}")
+    return {}
+
+
+def read_array(
+    path: str | os.PathLike[str], *, png16: Mapping[str, float] | None = None
+) -> np.ndarray:
+    """Read an (H, W) float map written by :func:`write_array` (format from the suffix).
+
+    A 16-bit PNG needs ``png16`` (``offset``, ``scale`` from the sidecar); without it the raw
+    codes are returned as float with 0 → NaN. Raises :class:`m360.ReadError` for a missing,
+    empty or corrupt file.
+    """
+    p = Path(path)
+    data = _read_bytes(p, "array file")
+    suffix = p.suffix.lower()
+    try:
+        if suffix == ".npy":
+            values = np.load(_bytes_io.BytesIO(data), allow_pickle=False)
+        elif suffix == ".exr":
+            values = _read_exr(p)
+        elif suffix in (".pfm", ".png", ".tif", ".tiff"):
+            values = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        else:
+            raise ReadError(f"{p}: unknown array format {suffix!r} (npy, pfm, exr, png)")
+    except ReadError:
+        raise
+    except Exception as exc:  # numpy/OpenCV/OpenEXR raise many kinds for corrupt files
+        raise ReadError(f"cannot read {p}: {exc}") from exc
+    if values is None or not isinstance(values, np.ndarray):
+        raise ReadError(f"cannot decode {p} (corrupt or truncated?)")
+    if values.ndim == 3 and values.shape[2] == 1:
+        values = values[:, :, 0]
+    if values.ndim != 2:
+        raise ReadError(f"{p} holds an array of shape {values.shape}; expected one (H, W) map")
+    if values.dtype == np.uint16 and suffix == ".png":
+        return _png16_values(values, png16)
+    if values.dtype.kind != "f":
+        raise ReadError(f"{p} holds {values.dtype} values; expected a float map")
+    return values.astype(np.float32, copy=False)
+
+
+def _png16_codes(values: np.ndarray) -> tuple[np.ndarray, float, float]:
+    finite = np.isfinite(values)
+    codes = np.zeros(values.shape, np.uint16)
+    if not finite.any():
+        return codes, 0.0, 1.0
+    valid = values[finite].astype(np.float64)
+    offset, top = float(valid.min()), float(valid.max())
+    scale = (top - offset) / _PNG16_STEPS if top > offset else 1.0
+    codes[finite] = np.rint((valid - offset) / scale).astype(np.uint16) + 1
+    return codes, offset, scale
+
+
+def _png16_values(codes: np.ndarray, png16: Mapping[str, float] | None) -> np.ndarray:
+    offset, scale = (0.0, 1.0) if png16 is None else (png16["offset"], png16["scale"])
+    values = offset + (codes.astype(np.float64) - 1.0) * scale
+    return np.where(codes == 0, np.nan, values).astype(np.float32)
+
+
+def _write_exr(path: str | os.PathLike[str], values: np.ndarray) -> Path:
+    # OpenCV 5 wheels have no EXR codec; the OpenEXR package (ASWF) is the maintained one.
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
     target = Path(path)
     with atomic_path(target) as tmp:
-        tmp.write_bytes(encoded.tobytes())
+        OpenEXR.File(header, {"Y": values}).write(str(tmp))
     return target
+
+
+def _read_exr(path: Path) -> np.ndarray:
+    """The EXR's channels as (H, W) or (H, W, C) float, colour channels in RGB order."""
+    import OpenEXR
+
+    with OpenEXR.File(str(path)) as exr:
+        channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
+    for name in ("Y", "Z", "RGB", "RGBA"):
+        if name in channels:
+            values = channels[name]
+            return values[..., :3] if name == "RGBA" else values
+    if {"R", "G", "B"} <= channels.keys():
+        return np.stack([channels[c] for c in "RGB"], axis=-1)
+    if len(channels) == 1:
+        return next(iter(channels.values()))
+    raise ReadError(f"{path}: EXR channels {sorted(channels)}; expected Y, Z or R, G, B")
+
+
+def _read_bytes(path: Path, what: str) -> bytes:
+    if not path.is_file():
+        raise ReadError(f"{what} {path} does not exist (or is not a file)")
+    try:
+        with open(path, "rb") as f:  # read-only: inputs are never modified
+            data = f.read()
+    except OSError as exc:
+        raise ReadError(f"cannot read {path}: {exc.strerror or exc}") from exc
+    if not data:
+        raise ReadError(f"{what} {path} is empty (0 bytes)")
+    return data
+
+
+# --------------------------------------------------------------------------------------------
+# Input panoramas.
+
+
+def read_input_bytes(path: str | os.PathLike[str]) -> bytes:
+    """The bytes of an input image (opened read-only), or :class:`m360.ReadError` if it is
+    missing, unreadable or empty."""
+    return _read_bytes(Path(path), "input image")
+
+
+def read_image(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read an image file as (H, W, 3) uint8 RGB, whatever its aspect (opened read-only).
+
+    JPEG, PNG, TIFF (what OpenCV decodes) and OpenEXR. 16-bit images are rounded to 8 bits,
+    grey images get three channels, alpha is dropped; float images (EXR, float TIFF) are linear
+    radiance: scaled so their 99th percentile is white, clipped and gamma-encoded (1/2.2). EXIF
+    orientation is ignored: panorama pixels are taken as stored (a 360° camera's orientation flag
+    would turn a 2:1 image into a 1:2 one). Raises :class:`m360.ReadError` for a missing, empty,
+    truncated or undecodable file.
+    """
+    return decode_image(read_input_bytes(path), path)
+
+
+def decode_image(data: bytes, path: str | os.PathLike[str]) -> np.ndarray:
+    """:func:`read_image` of bytes already read from ``path`` (named in errors)."""
+    p = Path(path)
+    if data[:4] == b"\x76\x2f\x31\x01":  # OpenEXR magic
+        try:
+            image = _read_exr(p)
+        except ReadError:
+            raise
+        except Exception as exc:
+            raise ReadError(f"cannot decode {p} as OpenEXR: {exc}") from exc
+        return _to_rgb8(image, p, order="RGB")
+    if data[:2] == b"\xff\xd8":
+        _check_jpeg_complete(data, p)
+    try:
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:
+        raise ReadError(f"cannot decode {p} as an image: {exc}") from exc
+    if decoded is None:
+        raise ReadError(f"cannot decode {p} as an image (truncated or not JPEG/PNG/TIFF/EXR?)")
+    return _to_rgb8(decoded, p, order="BGR")
+
+
+def load_image(path: str | os.PathLike[str], *, fix_aspect: bool = False) -> np.ndarray:
+    """Read an equirectangular panorama as (H, W, 3) uint8 RGB (see :func:`read_image`).
+
+    A panorama must be W == 2H: otherwise :class:`m360.AspectRatioError` naming its size, or, with
+    ``fix_aspect=True``, it is resized to W x W/2 (W rounded up to even).
+    """
+    return fix_aspect_ratio(read_image(path), path, fix=fix_aspect)
+
+
+def fix_aspect_ratio(image: np.ndarray, path: str | os.PathLike[str], *, fix: bool) -> np.ndarray:
+    """``image`` if it is W == 2H; else resized to W x W/2 if ``fix``, else AspectRatioError."""
+    height, width = image.shape[:2]
+    if width == 2 * height:
+        return image
+    if not fix:
+        try:
+            check_erp_shape(height, width, str(path))
+        except AspectRatioError as exc:
+            raise AspectRatioError(f"{exc}; resize it, or pass fix_aspect/--fix-aspect") from None
+    width += width % 2
+    interpolation = cv2.INTER_AREA if width // 2 < height else cv2.INTER_LINEAR
+    return cv2.resize(image, (width, width // 2), interpolation=interpolation)
+
+
+def _to_rgb8(image: np.ndarray, path: Path, *, order: str) -> np.ndarray:
+    if image.dtype == np.uint16:
+        image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
+    elif image.dtype.kind == "f":
+        image = _tonemap(image)
+    elif image.dtype != np.uint8:
+        raise ReadError(f"{path} has pixel type {image.dtype}; use 8/16-bit or float images")
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[:, :, 0]
+    if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 2):  # grey (+ alpha)
+        grey = image if image.ndim == 2 else image[:, :, 0]
+        return np.ascontiguousarray(np.repeat(grey[:, :, None], 3, axis=2))
+    if image.ndim != 3 or image.shape[2] not in (3, 4):
+        raise ReadError(f"{path} has an unsupported channel layout {image.shape}")
+    rgb = image[:, :, :3] if order == "RGB" else image[:, :, 2::-1]
+    return np.ascontiguousarray(rgb)
+
+
+def _tonemap(image: np.ndarray) -> np.ndarray:
+    linear = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
+    np.maximum(linear, 0.0, out=linear)
+    white = float(np.percentile(linear, 99.0)) or float(linear.max()) or 1.0
+    encoded = np.clip(linear / white, 0.0, 1.0) ** (1.0 / 2.2)
+    return np.rint(encoded * 255.0).astype(np.uint8)
+
+
+def _check_jpeg_complete(data: bytes, path: Path) -> None:
+    """Refuse a JPEG whose primary image has no end-of-image marker (a truncated download).
+
+    Old OpenCV builds decode such files with a grey bottom and only a warning. Walks the marker
+    segments to the first scan (so an EXIF thumbnail's own markers are skipped), then looks for
+    EOI among the markers in the entropy-coded data (0xFF bytes there are stuffed, so every
+    0xFF not followed by 0x00, a restart code or fill is a real marker). Bytes a camera appends
+    after EOI are allowed.
+    """
+    pos = 2
+    while pos + 4 <= len(data):
+        if data[pos] != 0xFF:
+            raise ReadError(f"{path} is not a valid JPEG (bad marker at byte {pos})")
+        marker = data[pos + 1]
+        if marker == 0xFF:  # fill byte
+            pos += 1
+            continue
+        if marker == 0xDA:  # start of scan: entropy-coded data follows
+            break
+        pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
+    else:
+        raise ReadError(f"{path} is a truncated JPEG (ends before its first scan)")
+    scan = np.frombuffer(data, np.uint8)[pos + 2 :]
+    ff = np.flatnonzero(scan[:-1] == 0xFF)
+    if not (scan[ff + 1] == 0xD9).any():
+        raise ReadError(f"{path} is a truncated JPEG (no end-of-image marker)")
+
+
+# --------------------------------------------------------------------------------------------
+# Results.
 
 
 def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
@@ -110,136 +425,292 @@ def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.
     return preview
 
 
-def save_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> Path:
-    """Write ``data`` as indented UTF-8 JSON atomically; returns the path."""
-    target = Path(path)
-    text = json.dumps(data, indent=2, sort_keys=False, default=_json_default, allow_nan=False)
-    with atomic_path(target) as tmp:
-        tmp.write_text(text + "\n", encoding="utf-8")
-    return target
-
-
-def _json_default(obj: Any) -> Any:
-    if isinstance(obj, np.generic):
-        return obj.item()
-    if isinstance(obj, np.ndarray):
-        return obj.tolist()
-    if isinstance(obj, Path):
-        return str(obj)
-    raise TypeError(f"not JSON serialisable: {type(obj).__name__}")
-
-
-def load_image(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read an equirectangular panorama as (H, W, 3) uint8 RGB (file opened read-only).
-
-    16-bit images are reduced to 8 bits, grey images get three channels and alpha is dropped.
-    Raises InputError if the file is missing, not an image OpenCV can decode, or not W == 2H.
-    """
+def output_stem(path: str | os.PathLike[str]) -> Path:
+    """The stem of an output set given the stem itself or any of its files."""
     p = Path(path)
-    if not p.is_file():
-        raise InputError(f"input image {p} does not exist (or is not a file)")
-    data = np.fromfile(p, dtype=np.uint8)
-    image = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
-    if image is None:
-        raise InputError(f"cannot decode {p} as an image (supported: what OpenCV reads)")
-    if image.dtype == np.uint16:
-        image = (image // 257).astype(np.uint8)
-    elif image.dtype != np.uint8:
-        raise InputError(f"{p} has pixel type {image.dtype}; use 8- or 16-bit images")
-    if image.ndim == 2:
-        image = cv2.cvtColor(image, cv2.COLOR_GRAY2RGB)
-    elif image.shape[2] == 4:
-        image = cv2.cvtColor(image, cv2.COLOR_BGRA2RGB)
-    else:
-        image = cv2.cvtColor(image, cv2.COLOR_BGR2RGB)
-    height, width = image.shape[:2]
-    if width != 2 * height:
-        raise InputError(
-            f"{p} is {width}x{height} (WxH) but an equirectangular panorama must have "
-            f"W == 2H (expected width {2 * height})"
-        )
-    return image
+    name = p.name
+    if name.endswith(".json") or name.endswith(".preview.png"):
+        return p.with_name(name.removesuffix(".json").removesuffix(".preview.png"))
+    for quantity in QUANTITIES:
+        for suffix in set(FORMAT_SUFFIXES.values()):
+            tail = f".{quantity}{suffix}"
+            if name.endswith(tail):
+                return p.with_name(name.removesuffix(tail))
+    return p
+
+
+def _check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
+    chosen = (formats,) if isinstance(formats, str) else tuple(formats)
+    for fmt in chosen:
+        if fmt not in SAVE_FORMATS:
+            raise InputError(f"format {fmt!r} is not supported; choose from {SAVE_FORMATS}")
+    if not chosen:
+        raise InputError(f"formats is empty; choose at least one of {SAVE_FORMATS}")
+    return tuple(dict.fromkeys(chosen))
+
+
+def _check_map(values: Any, name: str) -> np.ndarray:
+    array = values if isinstance(values, np.ndarray) else None
+    if array is None or array.ndim != 2 or array.dtype.kind != "f" or array.size == 0:
+        got = type(values).__name__ if array is None else f"{array.dtype} {array.shape}"
+        raise InputError(f"result.{name} must be a non-empty (H, W) float array, got {got}")
+    return array
 
 
 def save(
     result: Any,
     stem: str | os.PathLike[str],
     *,
-    formats: Sequence[str] = ("npy",),
+    formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
     extra: Mapping[str, Any] | None = None,
 ) -> dict[str, Path]:
-    """Write an :class:`m360.EstimateResult` next to ``stem``; every file atomically.
+    """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
 
-    Files: ``STEM.disparity.npy`` and ``STEM.depth.npy`` (float32, NaN = invalid),
-    ``STEM.preview.png`` (colour preview of the disparity) and last ``STEM.json``, the sidecar:
-    quantities and units, ERP convention, model and its sha256, options, timings, m360 version
-    (plus ``extra``). The sidecar is written last, so its presence means the set is complete.
+    Files: ``STEM.disparity.EXT`` and ``STEM.depth.EXT`` per format (``npy``, ``pfm``, ``exr``:
+    float32, NaN = invalid; ``png16``: ``.png`` 16-bit, 0 = invalid, value = offset +
+    (code − 1)·scale with offset/scale in the sidecar), ``STEM.preview.png`` (colour preview of
+    the disparity) and last ``STEM.json``, the sidecar: quantities and units, ERP convention,
+    model and its sha256, layout, options, timings, m360 version, the files (plus ``extra``,
+    e.g. the input file and its sha256). Any earlier sidecar is removed first and the files of
+    this call are removed again if it fails, so a sidecar always describes a complete set.
 
     Parameters
     ----------
     result : EstimateResult
+        Or any object with ``disparity``/``depth`` (H, W) float arrays (``model``, ``units``,
+        ``options``, ``timings``, ``layout`` are recorded when present).
     stem : path
         Output path without suffix, e.g. ``out/pano``; folders are created.
     formats : sequence of str
-        ``"npy"`` in this version.
+        Any of ``"npy"`` (default), ``"pfm"``, ``"exr"``, ``"png16"``.
     preview : bool
         Also write the colour preview PNG.
     extra : mapping, optional
-        More JSON-serialisable fields for the sidecar (e.g. the input path).
+        More JSON-serialisable fields for the sidecar.
 
     Returns
     -------
     dict
-        Role (``disparity``, ``depth``, ``preview``, ``sidecar``) → path written.
+        Role (``disparity.npy``, ``depth.pfm`` …, ``preview``, ``sidecar``) → path written.
     """
     from . import __version__
 
-    for fmt in formats:
-        if fmt in _PLANNED_FORMATS:
-            raise InputError(f"format {fmt!r} is not available in this version yet; use 'npy'")
-        if fmt not in SAVE_FORMATS:
-            raise InputError(f"format {fmt!r} is not supported; choose from {SAVE_FORMATS}")
+    chosen = _check_formats(formats)
+    with np.errstate(over="ignore"):  # float64 beyond float32's range is ±inf, as in m360's maps
+        arrays = {
+            q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
+            for q in QUANTITIES
+        }
+    if arrays["disparity"].shape != arrays["depth"].shape:
+        raise InputError(
+            f"result.disparity {arrays['disparity'].shape} and result.depth "
+            f"{arrays['depth'].shape} differ in shape"
+        )
     base = Path(stem)
+    sidecar_path = base.with_name(base.name + ".json")
     written: dict[str, Path] = {}
-    if "npy" in formats:
-        written["disparity"] = save_npy(
-            base.with_name(base.name + ".disparity.npy"), result.disparity
-        )
-        written["depth"] = save_npy(base.with_name(base.name + ".depth.npy"), result.depth)
-    if preview:
-        written["preview"] = save_png(
-            base.with_name(base.name + ".preview.png"), colorize(result.disparity)
-        )
-    units = result.units
-    height, width = result.disparity.shape
+    files: dict[str, Any] = {q: {} for q in QUANTITIES}
+    png16: dict[str, Any] = {}
+    with contextlib.suppress(FileNotFoundError):
+        sidecar_path.unlink()  # the old set is incomplete from here on
+    try:
+        for fmt in chosen:
+            for quantity, values in arrays.items():
+                path = base.with_name(f"{base.name}.{quantity}{FORMAT_SUFFIXES[fmt]}")
+                params = write_array(path, values, fmt)
+                if params:
+                    png16[quantity] = params
+                written[f"{quantity}.{fmt}"] = path
+                files[quantity][fmt] = path.name
+        if preview:
+            written["preview"] = save_png(
+                base.with_name(base.name + ".preview.png"), colorize(arrays["disparity"])
+            )
+            files["preview"] = written["preview"].name
+        sidecar = _sidecar(result, arrays["disparity"], files, png16, __version__)
+        if extra:
+            sidecar.update(extra)
+        written["sidecar"] = save_json(sidecar_path, sidecar)
+    except BaseException:
+        for path in written.values():
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        raise
+    return written
+
+
+def _sidecar(
+    result: Any,
+    disparity: np.ndarray,
+    files: dict[str, Any],
+    png16: dict[str, Any],
+    version: str,
+) -> dict[str, Any]:
+    units = getattr(result, "units", "relative")
+    layout = getattr(result, "layout", None)
     sidecar: dict[str, Any] = {
-        "m360_version": __version__,
+        "m360_version": version,
         "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
-        "files": {role: path.name for role, path in written.items()},
+        "files": files,
         "quantities": {
             "disparity": {
                 "meaning": "spherical disparity 1/distance"
                 + (" up to a global scale and shift" if units == "relative" else ""),
                 "units": "relative" if units == "relative" else "1/metres",
                 "dtype": "float32",
-                "invalid": "NaN",
+                "invalid": "NaN (png16: 0)",
             },
             "depth": {
                 "meaning": "radial distance |P| = 1/disparity where disparity > 0",
                 "units": units,
                 "dtype": "float32",
-                "invalid": "NaN",
+                "invalid": "NaN (png16: 0)",
             },
         },
-        "shape": [height, width],
+        "shape": list(disparity.shape),
         "erp_convention": ERP_CONVENTION,
-        "model": result.model,
-        "options": result.options,
-        "timings_s": {k: round(float(v), 6) for k, v in result.timings.items()},
-        "valid_fraction": float(np.isfinite(result.disparity).mean()),
+        "model": getattr(result, "model", None),
+        "layout": None
+        if layout is None
+        else {
+            "name": layout.name,
+            "erp_shape": list(layout.erp_shape),
+            "cameras": len(layout),
+            "tangent_shape": list(layout.tangent_shape),
+            "padding": layout.padding,
+            "key": layout.key,
+        },
+        "options": getattr(result, "options", {}),
+        "timings_s": {k: round(float(v), 6) for k, v in getattr(result, "timings", {}).items()},
+        "valid_fraction": float(np.isfinite(disparity).mean()),
     }
-    if extra:
-        sidecar.update(extra)
-    written["sidecar"] = save_json(base.with_name(base.name + ".json"), sidecar)
-    return written
+    if png16:
+        sidecar["png16"] = png16
+    return sidecar
+
+
+@dataclass(frozen=True)
+class SavedResult:
+    """A result read back by :func:`load`.
+
+    Attributes
+    ----------
+    disparity, depth : (H, W) float32
+        NaN = invalid.
+    metadata : dict
+        The sidecar (model, options, timings, input …).
+    stem : Path
+    format : str
+        The format the arrays were read from.
+    """
+
+    disparity: np.ndarray
+    depth: np.ndarray
+    metadata: dict[str, Any]
+    stem: Path
+    format: str
+
+    @property
+    def units(self) -> str:
+        """``"relative"`` or ``"metres"`` (of depth)."""
+        return str(self.metadata["quantities"]["depth"]["units"])
+
+
+def read_sidecar(stem: str | os.PathLike[str]) -> dict[str, Any]:
+    """The sidecar of an output set, or :class:`m360.ReadError` if it is missing or corrupt."""
+    base = output_stem(stem)
+    path = base.with_name(base.name + ".json")
+    if not path.is_file():
+        raise ReadError(
+            f"{path} does not exist: {base} is not a complete m360 output (the sidecar is "
+            "written last)"
+        )
+    try:
+        meta = json.loads(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise ReadError(f"cannot read the sidecar {path}: {exc}") from exc
+    if not isinstance(meta, dict) or not isinstance(meta.get("files"), dict):
+        raise ReadError(f"{path} is not an m360 sidecar (no 'files')")
+    return meta
+
+
+def load(stem: str | os.PathLike[str], *, format: str | None = None) -> SavedResult:
+    """Read back what :func:`save` wrote: the arrays and the sidecar metadata.
+
+    ``stem`` is the stem given to :func:`save` (or any of its files). ``format`` picks the
+    files to read; default: the first written of npy, pfm, exr, png16. Raises
+    :class:`m360.ReadError` if the sidecar or a file is missing or corrupt.
+    """
+    base = output_stem(stem)
+    meta = read_sidecar(base)
+    files = listed_files(meta, base)
+    available = [f for f in SAVE_FORMATS if all(f in files[q] for q in QUANTITIES)]
+    if format is None:
+        if not available:
+            raise ReadError(f"{base}.json lists no array files")
+        format = available[0]
+    elif format not in available:
+        raise InputError(f"{base} has no {format!r} files; it has {available}")
+    arrays: dict[str, np.ndarray] = {}
+    for quantity in QUANTITIES:
+        params = _png16_params(meta, quantity, base) if format == "png16" else None
+        values = read_array(base.with_name(files[quantity][format]), png16=params)
+        if list(values.shape) != meta.get("shape"):
+            raise ReadError(
+                f"{files[quantity][format]} has shape {values.shape} but the sidecar {base}.json "
+                f"says {meta.get('shape')}"
+            )
+        arrays[quantity] = values
+    return SavedResult(arrays["disparity"], arrays["depth"], meta, base, format)
+
+
+def listed_files(meta: Mapping[str, Any], stem: Path) -> dict[str, dict[str, str]]:
+    """Quantity → format → file name from a sidecar, checked: plain names in the stem's folder.
+
+    Raises :class:`m360.ReadError` for a malformed ``files`` entry.
+    """
+    files = meta.get("files")
+    listed: dict[str, dict[str, str]] = {}
+    for quantity in QUANTITIES:
+        entry = files.get(quantity, {}) if isinstance(files, dict) else None
+        if not isinstance(entry, dict):
+            raise ReadError(f"{stem}.json: malformed 'files' entry for {quantity}: {entry!r}")
+        names: dict[str, str] = {}
+        for fmt, name in entry.items():
+            if fmt not in SAVE_FORMATS:
+                continue
+            if not isinstance(name, str) or not name or Path(name).name != name:
+                raise ReadError(f"{stem}.json: {quantity}.{fmt} names {name!r}, not a file name")
+            names[fmt] = name
+        listed[quantity] = names
+    return listed
+
+
+def _png16_params(meta: Mapping[str, Any], quantity: str, stem: Path) -> dict[str, float]:
+    params = meta.get("png16")
+    entry = params.get(quantity) if isinstance(params, dict) else None
+    try:
+        offset, scale = float(entry["offset"]), float(entry["scale"])  # type: ignore[index]
+    except (TypeError, KeyError, ValueError) as exc:
+        raise ReadError(f"{stem}.json: no usable png16 offset/scale for {quantity}") from exc
+    if not (np.isfinite(offset) and np.isfinite(scale) and scale > 0):
+        raise ReadError(f"{stem}.json: png16 offset/scale for {quantity} are {offset}, {scale}")
+    return {"offset": offset, "scale": scale}
+
+
+def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
+    """Delete temporary files a killed writer left for the set ``stem``; returns them.
+
+    Only call this while holding the set's claim (see :mod:`m360.batch`): a live writer's
+    temporary file looks the same.
+    """
+    base = Path(stem)
+    if not base.parent.is_dir():
+        return []
+    removed = []
+    for tmp in base.parent.glob(f".{glob.escape(base.name)}.*.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+            removed.append(tmp)
+    return removed

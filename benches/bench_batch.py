@@ -1,0 +1,143 @@
+"""Batch throughput at 2K (images per hour) and the overhead of the batch machinery.
+
+The network is the MiDaS-small-sized stand-in of bench_estimate.py (tests/onnx_graphs.py
+``conv_net``, random weights, fixed 256x256 input): ``--layers 33`` takes about 1.1 s for the 20
+tangents on this 2-core machine, the time REFERENCE-NOTES.md measured for MiDaS v2.1 small.
+Panoramas are synthetic 2048x1024 JPEGs (quality 95).
+
+Tables:
+1. ``m360.batch.run`` on ``--images`` panoramas into a fresh folder, ``workers`` 1 and 2 (threads
+   split between them: 1 worker x 2 threads, 2 workers x 1 thread), blends frustum and poisson:
+   wall time and images per hour (median of ``--repeats``).
+2. Overhead of the machinery (job collection, locks, resume checks, input sha256, sidecar,
+   progress bookkeeping) against the same work written as a plain loop, workers = 1, same
+   threads: ``load_image`` + ``m360.estimate`` (+ ``m360.save``) per image. Runs are interleaved
+   so machine noise hits both alike. Target ≤ 3 % against the loop that also saves.
+
+Run: ``.venv/bin/python benches/bench_batch.py [--images 8] [--repeats 3] [--layers 33]``.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+import _harness as h
+import m360
+import onnx_graphs
+from m360.estimate import OnnxEstimator
+
+
+def make_panoramas(folder: Path, count: int, width: int) -> list[Path]:
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(0), 1024)
+    base = cv2.resize(rgb, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+    paths = []
+    for k in range(count):
+        path = folder / f"pano_{k:03d}.jpg"
+        image = np.roll(base, 97 * k, axis=1)[:, :, ::-1]
+        cv2.imwrite(str(path), image, [cv2.IMWRITE_JPEG_QUALITY, 95])
+        paths.append(path)
+    return paths
+
+
+def batch_seconds(inputs: Path, out: Path, model: Path, blend: str, workers: int) -> float:
+    start = time.perf_counter()
+    report = m360.batch.run(
+        inputs, out, model=str(model), blend=blend, workers=workers,
+        threads=max(1, 2 // workers), progress=False,
+    )  # fmt: skip
+    if report.exit_code != 0:
+        raise RuntimeError(report.summary())
+    return time.perf_counter() - start
+
+
+def loop_seconds(paths: list[Path], out: Path, model: Path, blend: str, save: bool) -> float:
+    start = time.perf_counter()
+    estimator = OnnxEstimator(model, threads=2)
+    for path in paths:
+        result = m360.estimate(m360.io.load_image(path), estimator, blend=blend)
+        if save:
+            m360.save(result, out / path.stem)
+    return time.perf_counter() - start
+
+
+def main() -> None:
+    parser = h.bench_argparser(__doc__.splitlines()[0])
+    parser.add_argument("--images", type=int, default=8, help="panoramas per run")
+    parser.add_argument("--width", type=int, default=2048, help="ERP width")
+    parser.add_argument("--layers", type=int, default=33, help="conv blocks of the stand-in")
+    parser.set_defaults(repeats=3)
+    args = parser.parse_args()
+    meta = h.metadata()
+    rows: list[dict] = []
+    with tempfile.TemporaryDirectory() as tmp_name:
+        tmp = Path(tmp_name)
+        model = onnx_graphs.conv_net(tmp / "midas_small_sized.onnx", size=256, width=32,
+                                     layers=args.layers)  # fmt: skip
+        (tmp / "in").mkdir()
+        paths = make_panoramas(tmp / "in", args.images, args.width)
+        m360.batch.run(paths[:1], tmp / "warm", model=str(model), progress=False)  # warm caches
+        runs = 0
+
+        def fresh() -> Path:
+            nonlocal runs
+            runs += 1
+            return tmp / f"out{runs}"
+
+        throughput = []
+        for blend in ("frustum", "poisson"):
+            for workers in (1, 2):
+                times = [
+                    batch_seconds(tmp / "in", fresh(), model, blend, workers)
+                    for _ in range(args.repeats)
+                ]
+                med = statistics.median(times)
+                row = {"blend": blend, "workers": workers, "seconds": med,
+                       "per_hour": args.images / med * 3600, "runs": times}  # fmt: skip
+                throughput.append(row)
+        h.print_table(
+            f"m360.batch.run, {args.images} panoramas {args.width}x{args.width // 2}, "
+            f"median of {args.repeats}",
+            ["blend", "workers x threads", "seconds", "s/image", "images/hour"],
+            [
+                [r["blend"], f"{r['workers']} x {max(1, 2 // r['workers'])}", r["seconds"],
+                 r["seconds"] / args.images, f"{r['per_hour']:.0f}"]
+                for r in throughput
+            ],
+        )  # fmt: skip
+
+        overhead = []
+        for blend in ("frustum", "poisson"):
+            timing: dict[str, list[float]] = {"loop": [], "loop+save": [], "batch": []}
+            for _ in range(args.repeats):  # interleaved
+                timing["loop"].append(loop_seconds(paths, fresh(), model, blend, save=False))
+                timing["loop+save"].append(loop_seconds(paths, fresh(), model, blend, save=True))
+                timing["batch"].append(batch_seconds(tmp / "in", fresh(), model, blend, 1))
+            med = {k: statistics.median(v) for k, v in timing.items()}
+            overhead.append({"blend": blend, **med, "runs": timing})
+        h.print_table(
+            f"batch machinery overhead, workers=1, 2 threads, median of {args.repeats} (s)",
+            ["blend", "loop: load+estimate", "loop + save", "batch.run", "vs loop", "vs loop+save"],
+            [
+                [r["blend"], r["loop"], r["loop+save"], r["batch"],
+                 f"{100 * (r['batch'] / r['loop'] - 1):+.1f} %",
+                 f"{100 * (r['batch'] / r['loop+save'] - 1):+.1f} %"]
+                for r in overhead
+            ],
+        )  # fmt: skip
+        rows = [*throughput, *overhead]
+    print(f"\n{meta['cpu_model']}, {meta['cpu_count']} cores, commit {meta['git_commit']}")
+    if args.json:
+        h.write_json(args.json, rows, meta)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,729 @@
+"""Batch runs over many panoramas that lose nothing: the engine behind ``m360 run``.
+
+>>> report = m360.batch.run(["photos/"], "out/", model="midas-v21-small", workers=2)
+>>> report.exit_code          # 0 if every image succeeded (or was already done), else 1
+
+What it guarantees (DESIGN.md §9):
+
+- **Complete or absent.** Every file is written under a temporary name and renamed; the sidecar
+  ``STEM.json`` is written last, so its presence means the set is complete.
+- **Resumable.** An image whose sidecar exists, lists files that exist, was made from the same
+  input file (path, size, modification time) with the same options (model and its sha256,
+  align, blend, formats …) is skipped; the rest is done. ``resume=False`` redoes everything.
+- **One failure is one line.** An image that fails is appended to ``OUT/failures.jsonl`` (input,
+  output, error type, message) and the run goes on; a worker process that dies (segfault, out of
+  memory) costs only its image, which is retried once alone and then recorded as
+  ``WorkerCrashed``.
+- **Concurrent runs share a folder.** Each image is claimed with an OS lock (``flock``) on
+  ``.STEM.lock`` in its folder before any work; a run finding an image claimed skips it (it is
+  reported as ``busy``) and the lock dies with its process, so a killed run blocks nothing.
+- **Ctrl-C stops cleanly**: the image in progress leaves no file behind; rerunning finishes the
+  rest.
+- **Nothing outside OUT is written**; inputs are opened read-only; manifest output names that
+  escape OUT (absolute, ``..``, a symlink out) are an :class:`m360.InputError` for that line.
+
+With ``workers > 1`` images run in separate processes (``spawn``), each loading the model and
+building the per-resolution plan once.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import csv
+import datetime
+import hashlib
+import json
+import multiprocessing
+import os
+import pickle
+import time
+import uuid
+from collections import deque
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import dataclass, field
+from pathlib import Path, PurePath
+from typing import Any
+
+import numpy as np
+
+from . import models as _models
+from .errors import InputError, M360Error, ReadError
+from .io import (
+    IMAGE_SUFFIXES,
+    _check_formats,
+    decode_image,
+    fix_aspect_ratio,
+    listed_files,
+    read_input_bytes,
+    read_sidecar,
+    remove_stale_temporaries,
+    save,
+)
+
+__all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "run"]
+
+MANIFEST_SUFFIXES = (".txt", ".csv")
+FAILURES_FILE = "failures.jsonl"
+#: Stages reported per image: reading the file, m360.estimate's stages, writing the outputs.
+STAGES = ("read", "load", "project", "network", "convert", "align", "blend", "write")
+
+
+@dataclass(frozen=True)
+class Job:
+    """One image of a batch: where it comes from and the output stem inside OUT."""
+
+    input: Path
+    stem: Path
+    name: str  # the stem relative to OUT
+    source: str = ""  # where the job came from (folder, manifest line) for messages
+
+
+@dataclass
+class ImageOutcome:
+    """What happened to one image: ``done``, ``skipped`` (already done), ``busy`` (claimed by
+    another run) or ``failed`` (with ``error`` type name and ``message``)."""
+
+    input: str
+    stem: str
+    status: str
+    error: str | None = None
+    message: str | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+@dataclass
+class BatchReport:
+    """The result of :func:`run`.
+
+    Attributes
+    ----------
+    outcomes : list of ImageOutcome
+        One per input image (and per unusable manifest line), in input order.
+    seconds : float
+        Wall time of the run.
+    interrupted : bool
+        True if Ctrl-C stopped the run; rerunning finishes the rest.
+    failures_file : Path
+        ``OUT/failures.jsonl`` (appended only when something failed).
+    """
+
+    outcomes: list[ImageOutcome]
+    seconds: float
+    interrupted: bool
+    failures_file: Path
+
+    def _with(self, status: str) -> list[ImageOutcome]:
+        return [o for o in self.outcomes if o.status == status]
+
+    @property
+    def done(self) -> list[ImageOutcome]:
+        """Images processed in this run."""
+        return self._with("done")
+
+    @property
+    def skipped(self) -> list[ImageOutcome]:
+        """Images already complete with the same input and options."""
+        return self._with("skipped")
+
+    @property
+    def busy(self) -> list[ImageOutcome]:
+        """Images another run was processing at the time."""
+        return self._with("busy")
+
+    @property
+    def failed(self) -> list[ImageOutcome]:
+        """Images that failed (also in ``failures.jsonl``)."""
+        return self._with("failed")
+
+    @property
+    def exit_code(self) -> int:
+        """0 if nothing failed and the run finished, 1 if some image failed, 130 if interrupted."""
+        if self.interrupted:
+            return 130
+        return 1 if self.failed else 0
+
+    def stage_seconds(self) -> dict[str, float]:
+        """Total seconds per stage over the images done in this run."""
+        totals = dict.fromkeys(STAGES, 0.0)
+        for outcome in self.done:
+            for stage, seconds in outcome.timings.items():
+                if stage in totals:
+                    totals[stage] += seconds
+        return totals
+
+    def summary(self) -> str:
+        """A few lines for the end of a run: counts, rate and time per stage."""
+        counts = (
+            f"{len(self.done)} done, {len(self.skipped)} already done, "
+            f"{len(self.failed)} failed"
+            + (f", {len(self.busy)} busy in another run" * bool(self.busy))
+        )
+        lines = [f"m360 run: {counts} in {self.seconds:.1f} s"]
+        if self.done:
+            rate = len(self.done) / max(self.seconds, 1e-9) * 3600.0
+            per_image = {k: v / len(self.done) for k, v in self.stage_seconds().items() if v > 0}
+            stages = ", ".join(f"{k} {v:.3f}" for k, v in per_image.items())
+            lines.append(f"  {rate:.0f} images/hour; mean seconds per image: {stages}")
+        if self.failed:
+            lines.append(f"  failures: {self.failures_file}")
+        if self.interrupted:
+            lines.append("  interrupted: rerun the same command to finish the rest")
+        return "\n".join(lines)
+
+
+# --------------------------------------------------------------------------------------------
+# Inputs.
+
+
+def collect(
+    inputs: str | os.PathLike[str] | Iterable[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    *,
+    recursive: bool = False,
+) -> tuple[list[Job], list[ImageOutcome]]:
+    """Expand ``inputs`` (image files, folders, ``.txt``/``.csv`` manifests) into jobs.
+
+    Folders give their images (``IMAGE_SUFFIXES``, case-insensitive) in sorted order, with
+    ``recursive`` their sub-folders too (the sub-path is kept under OUT). A ``.txt`` manifest
+    lists one input per line (blank lines and ``#`` comments skipped); a ``.csv`` manifest has
+    ``input[,output]`` rows (an optional header row starting with ``input``); relative paths
+    are relative to the manifest's folder and ``output`` is a stem inside OUT. Returns the jobs
+    and, as failed outcomes, the inputs that cannot become jobs (missing file, an output that
+    escapes OUT, two inputs with the same output stem).
+    """
+    out = Path(out_dir)
+    items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
+    jobs: list[Job] = []
+    problems: list[ImageOutcome] = []
+    claimed: dict[Path, Path] = {}
+
+    def add(source: Path, rel: PurePath, where: str) -> None:
+        try:
+            stem = _inside(out, rel, where)
+        except InputError as exc:
+            problems.append(_failure(source, rel.as_posix(), exc))
+            return
+        if stem in claimed:
+            clash = InputError(
+                f"{where}: output {rel} is already the output of {claimed[stem]}; name it "
+                "differently in a manifest"
+            )
+            problems.append(_failure(source, rel.as_posix(), clash))
+            return
+        claimed[stem] = source
+        jobs.append(Job(source, stem, rel.as_posix(), where))
+
+    for item in items:
+        if not isinstance(item, (str, os.PathLike)):
+            raise InputError(f"inputs must be paths, got {type(item).__name__}")
+        path = Path(item)
+        if path.is_dir():
+            pattern = path.rglob("*") if recursive else path.glob("*")
+            images = sorted(
+                p for p in pattern if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
+            )
+            for image in images:
+                add(image, image.relative_to(path).with_suffix(""), str(path))
+        elif path.suffix.lower() in MANIFEST_SUFFIXES and path.is_file():
+            for number, source, rel in _manifest(path):
+                add(source, rel, f"{path}:{number}")
+        elif path.is_file():
+            add(path, PurePath(path.stem), str(path))
+        else:
+            exc = ReadError(f"input {path} does not exist (or is not a file or folder)")
+            problems.append(_failure(path, path.stem, exc))
+    return jobs, problems
+
+
+def _manifest(path: Path) -> Iterator[tuple[int, Path, PurePath]]:
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except (OSError, UnicodeDecodeError) as exc:
+        raise ReadError(f"cannot read the manifest {path}: {exc}") from exc
+    base = path.parent
+    if path.suffix.lower() == ".txt":
+        for number, line in enumerate(text.splitlines(), 1):
+            entry = line.strip()
+            if entry and not entry.startswith("#"):
+                source = base / entry
+                yield number, source, PurePath(source.stem)
+        return
+    for number, row in enumerate(csv.reader(text.splitlines()), 1):
+        cells = [c.strip() for c in row]
+        if not cells or not cells[0] or cells[0].startswith("#"):
+            continue
+        if number == 1 and cells[0].lower() == "input":
+            continue  # header
+        source = base / cells[0]
+        output = cells[1] if len(cells) > 1 and cells[1] else source.stem
+        yield number, source, PurePath(output)
+
+
+def _inside(out: Path, rel: PurePath, where: str) -> Path:
+    """``out / rel`` if it stays inside ``out`` (no absolute path, no ``..``, no symlink out)."""
+    if rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.name in ("", "."):
+        raise InputError(f"{where}: output {str(rel)!r} must be a relative path inside OUT")
+    stem = out / rel
+    root = out.resolve()
+    if not stem.parent.resolve().is_relative_to(root):
+        raise InputError(f"{where}: output {rel} leads outside OUT ({out}) through a symlink")
+    return stem
+
+
+def _failure(source: Path, stem: str, exc: BaseException) -> ImageOutcome:
+    return ImageOutcome(str(source), stem, "failed", type(exc).__name__, str(exc))
+
+
+# --------------------------------------------------------------------------------------------
+# One image.
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """Everything a worker needs to process images (picklable)."""
+
+    model: Any
+    model_options: dict[str, Any]
+    estimate_options: dict[str, Any]
+    formats: tuple[str, ...]
+    preview: bool
+    fix_aspect: bool
+    resume: bool
+    fingerprint: dict[str, Any]
+    run_id: str
+    threads: int | None
+
+
+class _Worker:
+    """Per-process state: the estimator is loaded once; the plan cache lives in the process."""
+
+    def __init__(self, settings: _Settings, estimator: Any | None = None) -> None:
+        from .estimate import load_estimator
+
+        self.settings = settings
+        self.estimator = estimator or load_estimator(
+            settings.model, threads=settings.threads, **settings.model_options
+        )
+
+    def process(self, job: Job) -> ImageOutcome:
+        from .estimate import estimate
+
+        s = self.settings
+        with _claim(job.stem) as claimed:
+            if not claimed:
+                return ImageOutcome(str(job.input), job.name, "busy")
+            if s.resume and is_done(job, s.fingerprint):
+                return ImageOutcome(str(job.input), job.name, "skipped")
+            remove_stale_temporaries(job.stem)
+            try:
+                t0 = time.perf_counter()
+                data = read_input_bytes(job.input)
+                stat = job.input.stat()
+                rgb = decode_image(data, job.input)
+                original = rgb.shape[:2]
+                rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+                t_read = time.perf_counter()
+                result = estimate(rgb, self.estimator, **s.estimate_options)
+                t_estimate = time.perf_counter()
+                source = {
+                    "path": str(job.input),
+                    "sha256": hashlib.sha256(data).hexdigest(),
+                    "size": stat.st_size,
+                    "mtime_ns": stat.st_mtime_ns,
+                    "shape": list(original),
+                    "aspect_fixed": tuple(original) != rgb.shape[:2],
+                    "exif_orientation": "ignored",
+                }
+                batch = {"fingerprint": s.fingerprint, "run": s.run_id}
+                save(
+                    result,
+                    job.stem,
+                    formats=s.formats,
+                    preview=s.preview,
+                    extra={"input": source, "batch": batch},
+                )
+                t_write = time.perf_counter()
+            except M360Error as exc:
+                return ImageOutcome(
+                    str(job.input), job.name, "failed", type(exc).__name__, str(exc)
+                )
+            except (KeyboardInterrupt, SystemExit):
+                raise
+            except Exception as exc:  # a bug or a library error: still only this image fails
+                message = f"{exc} (unexpected; please report it)"
+                return ImageOutcome(str(job.input), job.name, "failed", type(exc).__name__, message)
+        timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
+        timings.pop("total", None)
+        return ImageOutcome(str(job.input), job.name, "done", timings=timings)
+
+
+def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
+    """True if ``job``'s sidecar exists, its files exist, and it was made from the same input
+    file (path, size, mtime) with the same options."""
+    try:
+        meta = read_sidecar(job.stem)
+        stat = job.input.stat()
+    except (M360Error, OSError):
+        return False
+    source = meta.get("input")
+    batch = meta.get("batch")
+    if not isinstance(source, dict) or not isinstance(batch, dict):
+        return False
+    if batch.get("fingerprint") != json.loads(json.dumps(fingerprint)):
+        return False
+    same_input = (source.get("path"), source.get("size"), source.get("mtime_ns")) == (
+        str(job.input),
+        stat.st_size,
+        stat.st_mtime_ns,
+    )
+    try:
+        names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
+    except M360Error:
+        return False
+    preview = meta["files"].get("preview")
+    if isinstance(preview, str) and Path(preview).name == preview:
+        names.append(preview)
+    return same_input and bool(names) and all((job.stem.parent / n).is_file() for n in names)
+
+
+@contextlib.contextmanager
+def _claim(stem: Path) -> Iterator[bool]:
+    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (False if another process
+    holds it). The OS releases the lock when its process dies, so a killed run blocks nothing;
+    the lock file is removed while still held, after the work, so a later claimer either sees
+    the finished sidecar or takes a fresh lock file."""
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    path = stem.with_name(f".{stem.name}.lock")
+    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+    try:
+        if not _try_lock(fd):
+            yield False
+            return
+        try:
+            yield True
+        finally:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(path)
+    finally:
+        os.close(fd)
+
+
+def _try_lock(fd: int) -> bool:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)  # type: ignore[attr-defined]
+        except OSError:
+            return False
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True
+
+
+# --------------------------------------------------------------------------------------------
+# The run.
+
+
+def run(
+    inputs: str | os.PathLike[str] | Iterable[str | os.PathLike[str]],
+    out_dir: str | os.PathLike[str],
+    *,
+    model: Any = _models.DEFAULT_MODEL,
+    align: Any = "multiscale",
+    blend: str = "poisson",
+    formats: Sequence[str] | str = ("npy",),
+    preview: bool = True,
+    workers: int = 1,
+    threads: int | None = None,
+    resume: bool = True,
+    recursive: bool = False,
+    fix_aspect: bool = False,
+    progress: bool = True,
+    on_outcome: Callable[[ImageOutcome], None] | None = None,
+    providers: Sequence[str] | None = None,
+    input_size: tuple[int, int] | None = None,
+    output_kind: str | None = None,
+) -> BatchReport:
+    """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
+
+    Parameters
+    ----------
+    inputs : path or paths
+        Image files, folders and ``.txt``/``.csv`` manifests (see :func:`collect`).
+    out_dir : path
+        Output folder: ``OUT/STEM.*`` per image (see :func:`m360.save`), ``OUT/failures.jsonl``.
+    model : str, path or estimator
+        As for :func:`m360.estimate`. With ``workers > 1`` an estimator object must be
+        picklable.
+    align, blend : str
+        As for :func:`m360.estimate`.
+    formats : sequence of str
+        Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
+    workers : int
+        Processes working on images at once (1 = in this process).
+    threads : int, optional
+        ONNX Runtime intra-op threads per worker; with ``workers > 1`` also the core's threads
+        per worker (default: the CPU count divided among the workers).
+    resume : bool
+        Skip images already done with the same input and options (default); False redoes them.
+    recursive : bool
+        Also collect images in sub-folders of folder inputs.
+    fix_aspect : bool
+        Resize panoramas that are not W == 2H to W x W/2 instead of failing them.
+    progress : bool
+        Show a progress bar (tqdm) over the images.
+    on_outcome : callable, optional
+        Called in this process with each :class:`ImageOutcome` as it arrives.
+    providers, input_size, output_kind : optional
+        ONNX model options, as for :func:`m360.estimate`.
+
+    Returns
+    -------
+    BatchReport
+        Per-image outcomes, failures, time per stage; ``exit_code`` as ``m360 run`` uses it.
+    """
+    from .estimate import load_estimator
+    from .stitch import ALIGN_MODES, BLEND_MODES
+
+    started = time.perf_counter()
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder {out} exists and is not a folder")
+    workers = _positive(workers, "workers")
+    threads = None if threads is None else _positive(threads, "threads")
+    chosen = _check_formats(formats)
+    if isinstance(align, str) and align not in ALIGN_MODES:
+        raise InputError(f"align={align!r} is not supported; choose one of {ALIGN_MODES}")
+    if blend not in BLEND_MODES:
+        raise InputError(f"blend={blend!r} is not supported; choose one of {BLEND_MODES}")
+    jobs, problems = collect(inputs, out, recursive=recursive)
+    if not jobs and not problems:
+        raise InputError(f"no images found in {inputs} (looked for {', '.join(IMAGE_SUFFIXES)})")
+
+    # Resolve (download, verify) the model once, here: a bad model fails the run, not each image.
+    given: dict[str, Any] = {
+        "providers": providers,
+        "input_size": input_size,
+        "output_kind": output_kind,
+    }
+    model_options = {k: v for k, v in given.items() if v is not None}
+    estimator = load_estimator(model, threads=threads, **model_options)
+    settings = _Settings(
+        model=model,
+        model_options=model_options,
+        estimate_options={"align": align, "blend": blend},
+        formats=chosen,
+        preview=bool(preview),
+        fix_aspect=bool(fix_aspect),
+        resume=bool(resume),
+        fingerprint=_fingerprint(estimator, align, blend, chosen, preview, fix_aspect),
+        run_id=uuid.uuid4().hex[:12],
+        threads=threads,
+    )
+    if workers > 1:
+        _check_picklable(settings)
+    failures = out / FAILURES_FILE
+    order = {job: k for k, job in enumerate(jobs)}
+    outcomes: dict[int, ImageOutcome] = {}
+    bar = _progress_bar(len(jobs) + len(problems), progress)
+    counts = {"done": 0, "skipped": 0, "failed": 0}
+
+    def record(outcome: ImageOutcome, index: int | None) -> None:
+        if outcome.status == "failed":
+            _append_failure(failures, outcome, settings.run_id)
+        if index is not None:
+            outcomes[index] = outcome
+        if outcome.status in counts:
+            counts[outcome.status] += 1
+        bar.set_postfix(counts, refresh=False)
+        bar.update(1)
+        if on_outcome is not None:
+            on_outcome(outcome)
+
+    interrupted = False
+    try:
+        for problem in problems:
+            record(problem, None)
+        if workers == 1 or len(jobs) <= 1:
+            worker = _Worker(settings, estimator)
+            for job in jobs:
+                record(worker.process(job), order[job])
+        else:
+            del estimator  # each worker loads its own
+            _run_pool(jobs, settings, workers, lambda job, o: record(o, order[job]))
+    except KeyboardInterrupt:
+        interrupted = True
+    finally:
+        bar.close()
+    report = BatchReport(
+        outcomes=[*problems, *(outcomes[k] for k in sorted(outcomes))],
+        seconds=time.perf_counter() - started,
+        interrupted=interrupted,
+        failures_file=failures,
+    )
+    return report
+
+
+def _positive(value: Any, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise InputError(f"{name}={value!r} must be a positive integer")
+    return int(value)
+
+
+def _fingerprint(
+    estimator: Any,
+    align: Any,
+    blend: str,
+    formats: tuple[str, ...],
+    preview: bool,
+    fix_aspect: bool,
+) -> dict[str, Any]:
+    """The options that decide an image's outputs (not threads or workers)."""
+    return {
+        "model": getattr(estimator, "name", type(estimator).__name__),
+        "model_sha256": getattr(estimator, "sha256", None),
+        "output_kind": estimator.output_kind,
+        "align": align if isinstance(align, str) else [list(g) for g in np.atleast_2d(align)],
+        "blend": blend,
+        "formats": sorted(formats),
+        "preview": bool(preview),
+        "fix_aspect": bool(fix_aspect),
+    }
+
+
+def _check_picklable(settings: _Settings) -> None:
+    try:
+        pickle.dumps(settings)
+    except Exception as exc:
+        raise InputError(
+            f"with workers > 1 the model must be a name, a path or a picklable estimator: {exc}"
+        ) from exc
+
+
+def _append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
+    """One JSON line per failure, appended with a single write (O_APPEND keeps lines whole
+    even when two runs share the folder)."""
+    record = {
+        "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "run": run_id,
+        "input": outcome.input,
+        "output": outcome.stem,
+        "error": outcome.error,
+        "message": outcome.message,
+    }
+    path.parent.mkdir(parents=True, exist_ok=True)
+    line = (json.dumps(record, ensure_ascii=False) + "\n").encode("utf-8")
+    fd = os.open(path, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o666)
+    try:
+        os.write(fd, line)
+    finally:
+        os.close(fd)
+
+
+class _NoBar:
+    def update(self, n: int) -> None: ...
+    def set_postfix(self, values: Mapping[str, int], refresh: bool) -> None: ...
+    def close(self) -> None: ...
+
+
+def _progress_bar(total: int, show: bool) -> Any:
+    if not show:
+        return _NoBar()
+    from tqdm import tqdm
+
+    return tqdm(total=total, unit="img", desc="m360", dynamic_ncols=True, smoothing=0.1)
+
+
+# Worker processes. The state lives in a module global of each worker process.
+_PROCESS_WORKER: _Worker | None = None
+
+
+def _init_process(settings: _Settings, core_threads: int) -> None:
+    global _PROCESS_WORKER
+    from . import set_num_threads
+
+    set_num_threads(core_threads)
+    _PROCESS_WORKER = _Worker(settings)
+
+
+def _process_in_worker(job: Job) -> ImageOutcome:
+    if _PROCESS_WORKER is None:  # pragma: no cover - the initializer always ran
+        raise RuntimeError("worker not initialised")
+    return _PROCESS_WORKER.process(job)
+
+
+def _run_pool(
+    jobs: Sequence[Job],
+    settings: _Settings,
+    workers: int,
+    record: Callable[[Job, ImageOutcome], None],
+) -> None:
+    """Run ``jobs`` on ``workers`` spawned processes; survive a worker that dies.
+
+    After a crash every image that was in flight is a suspect: suspects are retried one at a
+    time in a fresh pool, and one that kills its worker again is recorded as ``WorkerCrashed``.
+    """
+    core_threads = settings.threads or max(1, (os.cpu_count() or 1) // workers)
+    # spawn, not fork: the core's thread pool does not survive fork().
+    context = multiprocessing.get_context("spawn")
+    queue = deque(jobs)
+    suspects: deque[Job] = deque()
+    crashes: dict[Job, int] = {}
+    while queue or suspects:
+        executor = ProcessPoolExecutor(
+            workers, context, initializer=_init_process, initargs=(settings, core_threads)
+        )
+        inflight: dict[Future[ImageOutcome], Job] = {}
+        broken = False
+        try:
+            while (queue or suspects or inflight) and not broken:
+                while not broken and (suspects or queue):
+                    if suspects:
+                        if inflight:
+                            break  # a suspect runs alone
+                        job = suspects.popleft()
+                    elif len(inflight) < 2 * workers:
+                        job = queue.popleft()
+                    else:
+                        break
+                    inflight[executor.submit(_process_in_worker, job)] = job
+                finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                for future in finished:
+                    job = inflight.pop(future)
+                    try:
+                        outcome = future.result()
+                    except BrokenProcessPool:
+                        broken = True
+                        _suspect(job, crashes, suspects, record)
+                        continue
+                    record(job, outcome)
+            wait(inflight)  # the pool broke: the others in flight finished or broke too
+            for future, job in inflight.items():
+                if future.exception() is None:
+                    record(job, future.result())
+                else:
+                    _suspect(job, crashes, suspects, record)
+        finally:
+            executor.shutdown(wait=True, cancel_futures=True)
+
+
+def _suspect(
+    job: Job,
+    crashes: dict[Job, int],
+    suspects: deque[Job],
+    record: Callable[[Job, ImageOutcome], None],
+) -> None:
+    crashes[job] = crashes.get(job, 0) + 1
+    if crashes[job] >= 2:
+        message = "the worker process died while processing this image (twice)"
+        record(job, ImageOutcome(str(job.input), job.name, "failed", "WorkerCrashed", message))
+    else:
+        suspects.append(job)

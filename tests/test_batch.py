@@ -1,0 +1,313 @@
+"""Batch runs (m360.batch, `m360 run`): bad files, resume, SIGKILL, Ctrl-C, concurrent runs,
+manifests, worker crashes. Panoramas are 1024x512, the model a tiny ONNX graph."""
+
+from __future__ import annotations
+
+import hashlib
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import batch_helpers
+import cv2
+import m360
+import numpy as np
+import onnx_graphs as g
+import pytest
+from m360.cli import main
+
+FAST = ["--align", "none", "--blend", "frustum", "--threads", "1", "--input-size", "64", "96"]
+
+
+@pytest.fixture(autouse=True)
+def isolated_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setenv("M360_HOME", str(tmp_path / "home"))
+
+
+@pytest.fixture(scope="module")
+def base_rgb() -> np.ndarray:
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(3), 256)
+    return cv2.resize(rgb, (1024, 512), interpolation=cv2.INTER_LINEAR)
+
+
+def _panoramas(folder: Path, base: np.ndarray, count: int) -> list[Path]:
+    """`count` different 1024x512 panoramas (the room turned about the vertical axis)."""
+    folder.mkdir(parents=True, exist_ok=True)
+    paths = []
+    for k in range(count):
+        image = np.roll(base, 37 * k, axis=1)[:, :, ::-1]
+        path = folder / f"pano_{k:02d}.{'jpg' if k % 2 else 'png'}"
+        assert cv2.imwrite(str(path), image)
+        paths.append(path)
+    return paths
+
+
+@pytest.fixture(scope="module")
+def model(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    return g.affine_of_mean(tmp_path_factory.mktemp("model") / "tiny.onnx", 1.0, 0.1)
+
+
+@pytest.fixture(scope="module")
+def photos(tmp_path_factory: pytest.TempPathFactory, base_rgb: np.ndarray) -> Path:
+    """15 good panoramas, a grey PNG and a 16-bit PNG (also good), a truncated JPEG, a zero-byte
+    file and a 3:2 image."""
+    folder = tmp_path_factory.mktemp("photos")
+    _panoramas(folder, base_rgb, 15)
+    cv2.imwrite(str(folder / "grey.png"), cv2.cvtColor(base_rgb, cv2.COLOR_RGB2GRAY))
+    cv2.imwrite(str(folder / "deep.png"), base_rgb[:, :, ::-1].astype(np.uint16) * 257)
+    _, jpeg = cv2.imencode(".jpg", base_rgb)
+    (folder / "truncated.jpg").write_bytes(jpeg.tobytes()[: len(jpeg) // 2])
+    (folder / "zero.jpg").write_bytes(b"")
+    cv2.imwrite(str(folder / "three_two.png"), base_rgb[:, :768])
+    return folder
+
+
+def _failures(out: Path) -> dict[str, str]:
+    lines = (out / "failures.jsonl").read_text().splitlines()
+    return {Path(r["input"]).name: r["error"] for r in map(json.loads, lines)}
+
+
+def _sidecar_mtimes(out: Path) -> dict[str, int]:
+    return {p.name: p.stat().st_mtime_ns for p in sorted(out.rglob("*.json")) if p.name != "x"}
+
+
+def _assert_clean(out: Path) -> None:
+    """No temporary or lock files; every sidecar's set loads."""
+    leftovers = [p.name for p in out.rglob(".*")]
+    assert not leftovers, leftovers
+    for sidecar in out.rglob("*.json"):
+        result = m360.load(sidecar)
+        assert result.disparity.shape == (512, 1024)
+
+
+def test_a_batch_with_bad_files_records_them_and_goes_on(
+    photos: Path, model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    out = tmp_path / "out"
+    code = main(["run", str(photos), "-o", str(out), "--model", str(model), *FAST])
+    err = capsys.readouterr().err
+    assert code == 1, err
+    assert _failures(out) == {
+        "truncated.jpg": "ReadError",
+        "zero.jpg": "ReadError",
+        "three_two.png": "AspectRatioError",
+    }
+    assert "17 done, 0 already done, 3 failed" in err
+    assert "three_two.png: AspectRatioError" in err and "is 512x768 (HxW)" in err
+    done = sorted(p.stem for p in out.glob("*.json"))
+    assert len(done) == 17 and {"grey", "deep"} <= set(done)
+    _assert_clean(out)
+    meta = m360.load(out / "pano_03").metadata
+    assert meta["input"]["path"] == str(photos / "pano_03.jpg")
+    assert (
+        meta["input"]["sha256"] == hashlib.sha256((photos / "pano_03.jpg").read_bytes()).hexdigest()
+    )
+    assert meta["options"]["blend"] == "frustum" and meta["model"]["name"] == "tiny.onnx"
+
+    # A rerun skips everything done (nothing is rewritten) and retries the failures.
+    before = _sidecar_mtimes(out)
+    code = main(["run", str(photos), "-o", str(out), "--model", str(model), *FAST])
+    err = capsys.readouterr().err
+    assert code == 1 and "0 done, 17 already done, 3 failed" in err
+    assert _sidecar_mtimes(out) == before
+    # Other options are other results: they are redone; --overwrite redoes the same options.
+    main(["run", str(photos / "pano_00.png"), "-o", str(out), "--model", str(model),
+          *FAST[:2], "--blend", "mean", *FAST[4:]])  # fmt: skip
+    assert _sidecar_mtimes(out)["pano_00.json"] > before["pano_00.json"]
+    code = main(
+        ["run", str(photos / "pano_01.jpg"), "-o", str(out), "--model", str(model), *FAST,
+         "--overwrite"]
+    )  # fmt: skip
+    assert code == 0 and _sidecar_mtimes(out)["pano_01.json"] > before["pano_01.json"]
+    # --fix-aspect makes the 3:2 image a panorama.
+    code = main(
+        ["run", str(photos / "three_two.png"), "-o", str(out), "--model", str(model), *FAST,
+         "--fix-aspect"]
+    )  # fmt: skip
+    assert code == 0 and m360.load(out / "three_two").metadata["input"]["aspect_fixed"]
+
+
+def test_two_workers_give_the_same_results_as_one(
+    photos: Path, model: Path, tmp_path: Path
+) -> None:
+    inputs = sorted(photos.glob("pano_0[0-5].*"))
+    options = {"model": str(model), "align": "none", "blend": "frustum", "input_size": (64, 96)}
+    one = m360.batch.run(inputs, tmp_path / "one", progress=False, **options)
+    two = m360.batch.run(inputs, tmp_path / "two", progress=False, workers=2, **options)
+    assert one.exit_code == two.exit_code == 0
+    assert [o.stem for o in one.done] == [o.stem for o in two.done] == [p.stem for p in inputs]
+    for path in inputs:
+        a, b = m360.load(tmp_path / "one" / path.stem), m360.load(tmp_path / "two" / path.stem)
+        np.testing.assert_array_equal(a.disparity, b.disparity)
+
+
+def test_a_dead_worker_costs_only_its_image(tmp_path: Path, base_rgb: np.ndarray) -> None:
+    inputs = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 4)
+    black = tmp_path / "in" / "black.png"
+    cv2.imwrite(str(black), np.zeros((256, 512, 3), np.uint8))
+    report = m360.batch.run(
+        [*inputs[:2], black, *inputs[2:]], tmp_path / "out", model=batch_helpers.CrashOnBlack(),
+        align="none", blend="mean", workers=2, progress=False,
+    )  # fmt: skip
+    assert [(o.stem, o.error) for o in report.failed] == [("black", "WorkerCrashed")]
+    assert sorted(o.stem for o in report.done) == sorted(p.stem for p in inputs)
+    assert report.exit_code == 1
+    assert _failures(tmp_path / "out") == {"black.png": "WorkerCrashed"}
+
+
+def _cli(*args: str) -> list[str]:
+    return [sys.executable, "-m", "m360.cli", *args]
+
+
+def _env(tmp_path: Path) -> dict[str, str]:
+    return {**os.environ, "M360_HOME": str(tmp_path / "home"), "M360_NUM_THREADS": "1"}
+
+
+def _wait_for_sidecars(out: Path, count: int, proc: subprocess.Popen[bytes]) -> None:
+    deadline = time.monotonic() + 120
+    while len(list(out.glob("*.json"))) < count:
+        assert proc.poll() is None, "the run ended before it could be stopped"
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+
+
+@pytest.mark.parametrize("how", ["SIGKILL", "SIGINT"])
+def test_a_killed_run_resumes_without_losing_or_redoing_anything(
+    how: str, model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    """Kill a run mid-way (SIGKILL: no cleanup at all; SIGINT: Ctrl-C, clean stop), rerun:
+    the rest completes, no file is truncated or duplicated, finished images are not redone."""
+    inputs = _panoramas(tmp_path / "in", base_rgb, 12)
+    out = tmp_path / "out"
+    # Poisson blending makes each image slow enough to be caught mid-way.
+    args = ["run", str(tmp_path / "in"), "-o", str(out), "--model", str(model), "--no-progress",
+            "--align", "none", "--blend", "poisson", "--input-size", "64", "96"]  # fmt: skip
+    proc = subprocess.Popen(_cli(*args), env=_env(tmp_path), stderr=subprocess.PIPE)
+    _wait_for_sidecars(out, 3, proc)
+    proc.send_signal(getattr(signal, how))
+    _, err = proc.communicate(timeout=120)
+    finished = _sidecar_mtimes(out)
+    assert 3 <= len(finished) < len(inputs), "the kill came too late to test anything"
+    if how == "SIGINT":
+        assert proc.returncode == 130, err.decode()
+        assert b"interrupted: rerun" in err
+        _assert_clean(out)  # Ctrl-C leaves no temporary file behind
+    else:
+        assert proc.returncode == -signal.SIGKILL
+    for sidecar in finished:  # whatever was finished is complete and readable
+        assert m360.load(out / sidecar).disparity.shape == (512, 1024)
+
+    rerun = subprocess.run(_cli(*args), env=_env(tmp_path), capture_output=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr.decode()
+    done_now = len(inputs) - len(finished)
+    assert f"{done_now} done, {len(finished)} already done, 0 failed" in rerun.stderr.decode()
+    after = _sidecar_mtimes(out)
+    assert sorted(after) == sorted(f"{p.stem}.json" for p in inputs)
+    assert {k: after[k] for k in finished} == finished  # not recomputed
+    _assert_clean(out)  # stale temporaries and locks of the killed image are gone
+    names = [p.name for p in out.iterdir()]
+    assert len(names) == len(set(names)) == 4 * len(inputs)  # 2 arrays + preview + sidecar
+
+
+_RUN_AND_REPORT = """
+import json, sys, m360
+report = m360.batch.run(sys.argv[1], sys.argv[2], model=sys.argv[3], align="none",
+                        blend="poisson", progress=False, input_size=(64, 96))
+print(json.dumps({s: [o.stem for o in getattr(report, s)] for s in ("done", "skipped", "busy",
+                                                                    "failed")}))
+"""
+
+
+def test_two_concurrent_runs_do_every_image_exactly_once(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    inputs = _panoramas(tmp_path / "in", base_rgb, 10)
+    out = tmp_path / "out"
+    cmd = [sys.executable, "-c", _RUN_AND_REPORT, str(tmp_path / "in"), str(out), str(model)]
+    procs = [subprocess.Popen(cmd, env=_env(tmp_path), stdout=subprocess.PIPE) for _ in range(2)]
+    reports = [json.loads(p.communicate(timeout=300)[0]) for p in procs]
+    assert all(p.returncode == 0 for p in procs)
+    done = [set(r["done"]) for r in reports]
+    assert not done[0] & done[1], "an image was processed by both runs"
+    assert done[0] | done[1] == {p.stem for p in inputs}
+    assert all(r["done"] for r in reports), "one run did everything: no concurrency was tested"
+    _assert_clean(out)
+
+
+def test_manifests_resolve_inside_out_and_refuse_escapes(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    a, b, c = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 3)
+    outside = tmp_path / "outside"
+    outside.mkdir()
+    out = tmp_path / "out"
+    (out / "sub").mkdir(parents=True)
+    (out / "link").symlink_to(outside)
+    (tmp_path / "list.txt").write_text(f"# panoramas\n\nin/{a.name}\n{b}\n")
+    (tmp_path / "list.csv").write_text(
+        "input,output\n"
+        f"in/{c.name},sub/third\n"
+        f"in/{a.name},../escaped\n"
+        f"in/{a.name},{outside / 'abs'}\n"
+        f"in/{b.name},link/through\n"
+        f"in/{b.name},pano_00\n"  # pano_00 already comes from list.txt
+    )
+    report = m360.batch.run(
+        [tmp_path / "list.txt", tmp_path / "list.csv"], out, model=str(model), align="none",
+        blend="mean", progress=False, input_size=(64, 96),
+    )  # fmt: skip
+    assert sorted(o.stem for o in report.done) == ["pano_00", "pano_01", "sub/third"]
+    assert [(o.stem, o.error) for o in report.failed] == [
+        ("../escaped", "InputError"),
+        ((outside / "abs").as_posix(), "InputError"),
+        ("link/through", "InputError"),
+        ("pano_00", "InputError"),
+    ]
+    assert not list(outside.iterdir()) and not (tmp_path / "escaped.json").exists()
+    assert (out / "sub" / "third.json").is_file()
+
+
+def test_recursive_folders_keep_their_sub_paths(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    small = base_rgb[::2, ::2].copy()
+    _panoramas(tmp_path / "in" / "x", small, 1)
+    _panoramas(tmp_path / "in" / "y", small, 1)
+    with pytest.raises(m360.InputError, match="no images found"):  # not without recursive
+        m360.batch.run(tmp_path / "in", tmp_path / "flat", model=str(model), progress=False)
+    report = m360.batch.run(
+        tmp_path / "in", tmp_path / "out", model=str(model), progress=False, align="none",
+        blend="mean", input_size=(64, 96), recursive=True,
+    )  # fmt: skip
+    assert sorted(o.stem for o in report.done) == ["x/pano_00", "y/pano_00"]
+
+
+def test_usage_errors_exit_2_before_any_work(
+    model: Path, tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    (tmp_path / "empty").mkdir()
+    base = ["run", "-o", str(tmp_path / "out"), "--model", str(model)]
+    assert main([*base, str(tmp_path / "empty")]) == 2
+    assert "no images found" in capsys.readouterr().err
+    assert main([*base, str(tmp_path / "empty"), "--formats", "npy,tiff"]) == 2
+    assert "unknown format(s) tiff" in capsys.readouterr().err
+    assert main([*base, str(tmp_path / "empty"), "--workers", "0"]) == 2
+    assert not (tmp_path / "out").exists()
+
+
+def test_eval_prints_the_metrics_of_an_output(tmp_path: Path) -> None:
+    gt = np.random.default_rng(1).uniform(1.0, 5.0, (32, 64)).astype(np.float32)
+    np.save(tmp_path / "gt.npy", gt)
+    result = type("R", (), {"disparity": 2.0 / gt + 0.5, "depth": gt / 2.0})()
+    m360.save(result, tmp_path / "pred", formats="pfm")
+    proc = subprocess.run(
+        _cli("eval", str(tmp_path / "pred"), str(tmp_path / "gt.npy"), "--json"),
+        capture_output=True, env=_env(tmp_path), timeout=60,
+    )  # fmt: skip
+    assert proc.returncode == 0, proc.stderr.decode()
+    metrics = json.loads(proc.stdout)
+    assert metrics["abs_rel"] < 1e-5 and metrics["delta1"] == 1.0

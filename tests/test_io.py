@@ -1,0 +1,208 @@
+"""Outputs and inputs: save/load round trips of every format, sidecar, and image decoding."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import cv2
+import m360
+import numpy as np
+import OpenEXR
+import pytest
+from m360 import io
+
+
+def _result(height: int = 32, seed: int = 0) -> SimpleNamespace:
+    """A result-like object with awkward values: NaN holes, negatives, a wide range."""
+    rng = np.random.default_rng(seed)
+    disparity = rng.uniform(-0.3, 4.0, (height, 2 * height)).astype(np.float32)
+    disparity[0, :5] = np.nan
+    disparity[height // 2, height] = np.float32(1e-7)
+    with np.errstate(divide="ignore"):
+        depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
+    return SimpleNamespace(
+        disparity=disparity,
+        depth=depth,
+        units="relative",
+        model={"name": "test", "sha256": "0" * 64},
+        options={"align": "none", "blend": "mean"},
+        timings={"network": 0.5, "blend": 0.25},
+        layout=m360.Layout.icosahedron(2 * height),
+    )
+
+
+@pytest.mark.parametrize("fmt", ["npy", "pfm", "exr"])
+def test_float_formats_round_trip_bit_exactly(tmp_path: Path, fmt: str) -> None:
+    result = _result()
+    written = m360.save(result, tmp_path / "pano", formats=(fmt,))
+    assert set(written) == {f"disparity.{fmt}", f"depth.{fmt}", "preview", "sidecar"}
+    back = m360.load(tmp_path / "pano")
+    assert back.format == fmt
+    for quantity in ("disparity", "depth"):
+        got, want = getattr(back, quantity), getattr(result, quantity)
+        assert got.dtype == np.float32 and got.shape == want.shape
+        # Bit-exact, NaN where NaN.
+        assert np.array_equal(got.view(np.uint32), want.view(np.uint32))
+
+
+def test_png16_is_within_half_a_step(tmp_path: Path) -> None:
+    """PNG16 quantisation: value = offset + (code - 1)·scale, scale = range / 65534, so the
+    error is at most scale/2 (plus float32 rounding); 0 codes are exactly the NaN pixels."""
+    result = _result(seed=3)
+    m360.save(result, tmp_path / "pano", formats="png16", preview=False)
+    back = m360.load(tmp_path / "pano")
+    meta = back.metadata["png16"]
+    for quantity in ("disparity", "depth"):
+        want = getattr(result, quantity)
+        got = getattr(back, quantity)
+        finite = np.isfinite(want)
+        assert np.array_equal(np.isfinite(got), finite)
+        lo, hi = float(want[finite].min()), float(want[finite].max())
+        scale = meta[quantity]["scale"]
+        assert scale == pytest.approx((hi - lo) / 65534, rel=1e-12)
+        err = np.abs(got[finite].astype(np.float64) - want[finite])
+        bound = scale / 2 + np.abs(want[finite]) * 2.0**-23
+        assert (err <= bound).all(), float((err - bound).max())
+        codes = cv2.imread(str(tmp_path / f"pano.{quantity}.png"), cv2.IMREAD_UNCHANGED)
+        assert codes.dtype == np.uint16 and (codes[~finite] == 0).all() and codes.max() == 65535
+
+
+def test_sidecar_is_self_describing_and_written_last(tmp_path: Path) -> None:
+    result = _result()
+    written = m360.save(
+        result, tmp_path / "sub" / "pano", formats=("npy", "png16"), extra={"input": "x.jpg"}
+    )
+    meta = json.loads((tmp_path / "sub" / "pano.json").read_text())
+    assert meta["files"]["disparity"] == {
+        "npy": "pano.disparity.npy",
+        "png16": "pano.disparity.png",
+    }
+    assert meta["files"]["preview"] == "pano.preview.png"
+    assert meta["quantities"]["depth"]["units"] == "relative"
+    assert meta["layout"]["erp_shape"] == [32, 64] and meta["layout"]["cameras"] == 20
+    assert meta["m360_version"] == m360.__version__ and meta["input"] == "x.jpg"
+    assert meta["timings_s"] == {"network": 0.5, "blend": 0.25}
+    assert "latitude" in meta["erp_convention"]
+    mtimes = {role: p.stat().st_mtime_ns for role, p in written.items()}
+    assert mtimes["sidecar"] == max(mtimes.values())
+    assert not list((tmp_path / "sub").glob(".*"))  # no temporary files left
+
+
+def test_a_failed_save_leaves_no_sidecar_and_no_partial_set(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    m360.save(_result(), tmp_path / "pano", formats=("npy",))
+    assert (tmp_path / "pano.json").is_file()
+
+    def broken(path: Path, values: np.ndarray) -> Path:
+        raise OSError("disk full")
+
+    monkeypatch.setattr(io, "_write_exr", broken)
+    with pytest.raises(OSError, match="disk full"):
+        m360.save(_result(seed=1), tmp_path / "pano", formats=("npy", "exr"))
+    # The old sidecar went first (its set was being replaced) and the new arrays written before
+    # the failure were removed again: what is left has no sidecar, so nothing claims to be done.
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["pano.preview.png"]
+    with pytest.raises(m360.ReadError, match="not a complete m360 output"):
+        m360.load(tmp_path / "pano")
+
+
+def test_load_accepts_any_file_of_the_set_and_a_format(tmp_path: Path) -> None:
+    result = _result()
+    m360.save(result, tmp_path / "pano", formats=("png16", "exr"))
+    for name in ("pano.json", "pano.preview.png", "pano.depth.exr", "pano.disparity.png"):
+        assert m360.load(tmp_path / name).stem == tmp_path / "pano"
+    assert m360.load(tmp_path / "pano").format == "exr"  # float before png16
+    assert m360.load(tmp_path / "pano", format="png16").format == "png16"
+    with pytest.raises(m360.InputError, match="no 'npy' files"):
+        m360.load(tmp_path / "pano", format="npy")
+
+
+def test_load_names_a_corrupt_or_missing_file(tmp_path: Path) -> None:
+    m360.save(_result(), tmp_path / "pano", formats=("npy", "pfm"))
+    (tmp_path / "pano.disparity.npy").write_bytes(b"\x93NUMPY garbage")
+    with pytest.raises(m360.ReadError, match=r"pano\.disparity\.npy"):
+        m360.load(tmp_path / "pano", format="npy")
+    (tmp_path / "pano.depth.pfm").unlink()
+    with pytest.raises(m360.ReadError, match=r"pano\.depth\.pfm does not exist"):
+        m360.load(tmp_path / "pano", format="pfm")
+    (tmp_path / "pano.json").write_text("{not json")
+    with pytest.raises(m360.ReadError, match="sidecar"):
+        m360.load(tmp_path / "pano")
+
+
+def test_save_refuses_bad_formats_and_results(tmp_path: Path) -> None:
+    with pytest.raises(m360.InputError, match="'tiff' is not supported"):
+        m360.save(_result(), tmp_path / "p", formats=("npy", "tiff"))
+    with pytest.raises(m360.InputError, match="formats is empty"):
+        m360.save(_result(), tmp_path / "p", formats=())
+    bad = SimpleNamespace(disparity=np.zeros((4, 8), np.int32), depth=np.zeros((4, 8)))
+    with pytest.raises(m360.InputError, match=r"result\.disparity"):
+        m360.save(bad, tmp_path / "p")
+    assert not list(tmp_path.iterdir())
+
+
+# --------------------------------------------------------------------------------------------
+# Input images.
+
+
+@pytest.fixture(scope="module")
+def rgb() -> np.ndarray:
+    rng = np.random.default_rng(7)
+    return rng.integers(0, 256, (16, 32, 3), dtype=np.uint8)
+
+
+def _write(path: Path, image: np.ndarray) -> Path:
+    assert cv2.imwrite(str(path), image)
+    return path
+
+
+def test_reads_8_and_16_bit_grey_rgba_and_tiff(tmp_path: Path, rgb: np.ndarray) -> None:
+    bgr = rgb[:, :, ::-1]
+    assert np.array_equal(io.load_image(_write(tmp_path / "a.png", bgr)), rgb)
+    assert np.array_equal(io.load_image(_write(tmp_path / "a.tif", bgr)), rgb)
+    # 16 bit, off the exact multiples of 257 by 100 either way: rounds back to the 8-bit values.
+    wide = (rgb.astype(np.int32) * 257 + np.where(rgb < 128, 100, -100)).astype(np.uint16)
+    assert np.array_equal(io.load_image(_write(tmp_path / "b.png", wide[:, :, ::-1])), rgb)
+    grey = rgb[:, :, 0]
+    assert np.array_equal(io.load_image(_write(tmp_path / "g.png", grey)), np.dstack([grey] * 3))
+    rgba = np.dstack([bgr, np.full(grey.shape, 9, np.uint8)])
+    assert np.array_equal(io.load_image(_write(tmp_path / "c.png", rgba)), rgb)
+
+
+def test_reads_an_exr_panorama_tone_mapped(tmp_path: Path) -> None:
+    linear = np.linspace(0.0, 8.0, 16 * 32 * 3, dtype=np.float32).reshape(16, 32, 3)
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"RGB": linear}).write(str(tmp_path / "hdr.exr"))
+    image = io.load_image(tmp_path / "hdr.exr")
+    white = np.percentile(linear, 99.0)
+    want = np.rint(np.clip(linear / white, 0, 1) ** (1 / 2.2) * 255).astype(np.uint8)
+    assert image.dtype == np.uint8 and np.abs(image.astype(int) - want).max() <= 1
+
+
+def test_bad_images_raise_specific_errors(tmp_path: Path, rgb: np.ndarray) -> None:
+    _, jpeg = cv2.imencode(".jpg", rgb)
+    (tmp_path / "cut.jpg").write_bytes(jpeg.tobytes()[: len(jpeg) * 2 // 3])
+    with pytest.raises(m360.ReadError, match="truncated JPEG"):
+        io.load_image(tmp_path / "cut.jpg")
+    # A camera trailer after the end-of-image marker is fine.
+    (tmp_path / "trailer.jpg").write_bytes(jpeg.tobytes() + b"\x00gyro\xff\xda\x00" * 10)
+    assert io.load_image(tmp_path / "trailer.jpg").shape == (16, 32, 3)
+    (tmp_path / "empty.png").write_bytes(b"")
+    with pytest.raises(m360.ReadError, match="empty"):
+        io.load_image(tmp_path / "empty.png")
+    (tmp_path / "text.png").write_text("not an image")
+    with pytest.raises(m360.ReadError, match="cannot decode"):
+        io.load_image(tmp_path / "text.png")
+    with pytest.raises(m360.ReadError, match="does not exist"):
+        io.load_image(tmp_path / "missing.png")
+
+
+def test_aspect_ratio_is_refused_or_fixed_on_request(tmp_path: Path, rgb: np.ndarray) -> None:
+    path = _write(tmp_path / "wide.png", np.ascontiguousarray(rgb[:, :24]))  # 24x16: 3:2
+    with pytest.raises(m360.AspectRatioError, match=r"is 16x24 \(HxW\)") as info:
+        io.load_image(path)
+    assert "--fix-aspect" in str(info.value) and isinstance(info.value, m360.InputError)
+    assert io.load_image(path, fix_aspect=True).shape == (12, 24, 3)
