@@ -175,20 +175,24 @@ def _wait_for_sidecars(out: Path, count: int, proc: subprocess.Popen[bytes]) -> 
         time.sleep(0.01)
 
 
-@pytest.mark.parametrize("how", ["SIGKILL", "SIGINT"])
+@pytest.mark.parametrize(("how", "workers"), [("SIGKILL", 1), ("SIGINT", 1), ("SIGINT", 2)])
 def test_a_killed_run_resumes_without_losing_or_redoing_anything(
-    how: str, model: Path, tmp_path: Path, base_rgb: np.ndarray
+    how: str, workers: int, model: Path, tmp_path: Path, base_rgb: np.ndarray
 ) -> None:
-    """Kill a run mid-way (SIGKILL: no cleanup at all; SIGINT: Ctrl-C, clean stop), rerun:
-    the rest completes, no file is truncated or duplicated, finished images are not redone."""
+    """Kill a run mid-way (SIGKILL: no cleanup at all; SIGINT: Ctrl-C, to the whole process
+    group as a terminal sends it), rerun: the rest completes, no file is truncated or
+    duplicated, finished images are not redone."""
     inputs = _panoramas(tmp_path / "in", base_rgb, 12)
     out = tmp_path / "out"
     # Poisson blending makes each image slow enough to be caught mid-way.
     args = ["run", str(tmp_path / "in"), "-o", str(out), "--model", str(model), "--no-progress",
-            "--align", "none", "--blend", "poisson", "--input-size", "64", "96"]  # fmt: skip
-    proc = subprocess.Popen(_cli(*args), env=_env(tmp_path), stderr=subprocess.PIPE)
+            "--align", "none", "--blend", "poisson", "--input-size", "64", "96",
+            "--workers", str(workers)]  # fmt: skip
+    proc = subprocess.Popen(
+        _cli(*args), env=_env(tmp_path), stderr=subprocess.PIPE, start_new_session=True
+    )
     _wait_for_sidecars(out, 3, proc)
-    proc.send_signal(getattr(signal, how))
+    os.killpg(proc.pid, getattr(signal, how))
     _, err = proc.communicate(timeout=120)
     finished = _sidecar_mtimes(out)
     assert 3 <= len(finished) < len(inputs), "the kill came too late to test anything"

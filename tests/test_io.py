@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -206,3 +207,20 @@ def test_aspect_ratio_is_refused_or_fixed_on_request(tmp_path: Path, rgb: np.nda
         io.load_image(path)
     assert "--fix-aspect" in str(info.value) and isinstance(info.value, m360.InputError)
     assert io.load_image(path, fix_aspect=True).shape == (12, 24, 3)
+
+
+def test_stale_temporaries_of_one_set_only_are_removed(tmp_path: Path) -> None:
+    """What a killed writer leaves: removed for its own set, never for a set with a longer stem."""
+    with io.atomic_path(tmp_path / "pano.json") as tmp:  # the scheme the cleanup relies on
+        assert re.fullmatch(r"\.pano\.json\.[a-z0-9_]{8}\.tmp", tmp.name), tmp.name
+        tmp.write_text("{}")
+    assert not tmp.exists() and (tmp_path / "pano.json").exists()
+    mine = [tmp_path / ".pano.disparity.npy.a1b2c3d4.tmp", tmp_path / ".pano.json.zz_9x8y7.tmp"]
+    other = [
+        tmp_path / ".pano.v2.disparity.npy.a1b2c3d4.tmp",
+        tmp_path / ".pano_b.json.q1w2e3r4.tmp",
+    ]
+    for path in [*mine, *other]:
+        path.write_bytes(b"partial")
+    assert sorted(io.remove_stale_temporaries(tmp_path / "pano")) == sorted(mine)
+    assert all(p.exists() for p in other)

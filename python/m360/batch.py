@@ -83,7 +83,8 @@ class Job:
 @dataclass
 class ImageOutcome:
     """What happened to one image: ``done``, ``skipped`` (already done), ``busy`` (claimed by
-    another run) or ``failed`` (with ``error`` type name and ``message``)."""
+    another run), ``failed`` (with ``error`` type name and ``message``) or ``interrupted``
+    (Ctrl-C; nothing written)."""
 
     input: str
     stem: str
@@ -491,19 +492,23 @@ def run(
         Per-image outcomes, failures, time per stage; ``exit_code`` as ``m360 run`` uses it.
     """
     from .estimate import load_estimator
-    from .stitch import ALIGN_MODES, BLEND_MODES
+    from .geometry import Layout
+    from .stitch import BLEND_MODES, _schedule
 
     started = time.perf_counter()
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise InputError(f"out_dir must be a path, got {type(out_dir).__name__}")
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
     workers = _positive(workers, "workers")
     threads = None if threads is None else _positive(threads, "threads")
     chosen = _check_formats(formats)
-    if isinstance(align, str) and align not in ALIGN_MODES:
-        raise InputError(f"align={align!r} is not supported; choose one of {ALIGN_MODES}")
-    if blend not in BLEND_MODES:
+    _schedule(align, Layout.icosahedron(2048), "normalized")  # refuses a bad align up front
+    if not isinstance(blend, str) or blend not in BLEND_MODES:
         raise InputError(f"blend={blend!r} is not supported; choose one of {BLEND_MODES}")
+    if on_outcome is not None and not callable(on_outcome):
+        raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)
     if not jobs and not problems:
         raise InputError(f"no images found in {inputs} (looked for {', '.join(IMAGE_SUFFIXES)})")
@@ -563,6 +568,8 @@ def run(
         interrupted = True
     finally:
         bar.close()
+    # A worker that got Ctrl-C (and not this process) reports its image as interrupted.
+    interrupted = interrupted or any(o.status == "interrupted" for o in outcomes.values())
     report = BatchReport(
         outcomes=[*problems, *(outcomes[k] for k in sorted(outcomes))],
         seconds=time.perf_counter() - started,
@@ -644,6 +651,7 @@ def _progress_bar(total: int, show: bool) -> Any:
 
 # Worker processes. The state lives in a module global of each worker process.
 _PROCESS_WORKER: _Worker | None = None
+_STOPPING = False  # set when Ctrl-C reached this worker: it takes no further image
 
 
 def _init_process(settings: _Settings, core_threads: int) -> None:
@@ -655,9 +663,15 @@ def _init_process(settings: _Settings, core_threads: int) -> None:
 
 
 def _process_in_worker(job: Job) -> ImageOutcome:
+    global _STOPPING
     if _PROCESS_WORKER is None:  # pragma: no cover - the initializer always ran
         raise RuntimeError("worker not initialised")
-    return _PROCESS_WORKER.process(job)
+    if not _STOPPING:
+        try:
+            return _PROCESS_WORKER.process(job)
+        except KeyboardInterrupt:  # the image's files were cleaned up on the way out
+            _STOPPING = True
+    return ImageOutcome(str(job.input), job.name, "interrupted")
 
 
 def _run_pool(
@@ -705,14 +719,33 @@ def _run_pool(
                         _suspect(job, crashes, suspects, record)
                         continue
                     record(job, outcome)
-            wait(inflight)  # the pool broke: the others in flight finished or broke too
-            for future, job in inflight.items():
-                if future.exception() is None:
-                    record(job, future.result())
-                else:
-                    _suspect(job, crashes, suspects, record)
+        except KeyboardInterrupt:
+            # Ctrl-C: start nothing new, let the images in flight finish or clean up (the
+            # workers got the signal too), and count what did finish.
+            for future in inflight:
+                future.cancel()
+            _record_finished(inflight, record)
+            raise
         finally:
             executor.shutdown(wait=True, cancel_futures=True)
+        # The pool broke: the others in flight finished or broke too.
+        for job in _record_finished(inflight, record):
+            _suspect(job, crashes, suspects, record)
+
+
+def _record_finished(
+    inflight: Mapping[Future[ImageOutcome], Job], record: Callable[[Job, ImageOutcome], None]
+) -> list[Job]:
+    """Wait for ``inflight``; record every outcome but "interrupted"; return the jobs whose
+    future failed (their worker died) or was cancelled."""
+    wait(inflight)
+    lost = []
+    for future, job in inflight.items():
+        if future.cancelled() or future.exception() is not None:
+            lost.append(job)
+        elif future.result().status != "interrupted":
+            record(job, future.result())
+    return lost
 
 
 def _suspect(

@@ -702,15 +702,20 @@ def _png16_params(meta: Mapping[str, Any], quantity: str, stem: Path) -> dict[st
 def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     """Delete temporary files a killed writer left for the set ``stem``; returns them.
 
-    Only call this while holding the set's claim (see :mod:`m360.batch`): a live writer's
-    temporary file looks the same.
+    Only the temporaries of this set's own file names (``.NAME.<8 random>.tmp`` for each name
+    :func:`save` writes), so another set with a longer stem is never touched. Call this only
+    while holding the set's claim (see :mod:`m360.batch`): a live writer's temporary file looks
+    the same.
     """
     base = Path(stem)
     if not base.parent.is_dir():
         return []
+    names = [f"{base.name}.{q}{suffix}" for q in QUANTITIES for suffix in FORMAT_SUFFIXES.values()]
+    names += [f"{base.name}.preview.png", f"{base.name}.json"]
     removed = []
-    for tmp in base.parent.glob(f".{glob.escape(base.name)}.*.tmp"):
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-            removed.append(tmp)
+    for name in names:
+        for tmp in base.parent.glob(f".{glob.escape(name)}.{'?' * 8}.tmp"):
+            with contextlib.suppress(FileNotFoundError):
+                tmp.unlink()
+                removed.append(tmp)
     return removed
