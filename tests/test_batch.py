@@ -315,3 +315,14 @@ def test_eval_prints_the_metrics_of_an_output(tmp_path: Path) -> None:
     assert proc.returncode == 0, proc.stderr.decode()
     metrics = json.loads(proc.stdout)
     assert metrics["abs_rel"] < 1e-5 and metrics["delta1"] == 1.0
+
+
+def test_a_claim_is_exclusive_and_leaves_nothing_behind(tmp_path: Path) -> None:
+    stem = tmp_path / "sub" / "pano"
+    with m360.batch._claim(stem) as first:
+        with m360.batch._claim(stem) as second:  # another open file: as another process
+            assert first and not second
+        assert (tmp_path / "sub" / ".pano.lock").exists()
+    assert not list((tmp_path / "sub").iterdir())
+    with m360.batch._claim(stem) as again:
+        assert again

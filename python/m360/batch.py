@@ -347,14 +347,11 @@ class _Worker:
                 )
                 t_write = time.perf_counter()
             except M360Error as exc:
-                return ImageOutcome(
-                    str(job.input), job.name, "failed", type(exc).__name__, str(exc)
-                )
-            except (KeyboardInterrupt, SystemExit):
-                raise
+                return _failure(job.input, job.name, exc)
             except Exception as exc:  # a bug or a library error: still only this image fails
-                message = f"{exc} (unexpected; please report it)"
-                return ImageOutcome(str(job.input), job.name, "failed", type(exc).__name__, message)
+                outcome = _failure(job.input, job.name, exc)
+                outcome.message = f"{exc} (unexpected; please report it)"
+                return outcome
         timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
         timings.pop("total", None)
         return ImageOutcome(str(job.input), job.name, "done", timings=timings)
@@ -392,22 +389,29 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
 @contextlib.contextmanager
 def _claim(stem: Path) -> Iterator[bool]:
     """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (False if another process
-    holds it). The OS releases the lock when its process dies, so a killed run blocks nothing;
-    the lock file is removed while still held, after the work, so a later claimer either sees
-    the finished sidecar or takes a fresh lock file."""
+    holds it). The OS releases the lock when its process dies, so a killed run blocks nothing.
+    The lock file is removed while still held, after the work; a claimer that locked a file
+    which was removed meanwhile retries on the new one, so two claimers never both hold it."""
     stem.parent.mkdir(parents=True, exist_ok=True)
     path = stem.with_name(f".{stem.name}.lock")
-    fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-    try:
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
         if not _try_lock(fd):
+            os.close(fd)
             yield False
             return
         try:
-            yield True
-        finally:
-            with contextlib.suppress(FileNotFoundError):
-                os.unlink(path)
+            current = os.stat(path).st_ino
+        except FileNotFoundError:
+            current = -1
+        if current == os.fstat(fd).st_ino:
+            break
+        os.close(fd)  # locked a file its holder had just removed: take the current one
+    try:
+        yield True
     finally:
+        with contextlib.suppress(FileNotFoundError):
+            os.unlink(path)
         os.close(fd)
 
 
