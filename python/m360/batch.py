@@ -23,7 +23,8 @@ What it guarantees (DESIGN.md §9):
   escape OUT (absolute, ``..``, a symlink out) are an :class:`m360.InputError` for that line.
 
 With ``workers > 1`` images run in separate processes (``spawn``), each loading the model and
-building the per-resolution plan once.
+building the per-resolution plan once; as with any spawned process, a script that calls
+:func:`run` must keep its top level under ``if __name__ == "__main__":``.
 """
 
 from __future__ import annotations
