@@ -139,3 +139,43 @@ def test_fuzz_save_then_load_round_trips_or_refuses(
             assert np.array_equal(np.isfinite(loaded.disparity), np.isfinite(exact))
         else:
             assert np.array_equal(loaded.disparity, exact, equal_nan=True), fmt
+
+
+_anything = st.one_of(
+    st.none(), st.booleans(), st.integers(-3, 3), st.floats(allow_nan=True), st.text(max_size=6),
+    st.lists(st.integers(0, 20), max_size=3), st.tuples(st.integers(-2, 20), st.integers(-2, 20)),
+)  # fmt: skip
+
+
+@_SETTINGS
+@given(
+    st.fixed_dictionaries(
+        {},
+        optional={
+            "workers": _anything,
+            "threads": _anything,
+            "formats": _anything,
+            "align": _anything,
+            "blend": _anything,
+            "on_outcome": _anything,
+        },
+    ),
+    st.one_of(st.just("missing.jpg"), _anything),
+)
+def test_fuzz_batch_arguments_raise_only_m360_errors(kwargs: dict, inputs: object) -> None:
+    """Bad arguments are refused up front; good ones run (here on a missing input, recorded as
+    a failure, so nothing is computed)."""
+    import batch_helpers
+
+    with tempfile.TemporaryDirectory() as tmp:
+        try:
+            report = m360.batch.run(
+                inputs,  # type: ignore[arg-type]
+                Path(tmp) / "out",
+                model=batch_helpers.CrashOnBlack(),
+                progress=False,
+                **kwargs,
+            )
+        except m360.M360Error:
+            return
+    assert report.exit_code == 1 and report.failed

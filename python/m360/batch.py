@@ -196,7 +196,12 @@ def collect(
     escapes OUT, two inputs with the same output stem).
     """
     out = Path(out_dir)
-    items = [inputs] if isinstance(inputs, (str, os.PathLike)) else list(inputs)
+    if isinstance(inputs, (str, os.PathLike)):
+        items: list[Any] = [inputs]
+    elif isinstance(inputs, Iterable) and not isinstance(inputs, (bytes, Mapping)):
+        items = list(inputs)
+    else:
+        raise InputError(f"inputs must be a path or paths, got {type(inputs).__name__}")
     jobs: list[Job] = []
     problems: list[ImageOutcome] = []
     claimed: dict[Path, Path] = {}

@@ -440,9 +440,14 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
 
 
 def _check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
-    chosen = (formats,) if isinstance(formats, str) else tuple(formats)
+    if isinstance(formats, str):
+        chosen: tuple[Any, ...] = (formats,)
+    elif isinstance(formats, (list, tuple)):
+        chosen = tuple(formats)
+    else:
+        raise InputError(f"formats must be a format name or a list of them, got {formats!r}")
     for fmt in chosen:
-        if fmt not in SAVE_FORMATS:
+        if not isinstance(fmt, str) or fmt not in SAVE_FORMATS:
             raise InputError(f"format {fmt!r} is not supported; choose from {SAVE_FORMATS}")
     if not chosen:
         raise InputError(f"formats is empty; choose at least one of {SAVE_FORMATS}")
