@@ -189,8 +189,8 @@ def read_array(
 ) -> np.ndarray:
     """Read an (H, W) float map written by :func:`write_array` (format from the suffix).
 
-    A 16-bit PNG needs ``png16`` (``offset``, ``scale`` from the sidecar); without it the raw
-    codes are returned as float with 0 → NaN. Raises :class:`m360.ReadError` for a missing,
+    A 16-bit PNG needs ``png16`` (``offset``, ``scale`` from the sidecar); without them the
+    values are ``code − 1`` (0 → NaN). Raises :class:`m360.ReadError` for a missing,
     empty or corrupt file.
     """
     p = Path(path)
