@@ -5,18 +5,39 @@ from __future__ import annotations
 import functools
 import os
 from collections.abc import Iterator
+from datetime import timedelta
 
 import m360
 import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import pytest
-from hypothesis import settings
+from hypothesis import HealthCheck, settings
 from local_http import LocalServer
 
-settings.register_profile("fast", max_examples=50, deadline=None)
-settings.register_profile("slow", max_examples=2000, deadline=None)
-settings.load_profile(os.environ.get("M360_HYPOTHESIS_PROFILE", "fast"))
+# Profiles (``max_examples`` is the budget of a weight-1 fuzz test; test_fuzz.py scales it per
+# test). "ci", the default: a few hundred examples over all fuzz tests, well under a minute.
+# "slow": >= 10,000 in total. Select with HYPOTHESIS_PROFILE=slow (M360_HYPOTHESIS_PROFILE is
+# also read) or ``pytest --hypothesis-profile=slow``. The deadline is per example and generous
+# (the machine may be shared); a real hang is caught by test_fuzz.py's watchdog.
+_FUZZ_DEADLINE = timedelta(seconds=20)
+settings.register_profile(
+    "ci", max_examples=30, deadline=_FUZZ_DEADLINE, suppress_health_check=[HealthCheck.too_slow]
+)
+settings.register_profile("fast", parent=settings.get_profile("ci"))
+settings.register_profile(
+    "slow",
+    max_examples=1000,
+    deadline=_FUZZ_DEADLINE,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+settings.load_profile(
+    os.environ.get("HYPOTHESIS_PROFILE") or os.environ.get("M360_HYPOTHESIS_PROFILE") or "ci"
+)
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    config.addinivalue_line("markers", "fuzz: hypothesis fuzzing of the public API (test_fuzz.py)")
 
 
 @functools.lru_cache(maxsize=8)

@@ -13,10 +13,20 @@ import numpy as np
 
 from .errors import AspectRatioError, InputError
 
+#: Largest ERP width m360 accepts (16K: beyond any 360° camera). A plan holds about 42 bytes per
+#: ERP pixel, so this caps one plan at ~5.6 GB; declared sizes above it are refused up front
+#: instead of failing (or aborting) in an allocation.
+MAX_ERP_WIDTH = 1 << 14
+#: Largest thread count m360 (or ONNX Runtime through it) will start: absurd counts are refused
+#: before any thread is spawned.
+MAX_THREADS = 1024
+#: Largest iteration cap of the solvers: a cap above this is a typo, not a budget.
+MAX_ITERATIONS = 100_000
+
 
 def as_array(value: Any, name: str) -> np.ndarray:
     """``value`` as an ndarray, or InputError if it is not array-like."""
-    if isinstance(value, np.ndarray) and value.dtype.kind in "biuf":
+    if type(value) is np.ndarray and value.dtype.kind in "biuf":
         return value
     try:
         array = np.asarray(value)
@@ -27,6 +37,48 @@ def as_array(value: Any, name: str) -> np.ndarray:
             f"{name} is not a numeric array: {type(value).__name__} of dtype {array.dtype}"
         )
     return array
+
+
+def real_array(value: Any, name: str) -> np.ndarray:
+    """``value`` as a float64 ndarray (bool, integer and float inputs), or InputError."""
+    array = as_array(value, name)
+    return array.astype(np.float64, copy=False)
+
+
+def number(value: Any, name: str, low: float | None = None, high: float | None = None) -> float:
+    """``value`` as a finite float in [low, high]; bools, strings and huge ints are refused."""
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise InputError(f"{name}={value!r} must be a number")
+    try:
+        result = float(value)
+    except OverflowError:  # an int beyond the float range
+        result = float("inf")
+    if (
+        not np.isfinite(result)
+        or (low is not None and result < low)
+        or (high is not None and result > high)
+    ):
+        bounds = f"[{low if low is not None else '-inf'}, {high if high is not None else 'inf'}]"
+        raise InputError(f"{name}={value!r} must be a finite number in {bounds}")
+    return result
+
+
+def integer(value: Any, name: str, low: int = 0, high: int | None = None) -> int:
+    """``value`` as an int in [low, high]; bools, floats and strings are refused."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{name}={value!r} must be an integer")
+    result = int(value)
+    if result < low or (high is not None and result > high):
+        bounds = f"in [{low}, {high}]" if high is not None else f">= {low}"
+        raise InputError(f"{name}={value!r} must be an integer {bounds}")
+    return result
+
+
+def seed(value: Any, name: str = "seed") -> int | None:
+    """A seed for ``np.random.default_rng``: a non-negative integer (or None: fresh entropy)."""
+    if value is None:
+        return None
+    return integer(value, name, low=0)
 
 
 def check_shape(array: np.ndarray, name: str, dims: Sequence[str], **expected: int) -> None:
@@ -59,10 +111,15 @@ def float32_array(array: np.ndarray, name: str, *, allow_nan: bool = True) -> np
         raise InputError(
             f"{name} must be a float array (float32 preferred), got dtype {array.dtype}"
         )
-    out = np.ascontiguousarray(array, dtype=np.float32)
+    with np.errstate(over="ignore"):  # float64 beyond the float32 range becomes inf, refused below
+        out = np.ascontiguousarray(array, dtype=np.float32)
     bad = ~np.isfinite(out) if not allow_nan else np.isinf(out)
     if bad.any():
-        what = "NaN or infinite" if not allow_nan else "infinite"
+        what = (
+            "NaN or infinite (or beyond float32)"
+            if not allow_nan
+            else "infinite (or beyond float32)"
+        )
         raise InputError(
             f"{name} has {int(bad.sum())} {what} values"
             + (" (NaN marks invalid pixels; inf is not allowed)" if allow_nan else "")

@@ -31,8 +31,8 @@ import cv2
 import numpy as np
 
 from . import models as _models
-from ._validate import as_array, check_erp_shape
-from .errors import InputError, ModelError
+from ._validate import MAX_THREADS, as_array, check_erp_shape, integer
+from .errors import InputError, M360Error, ModelError
 from .geometry import Layout, erp_to_tangents
 from .stitch import StitchResult, stitch
 
@@ -51,6 +51,12 @@ __all__ = [
 #: What an estimator may declare it outputs.
 OUTPUT_KINDS = ("affine_disparity", "metric_depth", "distance")
 RESIZE_MODES = ("upper_bound", "lower_bound", "exact")
+#: Largest network input side (and rounding multiple) accepted: depth networks run at ≤ 1536 px,
+#: and one 4096² float32 RGB input is already 200 MB.
+MAX_NETWORK_SIZE = 4096
+#: Largest |mean| and std of the input normalisation, and smallest std: beyond them the
+#: float32 network input would overflow.
+_NORMALISATION_LIMIT = 1e6
 
 
 @runtime_checkable
@@ -116,22 +122,27 @@ def to_perspective_disparity(values: np.ndarray, kind: str, layout: Layout) -> n
     (N, h, w) float32 perspective disparity; NaN where the input is NaN, and for depths where
     the value is not > 0.
     """
-    if kind not in OUTPUT_KINDS:
+    if not isinstance(kind, str) or kind not in OUTPUT_KINDS:
         options = ", ".join(repr(k) for k in OUTPUT_KINDS)
         raise InputError(f"output_kind={kind!r} is not supported; choose one of {options}")
-    array = np.asarray(values)
+    if not isinstance(layout, Layout):
+        raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    array = as_array(values, "estimator output")
     h, w = layout.tangent_shape
     if array.shape != (len(layout), h, w):
         raise InputError(
             f"estimator output has shape {array.shape}, expected {(len(layout), h, w)} (N, h, w)"
         )
     if kind == "affine_disparity":
-        return np.ascontiguousarray(array, dtype=np.float32)
+        with np.errstate(over="ignore"):  # beyond float32: inf, which stitch() refuses
+            return np.ascontiguousarray(array, dtype=np.float32)
     depth = array.astype(np.float64)
-    with np.errstate(divide="ignore", invalid="ignore"):
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         numerator = 1.0 if kind == "metric_depth" else ray_norms(layout)
-        out = np.where(depth > 0, numerator / depth, np.nan)
-    return out.astype(np.float32)
+        out = np.where(depth > 0, numerator / depth, np.nan).astype(np.float32)
+    # A depth so small that its disparity overflows float32 is no estimate either.
+    out[np.isinf(out)] = np.nan
+    return out
 
 
 # --------------------------------------------------------------------------------------------
@@ -174,6 +185,10 @@ def _pick_providers(providers: Sequence[str] | None) -> tuple[str, ...]:
         return ("CPUExecutionProvider",)
     if isinstance(providers, str):
         providers = [providers]
+    if not isinstance(providers, (Sequence, set, frozenset)) or not all(
+        isinstance(p, str) for p in providers
+    ):
+        raise InputError(f"providers must be a list of provider names, got {providers!r}")
     chosen = tuple(p for p in providers if p in available)
     if not chosen:
         raise InputError(
@@ -186,8 +201,10 @@ def _pick_providers(providers: Sequence[str] | None) -> tuple[str, ...]:
 def _check_threads(threads: int | None) -> int | None:
     if threads is None:
         return None
-    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)) or threads < 1:
+    if isinstance(threads, bool) or not isinstance(threads, (int, np.integer)):
         raise InputError(f"threads must be a positive integer or None, got {threads!r}")
+    if not 1 <= threads <= MAX_THREADS:
+        raise InputError(f"threads must be a positive integer up to {MAX_THREADS}, got {threads!r}")
     return int(threads)
 
 
@@ -284,10 +301,12 @@ class OnnxEstimator:
         name: str | None = None,
         sha256: str | None = None,
     ) -> None:
+        if not isinstance(path, (str, os.PathLike)):
+            raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
         self.path = Path(path)
-        if not self.path.is_file():
+        if not _is_file(self.path):
             raise ModelError(f"model file {self.path} does not exist (or is not a file)")
-        if output_kind not in OUTPUT_KINDS:
+        if not isinstance(output_kind, str) or output_kind not in OUTPUT_KINDS:
             options = ", ".join(repr(k) for k in OUTPUT_KINDS)
             raise InputError(
                 f"output_kind={output_kind!r} is not supported; choose one of {options}"
@@ -296,17 +315,21 @@ class OnnxEstimator:
         self.input_size = _check_size_pair(input_size, "input_size") if input_size else None
         self.mean = _check_triple(mean, "mean")
         self.std = _check_triple(std, "std")
-        if np.any(self.std <= 0):
-            raise InputError(f"std must be > 0 per channel, got {tuple(self.std)}")
-        if isinstance(multiple_of, bool) or not isinstance(multiple_of, int) or multiple_of < 1:
-            raise InputError(f"multiple_of must be a positive integer, got {multiple_of!r}")
-        self.multiple_of = multiple_of
-        if resize not in RESIZE_MODES:
+        if np.any(np.abs(self.mean) > _NORMALISATION_LIMIT):
+            raise InputError(f"mean must be at most {_NORMALISATION_LIMIT:g} in magnitude")
+        if np.any(self.std < 1 / _NORMALISATION_LIMIT) or np.any(self.std > _NORMALISATION_LIMIT):
+            raise InputError(
+                f"std must be > 0 per channel (within [1e-6, 1e6]), got {tuple(self.std)}"
+            )
+        self.multiple_of = integer(multiple_of, "multiple_of", low=1, high=MAX_NETWORK_SIZE)
+        if not isinstance(resize, str) or resize not in RESIZE_MODES:
             raise InputError(f"resize={resize!r} is not supported; choose one of {RESIZE_MODES}")
         self.resize = resize
-        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
-            raise InputError(f"batch_size must be a positive integer, got {batch_size!r}")
-        self.batch_size = batch_size
+        self.batch_size = integer(batch_size, "batch_size", low=1, high=1 << 16)
+        if name is not None and not isinstance(name, str):
+            raise InputError(f"name must be a str, got {type(name).__name__}")
+        if sha256 is not None and not isinstance(sha256, str):
+            raise InputError(f"sha256 must be a hex str, got {type(sha256).__name__}")
         self.threads = _check_threads(threads)
         self.requested_providers = _pick_providers(providers)
         self.name = name or self.path.name
@@ -419,8 +442,10 @@ class OnnxEstimator:
         (N, h, w) float32 in the model's ``output_kind``, NaN where the output is not finite.
         """
         array = as_array(tiles, "tiles")
-        if array.ndim != 4 or array.shape[3] != 3:
-            raise InputError(f"tiles must have shape (N, h, w, 3) RGB, got {array.shape}")
+        if array.ndim != 4 or array.shape[3] != 3 or min(array.shape[1:3]) < 1:
+            raise InputError(
+                f"tiles must have shape (N, h, w, 3) RGB with h, w > 0, got {array.shape}"
+            )
         n, h, w = array.shape[:3]
         out = np.empty((n, h, w), dtype=np.float32)
         step = self.batch_size if self._input.batch is None else 1
@@ -453,6 +478,14 @@ def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
     return _models.sha256_of(path)
 
 
+def _is_file(path: Path) -> bool:
+    """``path.is_file()``, False for names the OS refuses (too long, NUL bytes)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
 def _check_triple(value: Sequence[float], name: str) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=np.float64)
@@ -471,8 +504,15 @@ def _check_size_pair(value: Any, name: str) -> tuple[int, int]:
     except (TypeError, ValueError) as exc:
         raise InputError(f"{name} must be (height, width), got {value!r}") from exc
     for v in (h, w):
-        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or v < 1:
-            raise InputError(f"{name} must be two positive integers (height, width), got {value!r}")
+        if (
+            isinstance(v, bool)
+            or not isinstance(v, (int, np.integer))
+            or not 1 <= v <= MAX_NETWORK_SIZE
+        ):
+            raise InputError(
+                f"{name} must be two integers in [1, {MAX_NETWORK_SIZE}] (height, width), "
+                f"got {value!r}"
+            )
     return int(h), int(w)
 
 
@@ -511,7 +551,7 @@ def load_estimator(
                 name=entry.name,
                 sha256=entry.sha256,
             )
-        if text.endswith(".onnx") or Path(text).is_file():
+        if text.endswith(".onnx") or _is_file(Path(text)):
             return OnnxEstimator(
                 text,
                 output_kind=output_kind or "affine_disparity",
@@ -593,6 +633,8 @@ class SimulatedEstimator:
     ) -> None:
         from . import synthetic
 
+        if not isinstance(layout, Layout):
+            raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
         self.layout = layout
         self.exact = synthetic.tangent_perspective_disparity(scene, layout.cameras)
         self._tiles = synthetic.distort(self.exact, seed, scale=scale, shift=shift, noise=noise)
@@ -737,7 +779,13 @@ def estimate(
     t_load = time.perf_counter()
     tiles = erp_to_tangents(rgb, layout)
     t_project = time.perf_counter()
-    raw = estimator.predict(tiles)
+    try:
+        raw = estimator.predict(tiles)
+    except M360Error:
+        raise
+    except Exception as exc:  # a user estimator may raise anything; a batch loop needs M360Error
+        name = getattr(estimator, "name", type(estimator).__name__)
+        raise ModelError(f"estimator {name} failed: {type(exc).__name__}: {exc}") from exc
     t_network = time.perf_counter()
     h, w = layout.tangent_shape
     raw_array = np.asarray(raw)

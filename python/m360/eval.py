@@ -15,6 +15,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
+from m360._validate import as_array, integer, number, one_of, real_array
 from m360.errors import InputError
 
 if TYPE_CHECKING:
@@ -50,8 +51,8 @@ def fit_scale_shift(
         problem is degenerate; the minimum-norm solution ``scale = 0``, ``shift = weighted mean of
         gt`` is returned.
     """
-    p = np.asarray(pred_disparity, dtype=np.float64)
-    g = np.asarray(gt_disparity, dtype=np.float64)
+    p = real_array(pred_disparity, "pred_disparity")
+    g = real_array(gt_disparity, "gt_disparity")
     if p.shape != g.shape:
         raise InputError(
             f"pred_disparity and gt_disparity must have the same shape, got {p.shape} and {g.shape}"
@@ -63,11 +64,14 @@ def fit_scale_shift(
     if weights is None:
         w = np.ones_like(p)
     else:
-        w = np.asarray(weights, dtype=np.float64)
+        w = real_array(weights, "weights")
         if w.shape != p.shape:
             raise InputError(f"weights must have shape {p.shape}, got {w.shape}")
         if not np.all(np.isfinite(w)) or np.any(w < 0):
             raise InputError("weights must be finite and >= 0")
+    # Solve in units of each array's largest magnitude, so no sum overflows near float64's range.
+    p_unit, g_unit, w_unit = (_unit(a) for a in (p, g, w))
+    p, g, w = p / p_unit, g / g_unit, w / w_unit
     wsum = w.sum()
     if not wsum > 0:
         raise InputError("weights must have a positive sum, got 0")
@@ -76,9 +80,23 @@ def fit_scale_shift(
     dp = p - p_mean
     var = (w * dp * dp).sum()
     if var <= 0 or var <= 1e-300 * wsum:
-        return 0.0, float(g_mean)
+        return 0.0, float(g_mean * g_unit)
     scale = (w * dp * (g - g_mean)).sum() / var
-    return float(scale), float(g_mean - scale * p_mean)
+    with np.errstate(over="ignore"):
+        scale_out = scale * (g_unit / p_unit)
+        shift_out = (g_mean - scale * p_mean) * g_unit
+    if not (np.isfinite(scale_out) and np.isfinite(shift_out)):
+        raise InputError(
+            "the scale and shift mapping pred_disparity onto gt_disparity are beyond the float64 "
+            f"range (magnitudes {p_unit:.3g} and {g_unit:.3g})"
+        )
+    return float(scale_out), float(shift_out)
+
+
+def _unit(array: np.ndarray) -> float:
+    """Largest magnitude of ``array`` (1 for an all-zero array)."""
+    top = float(np.max(np.abs(array)))
+    return top if top > 0 else 1.0
 
 
 def _row_latitudes_deg(height: int) -> np.ndarray:
@@ -126,8 +144,8 @@ def depth_metrics(
         ``scale``, ``shift`` of the fit; ``n_valid`` (int) pixels evaluated; ``coverage`` fraction
         of ground-truth-valid pixels (valid GT, mask, outside the caps) with a finite prediction.
     """
-    pred = np.asarray(pred_disparity)
-    gt = np.asarray(gt_depth)
+    pred = as_array(pred_disparity, "pred_disparity")
+    gt = as_array(gt_depth, "gt_depth")
     if pred.ndim != 2 or gt.ndim != 2:
         raise InputError(
             f"pred_disparity and gt_depth must be 2-D (H, W) ERP maps, got {pred.shape} and "
@@ -141,20 +159,23 @@ def depth_metrics(
     for name, arr in (("pred_disparity", pred), ("gt_depth", gt)):
         if not (np.issubdtype(arr.dtype, np.floating) or np.issubdtype(arr.dtype, np.integer)):
             raise InputError(f"{name} must be a real numeric array, got dtype {arr.dtype}")
-    if weighting not in WEIGHTINGS:
-        raise InputError(f"weighting must be one of {WEIGHTINGS}, got {weighting!r}")
-    cap = float(pole_cap_deg)
-    if not (np.isfinite(cap) and 0.0 <= cap < 90.0):
+    weighting = one_of(weighting, "weighting", WEIGHTINGS)
+    try:
+        cap = number(pole_cap_deg, "pole_cap_deg", low=0.0, high=90.0)
+    except InputError:
+        cap = 90.0
+    if cap == 90.0:
         raise InputError(f"pole_cap_deg must be in [0, 90) degrees, got {pole_cap_deg!r}")
 
     pred = pred.astype(np.float64, copy=False)
     gt = gt.astype(np.float64, copy=False)
     lat = _row_latitudes_deg(h)
     rows_in = np.abs(lat) <= 90.0 - cap
-    with np.errstate(invalid="ignore"):
-        gt_ok = np.isfinite(gt) & (gt > 0) & rows_in[:, None]
+    with np.errstate(invalid="ignore", over="ignore", divide="ignore"):
+        # Depths below ~5.6e-309 have no finite disparity 1/depth: invalid like depth <= 0.
+        gt_ok = np.isfinite(gt) & (gt > 0) & np.isfinite(1.0 / gt) & rows_in[:, None]
     if valid is not None:
-        m = np.asarray(valid)
+        m = as_array(valid, "valid")
         if m.shape != gt.shape:
             raise InputError(f"valid must have shape {gt.shape}, got {m.shape}")
         if m.dtype != np.bool_:
@@ -176,29 +197,30 @@ def depth_metrics(
         wts = np.ones(n_valid)
     gd = 1.0 / g
     scale, shift = fit_scale_shift(p, gd, wts)
-    fitted = np.maximum(scale * p + shift, DISPARITY_FLOOR * gd.min())
-    d = 1.0 / fitted
-
     wsum = wts.sum()
 
     def mean(x: np.ndarray) -> float:
         return float((wts * x).sum() / wsum)
 
-    err = d - g
-    ratio = np.maximum(d / g, g / d)
-    return {
-        "abs_rel": mean(np.abs(err) / g),
-        "mae": mean(np.abs(err)),
-        "rmse": float(np.sqrt(mean(err * err))),
-        "rmse_log10": float(np.sqrt(mean((np.log10(d) - np.log10(g)) ** 2))),
-        "delta1": mean(ratio < 1.25),
-        "delta2": mean(ratio < 1.25**2),
-        "delta3": mean(ratio < 1.25**3),
-        "scale": scale,
-        "shift": shift,
-        "n_valid": n_valid,
-        "coverage": n_valid / n_gt,
-    }
+    # Near float64's limits the fitted depths may overflow: the metrics are then inf, not NaN.
+    with np.errstate(over="ignore", divide="ignore", under="ignore"):
+        fitted = np.maximum(scale * p + shift, DISPARITY_FLOOR * gd.min())
+        d = 1.0 / fitted
+        err = d - g
+        ratio = np.maximum(d / g, g / d)
+        return {
+            "abs_rel": mean(np.abs(err) / g),
+            "mae": mean(np.abs(err)),
+            "rmse": float(np.sqrt(mean(err * err))),
+            "rmse_log10": float(np.sqrt(mean((np.log10(d) - np.log10(g)) ** 2))),
+            "delta1": mean(ratio < 1.25),
+            "delta2": mean(ratio < 1.25**2),
+            "delta3": mean(ratio < 1.25**3),
+            "scale": scale,
+            "shift": shift,
+            "n_valid": n_valid,
+            "coverage": n_valid / n_gt,
+        }
 
 
 _FORMAT = (
@@ -332,35 +354,38 @@ def seam_score(
 
     if not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
-    pred = np.asarray(pred_disparity, dtype=np.float64)
-    gt = np.asarray(gt_disparity, dtype=np.float64)
+    pred = real_array(pred_disparity, "pred_disparity")
+    gt = real_array(gt_disparity, "gt_disparity")
     if pred.shape != layout.erp_shape or gt.shape != layout.erp_shape:
         raise InputError(
             f"pred_disparity {pred.shape} and gt_disparity {gt.shape} must both have the "
             f"layout's ERP shape {layout.erp_shape}"
         )
-    if isinstance(band, bool) or not isinstance(band, (int, np.integer)) or band < 0:
-        raise InputError(f"band must be an integer >= 0, got {band!r}")
+    # A band as tall as the map already covers all of it (and its cost grows with the band).
+    band = integer(band, "band", low=0, high=layout.erp_shape[0])
     both = np.isfinite(pred) & np.isfinite(gt)
     if not both.any():
         raise InputError("no pixel where both pred_disparity and gt_disparity are finite")
     scale, shift = fit_scale_shift(pred[both], gt[both])
-    diff = np.where(both, scale * pred + shift - gt, np.nan)
-    ex = np.roll(diff, -1, axis=1) - diff
-    ey = np.zeros_like(diff)
-    ey[:-1] = diff[1:] - diff[:-1]
-    err = np.hypot(ex, ey)
+    # Near float64's limits the gradient errors may overflow: the means are then inf (or NaN).
+    with np.errstate(over="ignore", invalid="ignore"):
+        diff = np.where(both, scale * pred + shift - gt, np.nan)
+        ex = np.roll(diff, -1, axis=1) - diff
+        ey = np.zeros_like(diff)
+        ey[:-1] = diff[1:] - diff[:-1]
+        err = np.hypot(ex, ey)
     ok = np.isfinite(err)
-    borders, triangles = _seam_masks(layout, int(band))
+    borders, triangles = _seam_masks(layout, band)
     rest = ok & ~borders & ~triangles
     if not rest.any():
         raise InputError("no valid pixel away from the seams to compare with")
-    elsewhere = float(err[rest].mean())
+    with np.errstate(over="ignore", invalid="ignore"):
+        elsewhere = float(err[rest].mean())
 
-    def ratio(mask: np.ndarray) -> float:
-        sel = ok & mask
-        if not sel.any() or elsewhere == 0.0:
-            return float("nan")
-        return float(err[sel].mean()) / elsewhere
+        def ratio(mask: np.ndarray) -> float:
+            sel = ok & mask
+            if not sel.any() or elsewhere == 0.0:
+                return float("nan")
+            return float(err[sel].mean()) / elsewhere
 
-    return {"borders": ratio(borders), "triangles": ratio(triangles), "elsewhere": elsewhere}
+        return {"borders": ratio(borders), "triangles": ratio(triangles), "elsewhere": elsewhere}

@@ -17,7 +17,15 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
-from ._validate import as_array, check_erp_shape, check_shape, float32_array
+from ._validate import (
+    MAX_ERP_WIDTH,
+    as_array,
+    check_erp_shape,
+    check_shape,
+    float32_array,
+    integer,
+    number,
+)
 from .errors import InputError
 
 __all__ = ["Layout", "TangentCamera", "clear_plan_cache", "erp_to_tangents", "tangents_to_erp"]
@@ -112,17 +120,14 @@ class Layout:
             Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K).
         """
         erp_width = _positive_int(erp_width, "erp_width")
-        if erp_width % 2 or erp_width < MIN_ERP_WIDTH:
+        if erp_width % 2 or not MIN_ERP_WIDTH <= erp_width <= MAX_ERP_WIDTH:
             raise InputError(
-                f"erp_width={erp_width} is unusable: it must be even and at least "
-                f"{MIN_ERP_WIDTH} (ERP images are H x 2H)"
+                f"erp_width={erp_width} is unusable: it must be even, at least "
+                f"{MIN_ERP_WIDTH} and at most {MAX_ERP_WIDTH} (ERP images are H x 2H)"
             )
-        if not (isinstance(padding, (int, float)) and np.isfinite(padding) and 0 <= padding <= 2):
-            raise InputError(f"padding={padding!r} must be a number in [0, 2] (gnomonic units)")
+        padding = number(padding, "padding", low=0.0, high=2.0)  # gnomonic units
         if tangent_width is not None:
-            tangent_width = _positive_int(tangent_width, "tangent_width")
-            if tangent_width < 8:
-                raise InputError(f"tangent_width={tangent_width} must be at least 8")
+            tangent_width = integer(tangent_width, "tangent_width", low=8, high=MAX_ERP_WIDTH)
         rotations, intrinsics, (h, w), faces = _core.icosahedron_cameras(
             erp_width, float(padding), tangent_width
         )
@@ -145,21 +150,27 @@ class Layout:
     def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
         """A layout of user-given cameras (all the same image size) for ERP images of
         ``erp_shape`` = (H, W)."""
-        if not cameras:
-            raise InputError("a layout needs at least one camera")
+        if isinstance(cameras, (str, bytes)) or not isinstance(cameras, Sequence) or not cameras:
+            raise InputError("a layout needs a non-empty sequence of TangentCamera")
+        if not (isinstance(erp_shape, (tuple, list)) and len(erp_shape) == 2):
+            raise InputError(f"erp_shape must be (H, W), got {erp_shape!r}")
         height, width = (_positive_int(v, "erp_shape") for v in erp_shape)
         check_erp_shape(height, width, "erp_shape")
-        size = (cameras[0].width, cameras[0].height)
+        if width > MAX_ERP_WIDTH:
+            raise InputError(f"erp_shape {erp_shape!r} is wider than {MAX_ERP_WIDTH} pixels")
+        checked = []
         for k, cam in enumerate(cameras):
+            if not isinstance(cam, TangentCamera):
+                raise InputError(f"camera {k} is a {type(cam).__name__}, not a TangentCamera")
+            checked.append(_checked_camera(cam, k))
+        size = (checked[0].width, checked[0].height)
+        for k, cam in enumerate(checked):
             if (cam.width, cam.height) != size:
                 raise InputError(
                     f"camera {k} is {cam.width}x{cam.height} but camera 0 is {size[0]}x{size[1]}:"
                     " all tangent images of a layout must have one size"
                 )
-            rotation = np.asarray(cam.rotation, dtype=np.float64)
-            if rotation.shape != (3, 3) or not np.allclose(rotation @ rotation.T, np.eye(3)):
-                raise InputError(f"camera {k}: rotation must be a 3x3 rotation matrix")
-        return cls._make((height, width), tuple(cameras), None, "custom")
+        return cls._make((height, width), tuple(checked), None, "custom")
 
     @classmethod
     def _make(
@@ -313,6 +324,28 @@ def _layout_for(layout: Layout | None, height: int, width: int) -> Layout:
             f"{layout.erp_shape[1]}; use m360.Layout.icosahedron(erp_width={width})"
         )
     return layout
+
+
+def _checked_camera(cam: TangentCamera, k: int) -> TangentCamera:
+    """``cam`` with its fields checked and normalised (ints, floats, a float64 rotation)."""
+    name = f"camera {k}"
+    rotation = as_array(cam.rotation, f"{name} rotation").astype(np.float64)
+    if (
+        rotation.shape != (3, 3)
+        or not np.all(np.isfinite(rotation))
+        or not np.allclose(rotation @ rotation.T, np.eye(3))
+    ):
+        raise InputError(f"{name}: rotation must be a 3x3 rotation matrix")
+    return TangentCamera(
+        rotation=_frozen(rotation),
+        fx=number(cam.fx, f"{name} fx"),
+        fy=number(cam.fy, f"{name} fy"),
+        cx=number(cam.cx, f"{name} cx"),
+        cy=number(cam.cy, f"{name} cy"),
+        width=integer(cam.width, f"{name} width", low=1, high=MAX_ERP_WIDTH),
+        height=integer(cam.height, f"{name} height", low=1, high=MAX_ERP_WIDTH),
+        face=cam.face,
+    )
 
 
 def _positive_int(value: object, name: str) -> int:

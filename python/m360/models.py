@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from .errors import ModelError
+from .errors import InputError, ModelError
 
 __all__ = [
     "DEFAULT_MODEL",
@@ -323,11 +323,16 @@ def is_cached(name: str) -> bool:
 
 
 def sha256_of(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
-    """Hex sha256 of a file, read in chunks."""
+    """Hex sha256 of a file, read in chunks (ModelError if it cannot be read)."""
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(chunk), b""):
-            digest.update(block)
+    try:
+        with open(path, "rb") as f:
+            for block in iter(lambda: f.read(chunk), b""):
+                digest.update(block)
+    except (OSError, ValueError) as exc:  # missing, a folder, unreadable, a NUL in the name
+        raise ModelError(f"cannot read {os.fspath(path)!r}: {exc}") from exc
     return digest.hexdigest()
 
 
@@ -368,11 +373,18 @@ def verify(entry: ModelEntry, path: str | os.PathLike[str]) -> Path:
     a published hash is refused unless ``M360_ALLOW_UNVERIFIED=1`` (then a warning prints the
     file's actual hash).
     """
+    if not isinstance(entry, ModelEntry):
+        raise InputError(f"entry must be a ModelEntry (models.get(name)), got {entry!r}")
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
     p = Path(path)
     try:
         stat = p.stat()
-    except OSError as exc:
+        regular = p.is_file()
+    except (OSError, ValueError) as exc:  # missing, unreadable, a NUL in the name
         raise ModelError(f"model file {p} cannot be read ({exc}); {_where_to_put(entry)}") from exc
+    if not regular:
+        raise ModelError(f"model file {p} is not a regular file; {_where_to_put(entry)}")
     key = (str(p.resolve()), stat.st_size, stat.st_mtime_ns)
     with _lock:
         if key in _verified:

@@ -25,6 +25,8 @@ from m360._sphere import (
     erp_longitudes,
     lonlat_to_directions,
 )
+from m360._validate import MAX_ERP_WIDTH, as_array, integer, number
+from m360._validate import seed as check_seed
 from m360.errors import InputError
 
 __all__ = [
@@ -45,13 +47,27 @@ __all__ = [
 TEXTURES = ("plain", "checker", "stripes", "noise")
 _CHUNK_RAYS = 1 << 18
 _SHADOW_EPS = 1e-6
+#: Largest coordinate, size or texture period (metres) of a scene: far enough for any room,
+#: near enough that no intersection or texture computation overflows float64.
+SCENE_LIMIT = 1e6
+#: Most pixels :func:`tangent_distance` / :func:`tangent_perspective_disparity` ray cast in one
+#: call (all cameras together): 2^28, a 1 GB float32 result.
+MAX_RAYS = 1 << 28
 
 
 def _vec3(name: str, value: Any) -> np.ndarray:
-    v = np.asarray(value, dtype=np.float64)
-    if v.shape != (3,) or not np.all(np.isfinite(v)):
-        raise InputError(f"{name} must be 3 finite numbers, got {value!r}")
+    v = as_array(value, name).astype(np.float64)
+    if v.shape != (3,) or not np.all(np.isfinite(v)) or np.any(np.abs(v) > SCENE_LIMIT):
+        raise InputError(f"{name} must be 3 finite numbers of magnitude <= {SCENE_LIMIT:g}")
     return v
+
+
+def _length(value: Any, name: str, low: float = 0.0) -> float:
+    """A finite positive length (metres) up to SCENE_LIMIT."""
+    result = number(value, name, low=low, high=SCENE_LIMIT)
+    if result <= 0:
+        raise InputError(f"{name}={value!r} must be > 0")
+    return result
 
 
 def rotation_matrix(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> np.ndarray:
@@ -67,6 +83,7 @@ def rotation_matrix(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> 
     np.ndarray
         (3, 3) float64 orthonormal matrix with determinant +1.
     """
+    yaw, pitch, roll = (number(v, n) for v, n in ((yaw, "yaw"), (pitch, "pitch"), (roll, "roll")))
     cy, sy = np.cos(yaw), np.sin(yaw)
     cp, sp = np.cos(pitch), np.sin(pitch)
     cr, sr = np.cos(roll), np.sin(roll)
@@ -106,11 +123,11 @@ class Material:
         albedo = _vec3("albedo", self.albedo)
         if np.any(albedo < 0) or np.any(albedo > 1):
             raise InputError(f"albedo must lie in [0, 1], got {albedo.tolist()}")
-        if self.texture not in TEXTURES:
+        if not isinstance(self.texture, str) or self.texture not in TEXTURES:
             raise InputError(f"texture must be one of {TEXTURES}, got {self.texture!r}")
-        if not (np.isfinite(self.period) and self.period > 0):
-            raise InputError(f"period must be finite and > 0, got {self.period!r}")
-        waves = np.asarray(self.waves, dtype=np.float64)
+        # Below a micrometre the texture coordinates point/period could overflow.
+        object.__setattr__(self, "period", _length(self.period, "period", low=1e-6))
+        waves = as_array(self.waves, "waves").astype(np.float64)
         if waves.shape != (3, 3) or not np.all(np.isfinite(waves)):
             raise InputError(f"waves must be a finite (3, 3) array, got shape {waves.shape}")
         norms = np.linalg.norm(waves, axis=1, keepdims=True)
@@ -145,9 +162,15 @@ class Box:
         half = _vec3("half_size", self.half_size)
         if np.any(half <= 0):
             raise InputError(f"half_size must be > 0, got {half.tolist()}")
-        rot = np.asarray(self.rotation, dtype=np.float64)
-        if rot.shape != (3, 3) or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9):
+        rot = as_array(self.rotation, "rotation").astype(np.float64)
+        if (
+            rot.shape != (3, 3)
+            or not np.all(np.isfinite(rot))
+            or not np.allclose(rot @ rot.T, np.eye(3), atol=1e-9)
+        ):
             raise InputError("rotation must be an orthonormal (3, 3) matrix")
+        if not isinstance(self.material, Material):
+            raise InputError(f"material must be a Material, got {type(self.material).__name__}")
         object.__setattr__(self, "center", _vec3("center", self.center))
         object.__setattr__(self, "half_size", half)
         object.__setattr__(self, "rotation", rot)
@@ -172,10 +195,10 @@ class Sphere:
     material: Material = field(default_factory=Material)
 
     def __post_init__(self) -> None:
-        if not (np.isfinite(self.radius) and self.radius > 0):
-            raise InputError(f"radius must be finite and > 0, got {self.radius!r}")
+        if not isinstance(self.material, Material):
+            raise InputError(f"material must be a Material, got {type(self.material).__name__}")
         object.__setattr__(self, "center", _vec3("center", self.center))
-        object.__setattr__(self, "radius", float(self.radius))
+        object.__setattr__(self, "radius", _length(self.radius, "radius"))
 
     def clearance(self, point: np.ndarray) -> float:
         """Euclidean distance from ``point`` (3,) to the sphere (0 inside)."""
@@ -192,6 +215,8 @@ class Light:
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "position", _vec3("position", self.position))
+        intensity = number(self.intensity, "intensity", low=0.0, high=SCENE_LIMIT)
+        object.__setattr__(self, "intensity", intensity)
 
 
 @dataclass(frozen=True)
@@ -214,6 +239,17 @@ class Hit:
     normal: np.ndarray
     point: np.ndarray
     object_id: np.ndarray
+
+
+def _items(values: Any, name: str, kind: type) -> tuple[Any, ...]:
+    """``values`` as a tuple whose every item is a ``kind``."""
+    if isinstance(values, (str, bytes)) or not isinstance(values, (Sequence, set, frozenset)):
+        raise InputError(f"{name} must be a sequence of {kind.__name__}, got {values!r}")
+    items = tuple(values)
+    for item in items:
+        if not isinstance(item, kind):
+            raise InputError(f"{name} must hold {kind.__name__} objects, got {item!r}")
+    return items
 
 
 def _default_room_materials() -> tuple[Material, ...]:
@@ -258,16 +294,19 @@ class Scene:
                 f"the origin must lie strictly inside the room: expected room_min < 0 < room_max, "
                 f"got room_min={lo.tolist()}, room_max={hi.tolist()}"
             )
-        if len(self.room_materials) != 6:
-            raise InputError(
-                f"room_materials must hold 6 materials, got {len(self.room_materials)}"
-            )
+        materials = _items(self.room_materials, "room_materials", Material)
+        if len(materials) != 6:
+            raise InputError(f"room_materials must hold 6 materials, got {len(materials)}")
+        if not isinstance(self.shadows, bool):
+            raise InputError(f"shadows must be True or False, got {self.shadows!r}")
+        ambient = number(self.ambient, "ambient", low=0.0, high=SCENE_LIMIT)
         object.__setattr__(self, "room_min", lo)
         object.__setattr__(self, "room_max", hi)
-        object.__setattr__(self, "boxes", tuple(self.boxes))
-        object.__setattr__(self, "spheres", tuple(self.spheres))
-        object.__setattr__(self, "lights", tuple(self.lights))
-        object.__setattr__(self, "room_materials", tuple(self.room_materials))
+        object.__setattr__(self, "boxes", _items(self.boxes, "boxes", Box))
+        object.__setattr__(self, "spheres", _items(self.spheres, "spheres", Sphere))
+        object.__setattr__(self, "lights", _items(self.lights, "lights", Light))
+        object.__setattr__(self, "room_materials", materials)
+        object.__setattr__(self, "ambient", ambient)
 
     @property
     def materials(self) -> tuple[Material, ...]:
@@ -358,7 +397,7 @@ class Scene:
         return t, normal, obj
 
     def _prepare(self, directions: np.ndarray) -> np.ndarray:
-        d = np.asarray(directions, dtype=np.float64)
+        d = as_array(directions, "directions").astype(np.float64)
         if d.ndim < 1 or d.shape[-1] != 3:
             raise InputError(f"directions must have shape (..., 3), got {d.shape}")
         norms = np.linalg.norm(d, axis=-1)
@@ -515,7 +554,7 @@ def room(seed: int = 0) -> Scene:
     -------
     Scene
     """
-    rng = np.random.default_rng(seed)
+    rng = np.random.default_rng(check_seed(seed))
     clearance = 0.3
     size_x, size_z = rng.uniform(3.0, 9.0, size=2)
     height = float(rng.uniform(2.4, 4.0))
@@ -620,13 +659,17 @@ def render(scene: Scene, erp_width: int) -> tuple[np.ndarray, np.ndarray]:
     depth : np.ndarray
         (H, W) float32 radial distance |P| in metres (DESIGN.md §1 pixel-centre convention).
     """
+    if not isinstance(scene, Scene):
+        raise InputError(f"scene must be an m360.synthetic.Scene, got {type(scene).__name__}")
     if (
         isinstance(erp_width, bool)
         or not isinstance(erp_width, (int, np.integer))
-        or erp_width < 8
+        or not 8 <= erp_width <= MAX_ERP_WIDTH
         or erp_width % 2
     ):
-        raise InputError(f"erp_width must be an even integer >= 8, got {erp_width!r}")
+        raise InputError(
+            f"erp_width must be an even integer >= 8 (at most {MAX_ERP_WIDTH}), got {erp_width!r}"
+        )
     w = int(erp_width)
     h = w // 2
     rgb = np.empty((h, w, 3), dtype=np.uint8)
@@ -643,31 +686,46 @@ def render(scene: Scene, erp_width: int) -> tuple[np.ndarray, np.ndarray]:
     return rgb, depth
 
 
+_CAMERA_FIELDS = ("rotation", "fx", "fy", "cx", "cy", "width", "height")
+
+
 def _camera_rays(cam: Any) -> tuple[np.ndarray, np.ndarray]:
-    try:
-        return camera_pixel_directions(
-            cam.rotation,
-            float(cam.fx),
-            float(cam.fy),
-            float(cam.cx),
-            float(cam.cy),
-            int(cam.width),
-            int(cam.height),
-            return_ray_norm=True,
-        )
-    except AttributeError as exc:
-        raise InputError(
-            "each camera needs attributes rotation, fx, fy, cx, cy, width, height"
-        ) from exc
+    rotation = as_array(cam.rotation, "camera rotation").astype(np.float64)
+    if rotation.shape != (3, 3) or not np.all(np.isfinite(rotation)):
+        raise InputError(f"camera rotation must be a finite (3, 3) array, got {rotation.shape}")
+    return camera_pixel_directions(
+        rotation,
+        number(cam.fx, "camera fx"),
+        number(cam.fy, "camera fy"),
+        number(cam.cx, "camera cx"),
+        number(cam.cy, "camera cy"),
+        int(cam.width),
+        int(cam.height),
+        return_ray_norm=True,
+    )
 
 
 def _check_cameras(cameras: Sequence[Any]) -> list[Any]:
+    if isinstance(cameras, (str, bytes)) or not isinstance(cameras, Sequence):
+        raise InputError(f"cameras must be a sequence of cameras, got {type(cameras).__name__}")
     cams = list(cameras)
     if not cams:
         raise InputError("cameras must be a non-empty sequence, got 0 cameras")
-    sizes = {(int(c.height), int(c.width)) for c in cams}
+    for cam in cams:
+        if not all(hasattr(cam, f) for f in _CAMERA_FIELDS):
+            raise InputError(f"each camera needs attributes {', '.join(_CAMERA_FIELDS)}")
+    sizes = {
+        (
+            integer(c.height, "camera height", low=1, high=MAX_ERP_WIDTH),
+            integer(c.width, "camera width", low=1, high=MAX_ERP_WIDTH),
+        )
+        for c in cams
+    }
     if len(sizes) != 1:
         raise InputError(f"all cameras must share one (height, width), got {sorted(sizes)}")
+    (h, w), n = sizes.pop(), len(cams)
+    if n * h * w > MAX_RAYS:
+        raise InputError(f"{n} cameras of {w}x{h} pixels exceed the {MAX_RAYS} rays of one call")
     return cams
 
 
@@ -686,6 +744,7 @@ def tangent_distance(scene: Scene, cameras: Sequence[Any]) -> np.ndarray:
     np.ndarray
         (N, h, w) float32 distances |P| in metres.
     """
+    _check_scene(scene)
     cams = _check_cameras(cameras)
     out = [scene.distance(_camera_rays(c)[0]).astype(np.float32) for c in cams]
     return np.stack(out)
@@ -708,12 +767,18 @@ def tangent_perspective_disparity(scene: Scene, cameras: Sequence[Any]) -> np.nd
     np.ndarray
         (N, h, w) float32 perspective disparity in 1/metres (> 0).
     """
+    _check_scene(scene)
     cams = _check_cameras(cameras)
     out = []
     for c in cams:
         dirs, ray_norm = _camera_rays(c)
         out.append((ray_norm / scene.distance(dirs)).astype(np.float32))
     return np.stack(out)
+
+
+def _check_scene(scene: Any) -> None:
+    if not isinstance(scene, Scene):
+        raise InputError(f"scene must be an m360.synthetic.Scene, got {type(scene).__name__}")
 
 
 # -------------------------------------------------------------------- distortion
@@ -758,37 +823,40 @@ def distort(
     seed : int
         Seed of ``np.random.default_rng``.
     scale : (float, float)
-        Range (lo ≤ hi, both > 0) of the log-uniform scale.
+        Range (lo ≤ hi, both > 0, at most 1e6) of the log-uniform scale.
     shift : float
-        Relative shift amplitude (≥ 0).
+        Relative shift amplitude (≥ 0, at most 1e6).
     field : float
         Amplitude of the multiplicative smooth field, in [0, 1).
     noise : float
-        Relative noise std (≥ 0).
+        Relative noise std (≥ 0, at most 1e6).
 
     Returns
     -------
     np.ndarray
-        (N, h, w) float32.
+        (N, h, w) float32 (values beyond the float32 range become ±inf).
     """
-    t = np.asarray(tiles)
+    t = as_array(tiles, "tiles")
     if t.ndim != 3:
         raise InputError(f"tiles must have shape (N, h, w), got {t.shape}")
     if not np.issubdtype(t.dtype, np.floating):
         raise InputError(f"tiles must be a float array (float32 expected), got dtype {t.dtype}")
-    try:
-        lo, hi = (float(v) for v in scale)
-    except (TypeError, ValueError) as exc:
-        raise InputError(f"scale must be a pair (lo, hi), got {scale!r}") from exc
-    if not (np.isfinite(lo) and np.isfinite(hi) and 0 < lo <= hi):
-        raise InputError(f"scale must satisfy 0 < lo <= hi (finite), got {scale!r}")
-    if not (np.isfinite(shift) and shift >= 0):
-        raise InputError(f"shift must be finite and >= 0, got {shift!r}")
-    if not (np.isfinite(field) and 0 <= field < 1):
-        raise InputError(f"field must be in [0, 1), got {field!r}")
-    if not (np.isfinite(noise) and noise >= 0):
-        raise InputError(f"noise must be finite and >= 0, got {noise!r}")
-    rng = np.random.default_rng(seed)
+    with np.errstate(invalid="ignore"):
+        too_large = np.abs(t[np.isfinite(t)]) > np.finfo(np.float32).max
+    if too_large.any():
+        raise InputError(f"tiles has {int(too_large.sum())} values beyond the float32 range")
+    if not (isinstance(scale, (tuple, list)) and len(scale) == 2):
+        raise InputError(f"scale must be a pair (lo, hi), got {scale!r}")
+    # Bounded so that s·d + o and the noise stay far inside float64 for any float32 tile.
+    lo, hi = (number(v, "scale", low=0.0, high=SCENE_LIMIT) for v in scale)
+    if not 0 < lo <= hi:
+        raise InputError(f"scale must satisfy 0 < lo <= hi, got {scale!r}")
+    shift = number(shift, "shift", low=0.0, high=SCENE_LIMIT)
+    field = number(field, "field", low=0.0, high=1.0)
+    if field == 1:
+        raise InputError("field must be in [0, 1), got 1")
+    noise = number(noise, "noise", low=0.0, high=SCENE_LIMIT)
+    rng = np.random.default_rng(check_seed(seed))
     n, h, w = t.shape
     out = np.empty((n, h, w), dtype=np.float32)
     for k in range(n):
@@ -804,5 +872,6 @@ def distort(
             d = d * (1.0 + field * f)
         if noise > 0:
             d = d + noise * med * eps
-        out[k] = d
+        with np.errstate(over="ignore"):  # beyond float32: ±inf, as documented
+            out[k] = d
     return out

@@ -101,15 +101,32 @@ fn detached<T: Send>(py: Python<'_>, work: impl FnOnce() -> T + Send) -> PyResul
         })
 }
 
+/// Most worker threads `set_num_threads` starts: a larger count is a typo, and spawning it
+/// would take seconds to minutes before failing or working no faster.
+const MAX_THREADS: usize = 1024;
+
 /// Set the number of worker threads of m360's compiled core (None: `M360_NUM_THREADS` or all
-/// cores). Results do not depend on it.
+/// cores), at most 1024. Results do not depend on it.
 #[pyfunction]
 #[pyo3(signature = (threads=None))]
-fn set_num_threads(threads: Option<usize>) -> PyResult<()> {
+fn set_num_threads(threads: Option<&Bound<'_, PyAny>>) -> PyResult<()> {
     let threads = match threads {
-        Some(0) => return Err(input_error("threads must be >= 1")),
-        Some(n) => n,
         None => default_threads(),
+        Some(value) => {
+            let bad = || {
+                let shown = value.repr().map_or_else(|_| "?".into(), |r| r.to_string());
+                input_error(format!(
+                    "threads must be an integer in [1, {MAX_THREADS}] or None, got {shown}"
+                ))
+            };
+            if value.is_instance_of::<pyo3::types::PyBool>() {
+                return Err(bad());
+            }
+            match value.extract::<i64>() {
+                Ok(n) if (1..=MAX_THREADS as i64).contains(&n) => n as usize,
+                _ => return Err(bad()),
+            }
+        }
     };
     let pool = build_pool(threads)?;
     *POOL
@@ -138,12 +155,39 @@ fn to_numpy<'py, T: numpy::Element>(
 }
 
 /// A new zero-filled C-contiguous array for the core to write into: numpy's allocator (which
-/// asks for huge pages on large arrays) instead of a Rust `Vec` handed over afterwards.
+/// asks for huge pages on large arrays) instead of a Rust `Vec` handed over afterwards. Unlike
+/// `PyArray::zeros` (which panics on a null pointer) a failed allocation is an `InputError`.
 fn output_array<'py, T: numpy::Element>(
     py: Python<'py>,
     shape: &[usize],
-) -> Bound<'py, PyArrayDyn<T>> {
-    PyArrayDyn::<T>::zeros(py, IxDyn(shape), false)
+) -> PyResult<Bound<'py, PyArrayDyn<T>>> {
+    use numpy::npyffi::{npy_intp, PY_ARRAY_API};
+    use numpy::PyArrayDescrMethods;
+    let too_big = || input_error(format!("an output array of shape {shape:?} is too large"));
+    let mut dims = shape
+        .iter()
+        .map(|&d| npy_intp::try_from(d).map_err(|_| too_big()))
+        .collect::<PyResult<Vec<npy_intp>>>()?;
+    let ndim = std::ffi::c_int::try_from(dims.len()).map_err(|_| too_big())?;
+    // SAFETY: dims outlives the call; PyArray_Zeros steals the dtype reference it is given and
+    // returns a new reference or null with a Python exception set.
+    let array = unsafe {
+        let ptr = PY_ARRAY_API.PyArray_Zeros(
+            py,
+            ndim,
+            dims.as_mut_ptr(),
+            T::get_dtype(py).into_dtype_ptr(),
+            0,
+        );
+        Bound::from_owned_ptr_or_err(py, ptr)
+    }
+    .map_err(|err| {
+        input_error(format!(
+            "cannot allocate an output array of shape {shape:?}: {err}"
+        ))
+    })?;
+    // SAFETY: PyArray_Zeros made an ndarray of T's dtype with shape.len() dimensions.
+    Ok(unsafe { array.cast_into_unchecked() })
 }
 
 fn writable<'a, T: numpy::Element>(
@@ -346,7 +390,7 @@ impl Plan {
         let out = output_array(
             py,
             &[layout.cameras.len(), layout.erp_height, layout.erp_width],
-        );
+        )?;
         {
             let mut rw = out.readwrite();
             let dst = writable(&mut rw)?;
@@ -376,7 +420,7 @@ impl Plan {
             }
             None => None,
         };
-        let out = output_array(py, perspective.shape());
+        let out = output_array(py, perspective.shape())?;
         {
             let mut rw = out.readwrite();
             let dst = writable(&mut rw)?;
@@ -443,7 +487,7 @@ impl Plan {
             tolerance,
         };
         let data = contiguous(&maps, "maps")?;
-        let out = output_array::<f32>(py, maps.shape());
+        let out = output_array::<f32>(py, maps.shape())?;
         let solved = {
             let mut rw = out.readwrite();
             let dst = writable(&mut rw)?;
@@ -589,7 +633,7 @@ impl Plan {
         self.check_tangents("tangents", tangents.shape())?;
         let data = contiguous(&tangents, "tangents")?;
         let shape = [layout.erp_height, layout.erp_width];
-        let (disparity, spread) = (output_array(py, &shape), output_array(py, &shape));
+        let (disparity, spread) = (output_array(py, &shape)?, output_array(py, &shape)?);
         let report = PyDict::new(py);
         report.set_item("mode", blend)?;
         let poisson = {
@@ -743,7 +787,7 @@ fn poisson_blend<'py>(
         max_iterations,
         solver: parse_solver(solver)?,
     };
-    let out = output_array(py, &[h, w]);
+    let out = output_array(py, &[h, w])?;
     let report = {
         let mut rw = out.readwrite();
         let dst = writable(&mut rw)?;
@@ -768,7 +812,7 @@ impl Plan {
         let (h, w) = layout.tangent_shape();
         let c = self.check_erp(erp.shape())?;
         let data = contiguous(erp, "erp")?;
-        let out = output_array(py, &[layout.cameras.len(), h, w, c]);
+        let out = output_array(py, &[layout.cameras.len(), h, w, c])?;
         {
             let mut rw = out.readwrite();
             let dst = writable(&mut rw)?;
