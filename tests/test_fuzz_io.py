@@ -2,8 +2,9 @@
 
 Whatever the bytes, m360 raises an ``m360.M360Error`` subclass (``ReadError`` for files) or
 returns a well-formed result: never another exception, a crash or a hang. The number of
-examples follows the hypothesis profile of conftest.py (a few dozen per test in CI; the slow
-profile runs thousands).
+examples follows the hypothesis profile of conftest.py (a few dozen per test in CI;
+``HYPOTHESIS_PROFILE=slow`` runs a thousand per test); ``pytest -k fuzz`` selects these and
+tests/test_fuzz.py.
 """
 
 from __future__ import annotations
@@ -16,6 +17,7 @@ from types import SimpleNamespace
 import cv2
 import m360
 import numpy as np
+import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 from hypothesis.extra import numpy as hnp
@@ -28,7 +30,8 @@ _VALID = {
     ".jpg": cv2.imencode(".jpg", _SMALL)[1].tobytes(),
     ".tif": cv2.imencode(".tif", _SMALL)[1].tobytes(),
 }
-_SETTINGS = settings(deadline=2000, suppress_health_check=[HealthCheck.too_slow])
+_SETTINGS = settings(suppress_health_check=[HealthCheck.too_slow])  # examples: the profile's
+pytestmark = pytest.mark.fuzz
 
 
 @st.composite

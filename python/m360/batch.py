@@ -50,6 +50,7 @@ from typing import Any
 import numpy as np
 
 from . import models as _models
+from ._validate import MAX_THREADS, integer
 from .errors import InputError, M360Error, ReadError
 from .io import (
     IMAGE_SUFFIXES,
@@ -511,8 +512,8 @@ def run(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
-    workers = _positive(workers, "workers")
-    threads = None if threads is None else _positive(threads, "threads")
+    workers = integer(workers, "workers", low=1, high=MAX_THREADS)
+    threads = None if threads is None else integer(threads, "threads", low=1, high=MAX_THREADS)
     chosen = _check_formats(formats)
     _schedule(align, Layout.icosahedron(2048), "normalized")  # refuses a bad align up front
     if not isinstance(blend, str) or blend not in BLEND_MODES:
@@ -587,12 +588,6 @@ def run(
         failures_file=failures,
     )
     return report
-
-
-def _positive(value: Any, name: str) -> int:
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
-        raise InputError(f"{name}={value!r} must be a positive integer")
-    return int(value)
 
 
 def _fingerprint(
