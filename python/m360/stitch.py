@@ -60,7 +60,7 @@ _BLEND_OPTION_DEFAULTS: dict[str, Any] = {
     "lam": 0.1,
     "tol": 1e-6,
     "max_iterations": 2000,
-    "solver": "fused",
+    "solver": "multigrid",
 }
 
 
@@ -192,10 +192,10 @@ def stitch(
         blend, which measured best on AbsRel and seams together; ``"nn"``: the nearest-face
         stitch, as in the paper; ``"mean"``), ``lam`` (λ > 0, default 0.1), ``tol`` (relative
         residual in (0, 1), default 1e-6), ``max_iterations`` (default 2000), ``solver``
-        (``"fused"``, the default, our fused-sweep conjugate gradient, or ``"faer"``, faer's
-        conjugate gradient on the same operator; both matrix-free, Jacobi-preconditioned, f64,
-        warm-started from the target). A solve that does not reach ``tol`` raises
-        :class:`m360.SolverError`.
+        (``"multigrid"``, the default: conjugate gradients preconditioned by a multigrid
+        V-cycle on the ERP grid; ``"fused"``: our fused-sweep Jacobi-preconditioned CG;
+        ``"faer"``: faer's CG with the Jacobi preconditioner; all matrix-free, f64, warm-started
+        from the target). A solve that does not reach ``tol`` raises :class:`m360.SolverError`.
     return_details : bool
         Return a :class:`StitchResult` instead of the disparity array.
 
@@ -345,8 +345,10 @@ def _blend_options(options: Mapping[str, Any] | None, blend: str) -> dict[str, A
         raise InputError(f"blend_options tol={tol!r} must be a number in (0, 1)")
     if isinstance(iters, bool) or not isinstance(iters, (int, np.integer)) or iters < 1:
         raise InputError(f"blend_options max_iterations={iters!r} must be an integer >= 1")
-    if out["solver"] not in ("fused", "faer"):
-        raise InputError(f"blend_options solver={out['solver']!r}: choose 'fused' or 'faer'")
+    if out["solver"] not in ("multigrid", "fused", "faer"):
+        raise InputError(
+            f"blend_options solver={out['solver']!r}: choose 'multigrid', 'fused' or 'faer'"
+        )
     return {
         "fidelity": out["fidelity"],
         "lam": float(lam),
