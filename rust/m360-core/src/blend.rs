@@ -1,5 +1,6 @@
 //! Blending (paper §3.4, `DESIGN.md` §7): per-face weight maps, weighted blends, and the Poisson
-//! gradient-domain blend solved by conjugate gradients with faer.
+//! gradient-domain blend solved by conjugate gradients preconditioned with a multigrid V-cycle
+//! (see [`multigrid`]; Jacobi-preconditioned CG, ours or faer's, on request).
 //!
 //! Weights live on each tangent's own pixel grid (f32, N·h·w), computed from that face's own
 //! intrinsics (reference bug B9 centred one set of weights at a fixed pixel for every face), and
@@ -583,18 +584,20 @@ impl System {
     }
 
     /// ‖A x − b‖ / ‖b‖ with a fixed-order reduction (row partial sums added in row order).
+    /// A x exists only one row at a time: no grid-sized scratch.
     fn relative_residual(&self, x: &[f64]) -> f64 {
-        let mut ax = vec![0.0f64; x.len()];
-        self.apply(x, &mut ax);
-        let (r, n) = ordered_sum2(
-            ax.par_chunks(self.width)
-                .zip(self.rhs.par_chunks(self.width))
-                .map(|(ax, b)| {
-                    ax.iter().zip(b).fold((0.0, 0.0), |(r, n), (a, b)| {
+        let w = self.width;
+        let (r, n) = ordered_sum2((0..self.height).into_par_iter().map_init(
+            || vec![0.0f64; w],
+            |ax, i| {
+                self.apply_rows(x, ax, i);
+                ax.iter()
+                    .zip(&self.rhs[i * w..(i + 1) * w])
+                    .fold((0.0, 0.0), |(r, n), (a, b)| {
                         (r + (a - b) * (a - b), n + b * b)
                     })
-                }),
-        );
+            },
+        ));
         if n == 0.0 {
             r.sqrt()
         } else {

@@ -124,8 +124,9 @@ impl Multigrid {
     ) -> Self {
         let n = height * width;
         let mut fine_inv_diag = vec![0.0f32; n];
-        // Mass = diagonal minus the incident edges, in f64: it is small (λ) next to them.
-        let mut mass = vec![0.0f64; n];
+        // Mass = diagonal minus the incident edges, taken in f64 (it is small, λ, next to them)
+        // and kept in f32 like the rest of the hierarchy.
+        let mut mass = vec![0.0f32; n];
         fine_inv_diag
             .par_chunks_mut(width)
             .zip(mass.par_chunks_mut(width))
@@ -140,7 +141,7 @@ impl Multigrid {
                         edges += down[p - width] as f64;
                     }
                     inv[j] = (1.0 / diag[p]) as f32;
-                    mass[j] = (diag[p] - edges).max(0.0);
+                    mass[j] = (diag[p] - edges).max(0.0) as f32;
                 }
             });
         let mut coarse: Vec<Coarse> = Vec::new();
@@ -191,10 +192,10 @@ impl Multigrid {
 }
 
 /// 2×2 aggregation of an H×W grid (H even, W a multiple of 4): the coarse grid and its mass.
-fn coarsen(h: usize, w: usize, right: &[f32], down: &[f32], mass: &[f64]) -> (Grid, Vec<f64>) {
+fn coarsen(h: usize, w: usize, right: &[f32], down: &[f32], mass: &[f32]) -> (Grid, Vec<f32>) {
     let (hc, wc) = (h / 2, w / 2);
     let nc = hc * wc;
-    let (mut cr, mut cd, mut cm) = (vec![0.0f32; nc], vec![0.0f32; nc], vec![0.0f64; nc]);
+    let (mut cr, mut cd, mut cm) = (vec![0.0f32; nc], vec![0.0f32; nc], vec![0.0f32; nc]);
     cr.par_chunks_mut(wc)
         .zip(cd.par_chunks_mut(wc))
         .zip(cm.par_chunks_mut(wc))
@@ -219,7 +220,7 @@ fn coarsen(h: usize, w: usize, right: &[f32], down: &[f32], mass: &[f64]) -> (Gr
             for (j, v) in inv.iter_mut().enumerate() {
                 let p = i * wc + j;
                 let left = if j == 0 { p + wc - 1 } else { p - 1 };
-                let mut d = cm[p] + cr[p] as f64 + cr[left] as f64 + cd[p] as f64;
+                let mut d = cm[p] as f64 + cr[p] as f64 + cr[left] as f64 + cd[p] as f64;
                 if i > 0 {
                     d += cd[p - wc] as f64;
                 }
