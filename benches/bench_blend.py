@@ -9,7 +9,9 @@ stitch. Baselines, measured in the same run on the same inputs:
   ``np.bincount`` weighted sums (the numpy way to do the same blend);
 - poisson: ``scipy.sparse.linalg.cg`` with a Jacobi preconditioner on the same system
   (assembled with scipy.sparse from the per-face ERP maps; assembly not timed), same start and
-  tolerance. Skipped above ``--scipy-max`` (its per-face ERP stacks need > 10 GB at 8K).
+  tolerance; and m360's own Jacobi-preconditioned CG (``solver="fused"``, the default before
+  the multigrid preconditioner). scipy is skipped above ``--scipy-max`` (its per-face ERP
+  stacks need > 10 GB at 8K).
 
 Run: ``.venv/bin/python benches/bench_blend.py [--sizes 2048 4096 8192] [--repeats 5]``.
 """
@@ -126,6 +128,20 @@ def bench_size(size: int, repeats: int, scipy_max: int) -> list[list]:
                 rep.get("relative_residual", ""),
             ]
         )
+    # The previous default solver (Jacobi-preconditioned CG) on the same inputs.
+    jacobi = {"solver": "fused"}
+    res = m360.stitch(
+        tiles, layout, align="none", blend="poisson", blend_options=jacobi, return_details=True
+    )
+    assert isinstance(res, m360.StitchResult)
+    t = h.measure(
+        lambda: m360.stitch(tiles, layout, align="none", blend="poisson", blend_options=jacobi),
+        repeats=repeats,
+        warmup=0,
+    )
+    rep = res.report["blend"]
+    jacobi_row = [size, "poisson", "m360 Jacobi-CG", t.median, t.iqr, "", rep["iterations"]]
+    jacobi_row.append(rep["relative_residual"])
     baselines["frustum"] = (numpy_frustum(layout, tiles), None, None)
     if size <= scipy_max:
         baselines["poisson"] = scipy_poisson(layout, tiles)
@@ -134,6 +150,8 @@ def bench_size(size: int, repeats: int, scipy_max: int) -> list[list]:
         base = baselines.get(row[1])
         ratio = row[3] / base[0].median if base else float("nan")
         out.append([*row, ratio])
+        if row[1] == "poisson":
+            out.append([*jacobi_row, jacobi_row[3] / base[0].median if base else float("nan")])
         if base:
             t, its, rel = base
             name = "numpy bincount" if row[1] == "frustum" else "scipy Jacobi-CG"

@@ -74,7 +74,7 @@ class Plan:
         lam: float = 0.1,
         tol: float = 1e-6,
         max_iterations: int = 2000,
-        solver: str = "fused",
+        solver: str = "multigrid",
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, Any]]: ...
     def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
 
@@ -85,5 +85,5 @@ def poisson_blend(
     lam: float = 0.1,
     tol: float = 1e-6,
     max_iterations: int = 2000,
-    solver: str = "fused",
+    solver: str = "multigrid",
 ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]: ...

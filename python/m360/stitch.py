@@ -53,6 +53,8 @@ DEFAULT_ITERATIONS = {"newton": 100, "lbfgs": 50}
 BLEND_MODES = ("poisson", "frustum", "radial", "mean", "nn")
 #: Fidelity targets of the Poisson blend; the first is the default (see ``blend_options``).
 FIDELITY_TARGETS = ("frustum", "nn", "mean")
+#: Poisson solvers: multigrid-preconditioned CG (default), Jacobi-preconditioned CG, faer's CG.
+POISSON_SOLVERS = ("multigrid", "fused", "faer")
 #: Smallest Poisson tolerance: a float64 conjugate gradient stalls near 1e-14 relative residual,
 #: so a tighter request could only spin until ``max_iterations`` and fail.
 MIN_POISSON_TOL = 1e-13
@@ -63,7 +65,7 @@ _BLEND_OPTION_DEFAULTS: dict[str, Any] = {
     "lam": 0.1,
     "tol": 1e-6,
     "max_iterations": 2000,
-    "solver": "fused",
+    "solver": POISSON_SOLVERS[0],
 }
 
 
@@ -195,10 +197,10 @@ def stitch(
         blend, which measured best on AbsRel and seams together; ``"nn"``: the nearest-face
         stitch, as in the paper; ``"mean"``), ``lam`` (λ > 0, default 0.1), ``tol`` (relative
         residual in (0, 1), default 1e-6), ``max_iterations`` (default 2000), ``solver``
-        (``"fused"``, the default, our fused-sweep conjugate gradient, or ``"faer"``, faer's
-        conjugate gradient on the same operator; both matrix-free, Jacobi-preconditioned, f64,
-        warm-started from the target). A solve that does not reach ``tol`` raises
-        :class:`m360.SolverError`.
+        (``"multigrid"``, the default: conjugate gradients preconditioned by a multigrid
+        V-cycle on the ERP grid; ``"fused"``: our fused-sweep Jacobi-preconditioned CG;
+        ``"faer"``: faer's CG with the Jacobi preconditioner; all matrix-free, f64, warm-started
+        from the target). A solve that does not reach ``tol`` raises :class:`m360.SolverError`.
     return_details : bool
         Return a :class:`StitchResult` instead of the disparity array.
 
@@ -332,8 +334,10 @@ def _blend_options(options: Mapping[str, Any] | None, blend: str) -> dict[str, A
     if tol == 1:
         raise InputError("blend_options tol=1 must be < 1")
     iters = integer(out["max_iterations"], "blend_options max_iterations", 1, MAX_ITERATIONS)
-    if not isinstance(out["solver"], str) or out["solver"] not in ("fused", "faer"):
-        raise InputError(f"blend_options solver={out['solver']!r}: choose 'fused' or 'faer'")
+    if not isinstance(out["solver"], str) or out["solver"] not in POISSON_SOLVERS:
+        raise InputError(
+            f"blend_options solver={out['solver']!r}: choose 'multigrid', 'fused' or 'faer'"
+        )
     return {
         "fidelity": out["fidelity"],
         "lam": lam,

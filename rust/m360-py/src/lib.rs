@@ -589,7 +589,7 @@ impl Plan {
     /// float32, report dict). `fidelity` ("nn", "frustum", "mean"), `lam`, `tol` and
     /// `max_iterations` apply to "poisson" only.
     #[pyo3(signature = (tangents, blend, fidelity="frustum", lam=0.1,
-                        tol=1e-6, max_iterations=2000, solver="fused"))]
+                        tol=1e-6, max_iterations=2000, solver="multigrid"))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn blend<'py>(
         &self,
@@ -710,10 +710,11 @@ fn parse_fidelity(name: &str) -> PyResult<Fidelity> {
 
 fn parse_solver(name: &str) -> PyResult<Solver> {
     match name {
+        "multigrid" => Ok(Solver::Multigrid),
         "fused" => Ok(Solver::Fused),
         "faer" => Ok(Solver::Faer),
         _ => Err(input_error(format!(
-            "unknown Poisson solver {name:?}: 'fused' or 'faer'"
+            "unknown Poisson solver {name:?}: 'multigrid', 'fused' or 'faer'"
         ))),
     }
 }
@@ -737,6 +738,7 @@ fn fill_report(
     fidelity: &str,
 ) -> PyResult<()> {
     let solver = match params.solver {
+        Solver::Multigrid => "multigrid",
         Solver::Fused => "fused",
         Solver::Faer => "faer",
     };
@@ -759,7 +761,7 @@ fn fill_report(
 /// (B (H,W) float64, report dict).
 #[pyfunction]
 #[pyo3(signature = (values, weights, target, lam=0.1,
-                    tol=1e-6, max_iterations=2000, solver="fused"))]
+                    tol=1e-6, max_iterations=2000, solver="multigrid"))]
 #[allow(clippy::too_many_arguments)]
 fn poisson_blend<'py>(
     py: Python<'py>,
