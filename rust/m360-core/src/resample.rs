@@ -52,6 +52,12 @@ pub trait Texel: Copy + Send + Sync + 'static {
     /// Bilinear combination of the top-left, top-right, bottom-left and bottom-right values at
     /// the fractions of `tap`.
     fn bilinear(p: [Self; 4], tap: Tap) -> Self;
+
+    /// Sample one run of tangent pixels (`out` holds `taps.len()` pixels of `C` channels).
+    #[inline]
+    fn sample_run<const C: usize>(src: &ErpSource<'_, Self>, taps: &[Tap], out: &mut [Self]) {
+        sample_run_scalar::<Self, C>(src, taps, out);
+    }
 }
 
 impl Texel for u8 {
@@ -66,6 +72,17 @@ impl Texel for u8 {
         let w00 = ONE + w11 - fx - fy;
         let v = w00 * p[0] as u32 + w01 * p[1] as u32 + w10 * p[2] as u32 + w11 * p[3] as u32;
         ((v + ONE / 2) >> 15) as u8
+    }
+
+    #[inline]
+    fn sample_run<const C: usize>(src: &ErpSource<'_, Self>, taps: &[Tap], out: &mut [Self]) {
+        #[cfg(target_arch = "x86_64")]
+        if std::arch::is_x86_feature_detected!("ssse3") {
+            // SAFETY: the CPU supports SSSE3 (checked just above).
+            unsafe { simd::sample_run_u8::<C>(src, taps, out) };
+            return;
+        }
+        sample_run_scalar::<u8, C>(src, taps, out);
     }
 }
 
@@ -186,32 +203,154 @@ impl TangentTaps {
             self.taps.len() * C,
             "output size does not match the plan"
         );
+        let src = ErpSource {
+            erp,
+            width: ew,
+            wrapped: &self.wrapped,
+        };
         out.par_chunks_mut(tangent_width * C)
             .zip(self.taps.par_chunks(tangent_width))
-            .for_each(|(row, taps)| {
-                for (n, (px, &tap)) in row.chunks_exact_mut(C).zip(taps).enumerate() {
-                    if let Some(ahead) = taps.get(n + PREFETCH_DISTANCE) {
-                        if ahead.index & WRAPPED == 0 {
-                            let i = ahead.index as usize * C;
-                            prefetch(erp, i);
-                            prefetch(erp, i + ew * C);
-                        }
-                    }
-                    let corners = if tap.index & WRAPPED == 0 {
-                        let i = tap.index as usize;
-                        [i, i + 1, i + ew, i + ew + 1]
-                    } else {
-                        self.wrapped[(tap.index & !WRAPPED) as usize].map(|i| i as usize)
-                    };
-                    for (ch, o) in px.iter_mut().enumerate() {
-                        // SAFETY: every corner index is < erp_pixels by construction of the taps
-                        // (plain taps have i0 + 1 < H and j0 + 1 < W; wrapped ones are reduced
-                        // modulo the grid), ch < C, and erp.len() == erp_pixels·C was asserted.
-                        let p = corners.map(|k| unsafe { *erp.get_unchecked(k * C + ch) });
-                        *o = T::bilinear(p, tap);
-                    }
+            .for_each(|(row, taps)| T::sample_run::<C>(&src, taps, row));
+    }
+}
+
+/// The ERP image being sampled, with what its taps need to find their four neighbours.
+pub struct ErpSource<'a, T> {
+    /// (H, W, C) interleaved pixels; its size was checked against the taps.
+    erp: &'a [T],
+    width: usize,
+    /// Corner indices of the wrapped taps.
+    wrapped: &'a [[u32; 4]],
+}
+
+impl<T: Copy> ErpSource<'_, T> {
+    /// The four neighbours (top-left, top-right, bottom-left, bottom-right) of channel `ch`.
+    #[inline(always)]
+    fn corners<const C: usize>(&self, tap: Tap, ch: usize) -> [T; 4] {
+        let corners = if tap.index & WRAPPED == 0 {
+            let (i, w) = (tap.index as usize, self.width);
+            [i, i + 1, i + w, i + w + 1]
+        } else {
+            self.wrapped[(tap.index & !WRAPPED) as usize].map(|i| i as usize)
+        };
+        // SAFETY: every corner index is < erp_pixels by construction of the taps (plain taps
+        // have i0 + 1 < H and j0 + 1 < W; wrapped ones are reduced modulo the grid), ch < C, and
+        // erp.len() == erp_pixels·C was asserted by the caller.
+        corners.map(|k| unsafe { *self.erp.get_unchecked(k * C + ch) })
+    }
+}
+
+/// [`Texel::sample_run`] one channel at a time, for any pixel type.
+#[inline(always)]
+fn sample_run_scalar<T: Texel, const C: usize>(
+    src: &ErpSource<'_, T>,
+    taps: &[Tap],
+    out: &mut [T],
+) {
+    for (n, (px, &tap)) in out.chunks_exact_mut(C).zip(taps).enumerate() {
+        if let Some(ahead) = taps.get(n + PREFETCH_DISTANCE) {
+            prefetch_tap::<T, C>(src, *ahead);
+        }
+        for (ch, o) in px.iter_mut().enumerate() {
+            *o = T::bilinear(src.corners::<C>(tap, ch), tap);
+        }
+    }
+}
+
+/// Prefetch the two ERP rows a plain tap reads.
+#[inline(always)]
+fn prefetch_tap<T, const C: usize>(src: &ErpSource<'_, T>, tap: Tap) {
+    if tap.index & WRAPPED == 0 {
+        let i = tap.index as usize * C;
+        prefetch(src.erp, i);
+        prefetch(src.erp, i + src.width * C);
+    }
+}
+
+/// Fixed-point u8 bilinear sampling with x86 SIMD: one pixel's four neighbours in one register.
+#[cfg(target_arch = "x86_64")]
+mod simd {
+    use super::{prefetch_tap, ErpSource, Tap, Texel, PREFETCH_DISTANCE};
+    use std::arch::x86_64::*;
+
+    /// Byte shuffles of the 16 bytes [8 from the top row | 8 from the bottom row] read at a
+    /// tap: the left pixels as u16 lanes (top channels, then bottom channels), the right ones,
+    /// and the lanes of the bottom row moved down onto the top's.
+    fn shuffles<const C: usize>() -> [[i8; 16]; 3] {
+        const ZERO: i8 = -128; // pshufb writes 0 for a set high bit
+        let mut m = [[ZERO; 16]; 3];
+        for k in 0..2 * C {
+            let (row, ch) = (k / C, k % C);
+            m[0][2 * k] = (8 * row + ch) as i8;
+            m[1][2 * k] = (8 * row + C + ch) as i8;
+        }
+        for k in 0..C {
+            m[2][2 * k] = (2 * (C + k)) as i8;
+            m[2][2 * k + 1] = (2 * (C + k) + 1) as i8;
+        }
+        m
+    }
+
+    /// [`Texel::sample_run`] for u8. Each value is interpolated in 1/128 steps of a grey level
+    /// with 2⁻¹⁵ fractions (pmulhrsw), first along rows, then down: within 1/128 of the exact
+    /// bilinear value before the final rounding.
+    ///
+    /// # Safety
+    /// The CPU must support SSSE3; `src`, `taps` and `out` as in [`Texel::sample_run`].
+    #[target_feature(enable = "ssse3")]
+    pub(super) unsafe fn sample_run_u8<const C: usize>(
+        src: &ErpSource<'_, u8>,
+        taps: &[Tap],
+        out: &mut [u8],
+    ) {
+        let (erp, row) = (src.erp, src.width * C);
+        // Plain taps below this index have 8 readable bytes at both rows; wrapped taps (flag in
+        // bit 31) and the last few pixels of the image take the scalar path.
+        let fast_limit = (erp.len().saturating_sub(row + 8) / C + 1).min(super::WRAPPED as usize);
+        let fast_limit = if erp.len() >= row + 8 { fast_limit } else { 0 };
+        let [left, right, down] = shuffles::<C>();
+        // SAFETY (loads): 16-byte unaligned loads of 16-byte local arrays.
+        let (left, right, down) = unsafe {
+            (
+                _mm_loadu_si128(left.as_ptr().cast()),
+                _mm_loadu_si128(right.as_ptr().cast()),
+                _mm_loadu_si128(down.as_ptr().cast()),
+            )
+        };
+        let half = _mm_set1_epi16(64);
+        for (n, (px, &tap)) in out.chunks_exact_mut(C).zip(taps).enumerate() {
+            if let Some(ahead) = taps.get(n + PREFETCH_DISTANCE) {
+                prefetch_tap::<u8, C>(src, *ahead);
+            }
+            let i = tap.index as usize;
+            if i >= fast_limit {
+                for (ch, o) in px.iter_mut().enumerate() {
+                    *o = u8::bilinear(src.corners::<C>(tap, ch), tap);
                 }
-            });
+                continue;
+            }
+            // SAFETY: i < fast_limit, so i·C + W·C + 8 ≤ erp.len(): both 8-byte reads are in
+            // bounds.
+            let both = unsafe {
+                let top = _mm_loadl_epi64(erp.as_ptr().add(i * C).cast());
+                let bottom = _mm_loadl_epi64(erp.as_ptr().add(i * C + row).cast());
+                _mm_unpacklo_epi64(top, bottom)
+            };
+            // pmulhrsw takes Q15 factors below 1.0: a fraction of exactly 1 loses 2⁻¹⁵.
+            let fx = _mm_set1_epi16(tap.fx.min(i16::MAX as u16) as i16);
+            let fy = _mm_set1_epi16(tap.fy.min(i16::MAX as u16) as i16);
+            // Values in 1/128 grey levels: a·128 + (b − a)·128·f, |(b − a)·128| < 2¹⁵.
+            let a = _mm_shuffle_epi8(both, left);
+            let b = _mm_shuffle_epi8(both, right);
+            let step = _mm_slli_epi16::<7>(_mm_sub_epi16(b, a));
+            let across = _mm_add_epi16(_mm_slli_epi16::<7>(a), _mm_mulhrs_epi16(step, fx));
+            let below = _mm_shuffle_epi8(across, down);
+            let step = _mm_sub_epi16(below, across);
+            let value = _mm_add_epi16(across, _mm_mulhrs_epi16(step, fy));
+            let value = _mm_srli_epi16::<7>(_mm_add_epi16(value, half));
+            let bytes = (_mm_cvtsi128_si32(_mm_packus_epi16(value, value)) as u32).to_le_bytes();
+            px.copy_from_slice(&bytes[..C]);
+        }
     }
 }
 
