@@ -2,7 +2,8 @@
 
 Baselines, measured in the same run on the same inputs:
 - ``cv2.remap`` with precomputed maps (float32 maps and OpenCV's fixed-point maps; the faster
-  one is the baseline), the fastest known way to do the same sampling from Python;
+  one is the baseline), the fastest known way to do the same sampling from Python, on as many
+  threads as m360;
 - ``py360convert.e2p`` called once per tangent (what most 360° code does);
 - tangents → ERP: ``cv2.remap`` of every face at its precomputed footprint positions, then a
   ``np.bincount`` mean: the same work as ``stitch(align="none", blend="mean")``.
@@ -177,6 +178,8 @@ def main() -> None:
     parser.add_argument("--e2p-repeats", type=int, default=2, help="repeats of py360convert (slow)")
     parser.add_argument("--no-rss", action="store_true", help="skip the peak-RSS subprocesses")
     args = parser.parse_args()
+    # Same thread count for both: cv2's default pool need not match m360's.
+    cv2.setNumThreads(m360.get_num_threads())
     meta = h.metadata()
     meta.update(m360_threads=m360.get_num_threads(), cv2_threads=cv2.getNumThreads())
     print(
