@@ -351,9 +351,9 @@ impl Sample {
 /// over its 8 nodes (4 in a with positive weights, 4 in b with negative ones).
 ///
 /// Every term but Σ 1/s is quadratic in x, so the energy is ½·xᵀHx + scale_weight·Σ 1/s with H
-/// fixed per level: H is assembled once from the samples, and an evaluation costs one sparse
-/// product whose size depends on the grid, not on the number of samples (which grows with the
-/// resolution while the unknowns do not).
+/// fixed per level: H is assembled once from the samples, and a solver iteration costs sparse
+/// products with H, whose size depends on the grid, not on the number of samples (which grows
+/// with the resolution while the unknowns do not). Only [`Problem::energy`] visits the samples.
 #[derive(Debug, Clone)]
 pub struct Problem {
     params: LevelParams,
