@@ -169,19 +169,44 @@ fn splitmix64(mut z: u64) -> u64 {
 }
 
 /// Median and mean absolute deviation from it of the finite values; None if there are none.
+///
+/// The median is the element of rank ⌊len/2⌋ in `f32::total_cmp` order, found by a radix
+/// select: a histogram of the top 16 bits of the order-preserving keys picks the bin holding
+/// that rank, and only the bin's values are partially sorted.
 fn median_and_spread(values: &[f32]) -> Option<(f64, f64)> {
-    let mut finite: Vec<f32> = values.iter().copied().filter(|v| v.is_finite()).collect();
-    if finite.is_empty() {
+    // The key of total_cmp order: flip all bits of negatives, only the sign bit of positives.
+    let key = |v: f32| {
+        let bits = v.to_bits();
+        bits ^ (((bits as i32) >> 31) as u32 | 0x8000_0000)
+    };
+    let mut histogram = vec![0u32; 1 << 16];
+    let mut count = 0usize;
+    for &v in values.iter().filter(|v| v.is_finite()) {
+        histogram[(key(v) >> 16) as usize] += 1;
+        count += 1;
+    }
+    if count == 0 {
         return None;
     }
-    let mid = finite.len() / 2;
-    let (_, &mut median, _) = finite.select_nth_unstable_by(mid, f32::total_cmp);
-    let median = median as f64;
-    let spread = finite
+    let mut rank = count / 2;
+    let mut bin = 0;
+    while rank >= histogram[bin] as usize {
+        rank -= histogram[bin] as usize;
+        bin += 1;
+    }
+    let mut in_bin: Vec<f32> = values
         .iter()
+        .copied()
+        .filter(|&v| v.is_finite() && (key(v) >> 16) as usize == bin)
+        .collect();
+    let (_, &mut median, _) = in_bin.select_nth_unstable_by(rank, f32::total_cmp);
+    let median = median as f64;
+    let spread = values
+        .iter()
+        .filter(|v| v.is_finite())
         .map(|&v| (v as f64 - median).abs())
         .sum::<f64>()
-        / finite.len() as f64;
+        / count as f64;
     Some((median, spread))
 }
 
@@ -202,17 +227,17 @@ fn offset_factor(offsets: Offsets, cam: &crate::TangentCamera, x: f64, y: f64) -
 /// spread is an error naming it.
 pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
     let (h, w) = layout.tangent_shape();
+    let factors = FactorTable::new(layout, offsets);
     let stats: Vec<Option<(f64, f64)>> = maps
         .par_chunks(h * w)
-        .zip(&layout.cameras)
-        .map(|(map, cam)| {
-            let values: Vec<f32> = map
-                .iter()
-                .enumerate()
-                .map(|(p, &v)| {
-                    (v as f64 / offset_factor(offsets, cam, (p % w) as f64, (p / w) as f64)) as f32
-                })
-                .collect();
+        .enumerate()
+        .map(|(t, map)| {
+            let mut f_row = vec![0.0; w];
+            let mut values = Vec::with_capacity(h * w);
+            for (y, row) in map.chunks_exact(w).enumerate() {
+                factors.row(t, y, &mut f_row);
+                values.extend(row.iter().zip(&f_row).map(|(&v, f)| (v as f64 / f) as f32));
+            }
             median_and_spread(&values)
         })
         .collect();
@@ -232,16 +257,18 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
             }
         }
     }
-    maps.par_chunks_mut(h * w)
-        .zip(&layout.cameras)
-        .zip(&out)
-        .for_each(|((map, cam), &(m, spread))| {
+    maps.par_chunks_mut(w).enumerate().for_each_init(
+        || vec![0.0; w],
+        |f_row, (face_row, row)| {
+            let (t, y) = (face_row / h, face_row % h);
+            let (m, spread) = out[t];
             let inv = 1.0 / spread;
-            for (p, v) in map.iter_mut().enumerate() {
-                let f = offset_factor(offsets, cam, (p % w) as f64, (p / w) as f64);
+            factors.row(t, y, f_row);
+            for (v, f) in row.iter_mut().zip(f_row.iter()) {
                 *v = ((*v as f64 - m * f) * inv) as f32;
             }
-        });
+        },
+    );
     Ok(out)
 }
 
@@ -274,30 +301,76 @@ fn grid_cell(
     (c0, r0, gx - c0 as f64, gy - r0 as f64)
 }
 
-/// A sample's 8 nodes and its residual coefficients on their s and o.
-type SampleTerms = ([u32; 8], [f64; 8], [f64; 8]);
+/// One valid overlap sample, compactly: its residual is
+/// r = Σ_j wa_j·(da·s + fa·o)(a-node j) − Σ_j wb_j·(db·s + fb·o)(b-node j) with wa, wb the
+/// bilinear weights of the fractions in the a-cell and the b-cell.
+#[derive(Debug, Clone, Copy)]
+struct Sample {
+    /// Top-left grid node of the a-cell and of the b-cell.
+    node_a: u32,
+    node_b: u32,
+    /// Fractions (x, y) within the a-cell and the b-cell.
+    frac_a: [f64; 2],
+    frac_b: [f64; 2],
+    /// Disparity and offset factor in a (at the pixel) and in b (bilinear).
+    da: f64,
+    fa: f64,
+    db: f64,
+    fb: f64,
+}
 
-/// One level's problem: valid samples with their nodes and coefficients, and the grid edges.
+impl Sample {
+    /// The 8 nodes: a's cell corners (top-left, top-right, bottom-left, bottom-right), then b's.
+    #[inline]
+    fn nodes(&self, cols: usize) -> [u32; 8] {
+        let (a, b, c) = (self.node_a, self.node_b, cols as u32);
+        [a, a + 1, a + c, a + c + 1, b, b + 1, b + c, b + c + 1]
+    }
+
+    /// Residual coefficients on the 8 nodes' s and on their o.
+    #[inline]
+    fn coefficients(&self) -> ([f64; 8], [f64; 8]) {
+        let wa = bilinear_weights(self.frac_a[0], self.frac_a[1]);
+        let wb = bilinear_weights(self.frac_b[0], self.frac_b[1]);
+        let mut coef_s = [0.0; 8];
+        let mut coef_o = [0.0; 8];
+        for j in 0..4 {
+            coef_s[j] = wa[j] * self.da;
+            coef_o[j] = wa[j] * self.fa;
+            coef_s[4 + j] = -wb[j] * self.db;
+            coef_o[4 + j] = -wb[j] * self.fb;
+        }
+        (coef_s, coef_o)
+    }
+}
+
+/// One level's problem: valid samples with their nodes and coefficients, the grid edges, and
+/// the assembled quadratic part of the energy.
 ///
 /// The residual of sample k is r_k = Σ_j coef_s[k][j]·s[node[k][j]] + coef_o[k][j]·o[node[k][j]]
 /// over its 8 nodes (4 in a with positive weights, 4 in b with negative ones).
+///
+/// Every term but Σ 1/s is quadratic in x, so the energy is ½·xᵀHx + scale_weight·Σ 1/s with H
+/// fixed per level: H is assembled once from the samples, and a solver iteration costs sparse
+/// products with H, whose size depends on the grid, not on the number of samples (which grows
+/// with the resolution while the unknowns do not). Only [`Problem::energy`] visits the samples.
 #[derive(Debug, Clone)]
 pub struct Problem {
     params: LevelParams,
     tangents: usize,
-    nodes: Vec<[u32; 8]>,
-    coef_s: Vec<[f64; 8]>,
-    coef_o: Vec<[f64; 8]>,
+    samples: Vec<Sample>,
     /// (node p, node q, weight): smoothness adds weight·((s_p − s_q)² + (o_p − o_q)²).
     edges: Vec<(u32, u32, f64)>,
     /// Weight of Σ 1/s.
     scale_weight: f64,
     /// Weight of Σ o²: fixes the global offset, which no other term sees (see `GAUGE`).
     gauge_weight: f64,
-    /// Jᵀ in compressed rows: for unknown i, `jt[jt_start[i]..jt_start[i + 1]]` lists the
-    /// (sample, coefficient) pairs of its residuals, in sample order (a deterministic gather).
-    jt_start: Vec<usize>,
-    jt: Vec<(u32, f64)>,
+    /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
+    /// of 2×2 node blocks: row node p couples with `block_col[block_start[p]..block_start[p + 1]]`
+    /// (ascending), block `[ss, so, os, oo]` row-major over (s, o) of p × (s, o) of the column.
+    block_start: Vec<usize>,
+    block_col: Vec<u32>,
+    blocks: Vec<[f64; 4]>,
 }
 
 /// The data and smoothness terms are unchanged by adding one constant to every offset, and no
@@ -319,9 +392,10 @@ impl Problem {
         let (cols, rows) = (params.cols, params.rows);
         let per = cols * rows;
         let tp = h * w;
-        let prepared: Vec<Option<SampleTerms>> = (0..overlaps.len())
+        // Rayon's collect keeps the index order, so the samples are in overlap order.
+        let samples: Vec<Sample> = (0..overlaps.len())
             .into_par_iter()
-            .map(|k| {
+            .filter_map(|k| {
                 let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
                 let pa = overlaps.pa[k] as usize;
                 let da = maps[a * tp + pa];
@@ -357,45 +431,23 @@ impl Problem {
                 let (ca, ra, ax, ay) =
                     grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
                 let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
-                let node = |t: usize, c: usize, r: usize| (t * per + r * cols + c) as u32;
-                let nodes = [
-                    node(a, ca, ra),
-                    node(a, ca + 1, ra),
-                    node(a, ca, ra + 1),
-                    node(a, ca + 1, ra + 1),
-                    node(b, cb, rb),
-                    node(b, cb + 1, rb),
-                    node(b, cb, rb + 1),
-                    node(b, cb + 1, rb + 1),
-                ];
-                let wa = bilinear_weights(ax, ay);
-                let wb = bilinear_weights(bx, by);
-                let fa = offset_factor(
-                    params.offsets,
-                    &layout.cameras[a],
-                    (pa % w) as f64,
-                    (pa / w) as f64,
-                );
-                let fb = offset_factor(params.offsets, &layout.cameras[b], xb, yb);
-                let mut coef_s = [0.0; 8];
-                let mut coef_o = [0.0; 8];
-                for j in 0..4 {
-                    coef_s[j] = wa[j] * da as f64;
-                    coef_o[j] = wa[j] * fa;
-                    coef_s[4 + j] = -wb[j] * db;
-                    coef_o[4 + j] = -wb[j] * fb;
-                }
-                Some((nodes, coef_s, coef_o))
+                Some(Sample {
+                    node_a: (a * per + ra * cols + ca) as u32,
+                    node_b: (b * per + rb * cols + cb) as u32,
+                    frac_a: [ax, ay],
+                    frac_b: [bx, by],
+                    da: da as f64,
+                    fa: offset_factor(
+                        params.offsets,
+                        &layout.cameras[a],
+                        (pa % w) as f64,
+                        (pa / w) as f64,
+                    ),
+                    db,
+                    fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
+                })
             })
             .collect();
-        let mut nodes = Vec::with_capacity(prepared.len());
-        let mut coef_s = Vec::with_capacity(prepared.len());
-        let mut coef_o = Vec::with_capacity(prepared.len());
-        for (nd, cs, co) in prepared.into_iter().flatten() {
-            nodes.push(nd);
-            coef_s.push(cs);
-            coef_o.push(co);
-        }
 
         // Smoothness edges between 4-neighbours, and the term weights.
         let (hx, hy) = (1.0 / (cols - 1) as f64, 1.0 / (rows - 1) as f64);
@@ -424,40 +476,124 @@ impl Problem {
                 }
             }
         }
-        let unknowns = 2 * n * per;
-        let mut jt_start = vec![0usize; unknowns + 1];
-        for nd in &nodes {
-            for &node in nd {
-                jt_start[2 * node as usize + 1] += 1;
-                jt_start[2 * node as usize + 2] += 1;
-            }
-        }
-        for i in 0..unknowns {
-            jt_start[i + 1] += jt_start[i];
-        }
-        let mut fill = jt_start.clone();
-        let mut jt = vec![(0u32, 0.0f64); jt_start[unknowns]];
-        for (k, nd) in nodes.iter().enumerate() {
-            for (j, &node) in nd.iter().enumerate() {
-                for (d, coef) in [(0, coef_s[k][j]), (1, coef_o[k][j])] {
-                    let i = 2 * node as usize + d;
-                    jt[fill[i]] = (k as u32, coef);
-                    fill[i] += 1;
-                }
-            }
-        }
-        Self {
+        let mut problem = Self {
             params,
             tangents: n,
-            nodes,
-            coef_s,
-            coef_o,
+            samples,
             edges,
             scale_weight,
             gauge_weight: GAUGE,
-            jt_start,
-            jt,
+            block_start: Vec::new(),
+            block_col: Vec::new(),
+            blocks: Vec::new(),
+        };
+        problem.assemble();
+        problem
+    }
+
+    /// Assemble the Hessian H of the quadratic terms.
+    ///
+    /// Samples whose a-cell and b-cell are the same share all 8 nodes (the top-left nodes,
+    /// entries 0 and 4, identify the group), so each group's 16×16 block Σ c·cᵀ is summed
+    /// densely (in sample order, in parallel over groups) and scattered once.
+    fn assemble(&mut self) {
+        let nodes_total = self.len() / 2;
+        let cols = self.params.cols;
+        let mut order: Vec<(u64, u32)> = self
+            .samples
+            .par_iter()
+            .enumerate()
+            .map(|(k, sample)| {
+                let key = ((sample.node_a as u64) << 32) | sample.node_b as u64;
+                (key, k as u32)
+            })
+            .collect();
+        order.par_sort_unstable();
+        let two_over_z = 2.0 / self.samples().max(1) as f64;
+        let groups: Vec<&[(u64, u32)]> = order.chunk_by(|p, q| p.0 == q.0).collect();
+        let group_blocks: Vec<([u32; 8], [f64; 256])> = groups
+            .par_iter()
+            .map(|group| {
+                // Upper triangle only; mirrored below.
+                let mut block = [0.0; 256];
+                for &(_, k) in group.iter() {
+                    let (coef_s, coef_o) = self.samples[k as usize].coefficients();
+                    let mut c = [0.0; 16];
+                    for j in 0..8 {
+                        c[2 * j] = coef_s[j];
+                        c[2 * j + 1] = coef_o[j];
+                    }
+                    for (u, &cu) in c.iter().enumerate() {
+                        for (b, &cv) in block[16 * u + u..16 * u + 16].iter_mut().zip(&c[u..]) {
+                            *b += cu * cv;
+                        }
+                    }
+                }
+                for u in 0..16 {
+                    for v in u..16 {
+                        block[16 * u + v] *= two_over_z;
+                        block[16 * v + u] = block[16 * u + v];
+                    }
+                }
+                (self.samples[group[0].1 as usize].nodes(cols), block)
+            })
+            .collect();
+
+        // Node-level coupling pattern: nodes of one group, smoothness edges, the diagonal.
+        let mut pairs: Vec<(u32, u32)> =
+            Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
+        for (nd, _) in &group_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
         }
+        for &(p, q, _) in &self.edges {
+            pairs.extend([(p, q), (q, p)]);
+        }
+        pairs.extend((0..nodes_total as u32).map(|i| (i, i)));
+        pairs.par_sort_unstable();
+        pairs.dedup();
+        let mut block_start = vec![0usize; nodes_total + 1];
+        for &(p, _) in &pairs {
+            block_start[p as usize + 1] += 1;
+        }
+        for p in 0..nodes_total {
+            block_start[p + 1] += block_start[p];
+        }
+        let block_col: Vec<u32> = pairs.iter().map(|&(_, q)| q).collect();
+        drop(pairs);
+        let mut blocks = vec![[0.0f64; 4]; block_col.len()];
+        let at = |p: u32, q: u32| -> usize {
+            let (lo, hi) = (block_start[p as usize], block_start[p as usize + 1]);
+            lo + block_col[lo..hi]
+                .binary_search(&q)
+                .unwrap_or_else(|_| unreachable!("block ({p}, {q}) is in the pattern"))
+        };
+        for (nd, block) in &group_blocks {
+            for (u, &p) in nd.iter().enumerate() {
+                for (v, &q) in nd.iter().enumerate() {
+                    let target = &mut blocks[at(p, q)];
+                    let (r, c) = (2 * u, 2 * v);
+                    target[0] += block[16 * r + c];
+                    target[1] += block[16 * r + c + 1];
+                    target[2] += block[16 * (r + 1) + c];
+                    target[3] += block[16 * (r + 1) + c + 1];
+                }
+            }
+        }
+        for &(p, q, wgt) in &self.edges {
+            for (i, j, sign) in [(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)] {
+                let target = &mut blocks[at(i, j)];
+                target[0] += sign * 2.0 * wgt;
+                target[3] += sign * 2.0 * wgt;
+            }
+        }
+        for p in 0..nodes_total as u32 {
+            blocks[at(p, p)][3] += 2.0 * self.gauge_weight;
+        }
+        self.block_start = block_start;
+        self.block_col = block_col;
+        self.blocks = blocks;
     }
 
     /// Number of unknowns (2 per node).
@@ -472,7 +608,7 @@ impl Problem {
 
     /// Number of valid overlap samples.
     pub fn samples(&self) -> usize {
-        self.nodes.len()
+        self.samples.len()
     }
 
     /// The problem's terms, for inspection and independent checks: per sample the 8 nodes and
@@ -482,17 +618,23 @@ impl Problem {
     pub fn terms(
         &self,
     ) -> (
-        &[[u32; 8]],
-        &[[f64; 8]],
-        &[[f64; 8]],
+        Vec<[u32; 8]>,
+        Vec<[f64; 8]>,
+        Vec<[f64; 8]>,
         &[(u32, u32, f64)],
         f64,
         f64,
     ) {
+        let nodes = self
+            .samples
+            .iter()
+            .map(|s| s.nodes(self.params.cols))
+            .collect();
+        let (coef_s, coef_o) = self.samples.iter().map(Sample::coefficients).unzip();
         (
-            &self.nodes,
-            &self.coef_s,
-            &self.coef_o,
+            nodes,
+            coef_s,
+            coef_o,
             &self.edges,
             self.scale_weight,
             self.gauge_weight,
@@ -509,7 +651,9 @@ impl Problem {
     /// Residual of sample k.
     #[inline]
     fn residual(&self, k: usize, x: &[f64]) -> f64 {
-        let (nd, cs, co) = (&self.nodes[k], &self.coef_s[k], &self.coef_o[k]);
+        let sample = &self.samples[k];
+        let nd = sample.nodes(self.params.cols);
+        let (cs, co) = sample.coefficients();
         (0..8)
             .map(|j| {
                 let i = 2 * nd[j] as usize;
@@ -520,56 +664,69 @@ impl Problem {
 
     /// Energy at `x`, and its gradient into `grad` when given. Any s ≤ 0 gives +∞.
     ///
-    /// Residuals are computed in parallel, the data term is reduced over fixed chunks in index
-    /// order and the gradient gathered per unknown through Jᵀ in sample order, so the result
-    /// does not depend on the number of threads.
+    /// The data term is summed over the samples' residuals (not as ½·xᵀHx, whose rounding
+    /// error is relative to the terms' size rather than to the energy), reduced over fixed
+    /// chunks in index order, so the result does not depend on the number of threads.
     pub fn energy(&self, x: &[f64], grad: Option<&mut [f64]>) -> f64 {
         const CHUNK: usize = 4096;
-        let inv_z = 1.0 / self.samples().max(1) as f64;
-        let residuals: Vec<f64> = (0..self.samples())
-            .into_par_iter()
-            .map(|k| self.residual(k, x))
-            .collect();
-        let partial: Vec<f64> = residuals
-            .par_chunks(CHUNK)
-            .map(|c| c.iter().map(|r| r * r).sum())
-            .collect();
-        let mut energy = partial.iter().sum::<f64>() * inv_z;
-        let mut gradient = grad;
-        if let Some(g) = gradient.as_deref_mut() {
-            g.par_iter_mut().enumerate().for_each(|(i, gi)| {
-                let terms = &self.jt[self.jt_start[i]..self.jt_start[i + 1]];
-                *gi = 2.0
-                    * inv_z
-                    * terms
-                        .iter()
-                        .map(|&(k, c)| residuals[k as usize] * c)
-                        .sum::<f64>();
-            });
+        if x.iter().step_by(2).any(|&s| s <= 0.0) {
+            return f64::INFINITY;
         }
+        let samples = self.samples();
+        let partial: Vec<f64> = (0..samples.div_ceil(CHUNK))
+            .into_par_iter()
+            .map(|c| {
+                (c * CHUNK..((c + 1) * CHUNK).min(samples))
+                    .map(|k| self.residual(k, x).powi(2))
+                    .sum()
+            })
+            .collect();
+        let mut energy = partial.iter().sum::<f64>() / samples.max(1) as f64;
         for &(p, q, wgt) in &self.edges {
             let (p, q) = (2 * p as usize, 2 * q as usize);
             let (ds, dof) = (x[p] - x[q], x[p + 1] - x[q + 1]);
             energy += wgt * (ds * ds + dof * dof);
-            if let Some(g) = gradient.as_deref_mut() {
-                g[p] += 2.0 * wgt * ds;
-                g[q] -= 2.0 * wgt * ds;
-                g[p + 1] += 2.0 * wgt * dof;
-                g[q + 1] -= 2.0 * wgt * dof;
-            }
         }
-        for node in 0..self.len() / 2 {
-            let (s, o) = (x[2 * node], x[2 * node + 1]);
-            if s <= 0.0 {
-                return f64::INFINITY;
-            }
-            energy += self.scale_weight / s + self.gauge_weight * o * o;
-            if let Some(g) = gradient.as_deref_mut() {
-                g[2 * node] -= self.scale_weight / (s * s);
-                g[2 * node + 1] += 2.0 * self.gauge_weight * o;
-            }
+        for node in x.chunks_exact(2) {
+            energy += self.scale_weight / node[0] + self.gauge_weight * node[1] * node[1];
+        }
+        if let Some(g) = grad {
+            self.gradient(x, g);
         }
         energy
+    }
+
+    /// The gradient at `x` (all s > 0): H·x minus scale_weight/s² on the s entries.
+    fn gradient(&self, x: &[f64], grad: &mut [f64]) {
+        self.hessian_product(x, grad);
+        for (g, node) in grad.chunks_exact_mut(2).zip(x.chunks_exact(2)) {
+            g[0] -= self.scale_weight / (node[0] * node[0]);
+        }
+    }
+
+    /// out = H·v for the quadratic terms' Hessian H, in parallel over fixed chunks of rows
+    /// (each row summed in its own order: the result does not depend on the thread count).
+    fn hessian_product(&self, v: &[f64], out: &mut [f64]) {
+        const CHUNK: usize = 256;
+        out.par_chunks_mut(2 * CHUNK)
+            .enumerate()
+            .for_each(|(c, part)| {
+                for (i, row) in part.chunks_exact_mut(2).enumerate() {
+                    let p = c * CHUNK + i;
+                    let range = self.block_start[p]..self.block_start[p + 1];
+                    let (mut ys, mut yo) = (0.0, 0.0);
+                    for (b, &q) in self.blocks[range.clone()]
+                        .iter()
+                        .zip(&self.block_col[range])
+                    {
+                        let (vs, vo) = (v[2 * q as usize], v[2 * q as usize + 1]);
+                        ys += b[0] * vs + b[1] * vo;
+                        yo += b[2] * vs + b[3] * vo;
+                    }
+                    row[0] = ys;
+                    row[1] = yo;
+                }
+            });
     }
 }
 
@@ -587,17 +744,16 @@ fn dot(a: &[f64], b: &[f64]) -> f64 {
     a.iter().zip(b).map(|(x, y)| x * y).sum()
 }
 
-/// Backtracking Armijo line search along `dir` from `x` (energy `e`, gradient `g`); returns the
-/// new point and energy, or None if no step decreases the energy.
-fn line_search(
-    problem: &Problem,
-    x: &[f64],
-    e: f64,
-    g: &[f64],
-    dir: &[f64],
-) -> Option<(Vec<f64>, f64)> {
+/// Backtracking Armijo line search along `dir` from `x` (gradient `g`); returns the new point
+/// and its energy change, or None if no step decreases the energy.
+///
+/// The change is evaluated exactly from one product H·dir: with t the step,
+/// E(x + t·d) − E(x) = t·gᵀd + ½t²·dᵀHd + Σ c·t²·d_s²/(s²·(s + t·d_s)) over the s entries (the
+/// 1/s term's remainder after its linear part). Unlike a difference of two evaluated energies
+/// it has no cancellation, so the search still sees decreases far below the energy's rounding.
+fn line_search(problem: &Problem, x: &[f64], g: &[f64], dir: &[f64]) -> Option<(Vec<f64>, f64)> {
     let slope = dot(g, dir);
-    if slope >= 0.0 {
+    if slope >= 0.0 || slope.is_nan() {
         return None;
     }
     // Largest step that keeps every scale positive (the 1/s term is a barrier at 0).
@@ -607,14 +763,23 @@ fn line_search(
             step = step.min(0.95 * x[i] / -dir[i]);
         }
     }
-    let mut trial = vec![0.0; x.len()];
+    let mut hd = vec![0.0; x.len()];
+    problem.hessian_product(dir, &mut hd);
+    let curvature = dot(dir, &hd);
+    let c = problem.scale_weight;
     for _ in 0..60 {
-        for ((t, xi), di) in trial.iter_mut().zip(x).zip(dir) {
-            *t = xi + step * di;
-        }
-        let et = problem.energy(&trial, None);
-        if et <= e + 1e-4 * step * slope {
-            return Some((trial, et));
+        let barrier: f64 = x
+            .chunks_exact(2)
+            .zip(dir.chunks_exact(2))
+            .map(|(xn, dn)| {
+                let (s, ds) = (xn[0], dn[0]);
+                c * step * step * ds * ds / (s * s * (s + step * ds))
+            })
+            .sum();
+        let change = step * slope + 0.5 * step * step * curvature + barrier;
+        if change <= 1e-4 * step * slope {
+            let trial = x.iter().zip(dir).map(|(xi, di)| xi + step * di).collect();
+            return Some((trial, change));
         }
         step *= 0.5;
     }
@@ -650,11 +815,12 @@ pub fn solve(
             Some(system) => system.step(problem, &x, &g)?,
             None => lbfgs_direction(&g, &history),
         };
-        let Some((x_new, e_new)) = line_search(problem, &x, e, &g, &dir) else {
+        let Some((x_new, change)) = line_search(problem, &x, &g, &dir) else {
             break; // no decrease possible at this precision: the minimum is reached
         };
         let mut g_new = vec![0.0; n];
-        problem.energy(&x_new, Some(&mut g_new));
+        problem.gradient(&x_new, &mut g_new);
+        let e_new = e + change;
         if newton.is_none() {
             let s: Vec<f64> = x_new.iter().zip(&x).map(|(a, b)| a - b).collect();
             let y: Vec<f64> = g_new.iter().zip(&g).map(|(a, b)| a - b).collect();
@@ -726,109 +892,34 @@ struct NewtonSystem {
 impl NewtonSystem {
     fn new(problem: &Problem) -> Result<Self> {
         let n = problem.len();
-        // Samples whose a-cell and b-cell are the same share all 8 nodes: the top-left nodes
-        // (entries 0 and 4) identify the group. Accumulating each group's 16×16 block densely
-        // and scattering it once is far cheaper than scattering every sample.
-        let key = |k: usize| ((problem.nodes[k][0] as u64) << 32) | problem.nodes[k][4] as u64;
-        let mut order: Vec<usize> = (0..problem.samples()).collect();
-        order.sort_unstable_by_key(|&k| key(k));
-        let mut groups: Vec<(usize, [f64; 256])> = Vec::new(); // (a sample of the group, block)
-        let two_over_z = 2.0 / problem.samples().max(1) as f64;
-        for chunk in order.chunk_by(|&i, &j| key(i) == key(j)) {
-            let mut block = [0.0; 256];
-            for &k in chunk {
-                let mut c = [0.0; 16];
-                for j in 0..8 {
-                    c[2 * j] = problem.coef_s[k][j];
-                    c[2 * j + 1] = problem.coef_o[k][j];
-                }
-                for (u, &cu) in c.iter().enumerate() {
-                    for (v, &cv) in c.iter().enumerate() {
-                        block[16 * u + v] += two_over_z * cu * cv;
-                    }
-                }
-            }
-            groups.push((chunk[0], block));
-        }
-
-        // Node-level coupling pattern: nodes of one group, and smoothness edges.
-        let mut pairs: Vec<(u32, u32)> =
-            Vec::with_capacity(groups.len() * 36 + problem.edges.len() + n / 2);
-        for &(k, _) in &groups {
-            let nd = &problem.nodes[k];
-            for p in 0..8 {
-                for q in 0..8 {
-                    if nd[p] >= nd[q] {
-                        pairs.push((nd[q], nd[p])); // (column node, row node), row ≥ column
-                    }
-                }
-            }
-        }
-        for &(p, q, _) in &problem.edges {
-            pairs.push((p.min(q), p.max(q)));
-        }
-        pairs.extend((0..(n / 2) as u32).map(|i| (i, i)));
-        pairs.par_sort_unstable();
-        pairs.dedup();
-
-        // Expand node pairs into unknown-level lower-triangle entries, column by column.
-        let mut col_entries: Vec<Vec<usize>> = vec![Vec::new(); n];
-        for &(cn, rn) in &pairs {
-            let (c, r) = (2 * cn as usize, 2 * rn as usize);
-            if cn == rn {
-                col_entries[c].extend([r, r + 1]);
-                col_entries[c + 1].push(r + 1);
-            } else {
-                col_entries[c].extend([r, r + 1]);
-                col_entries[c + 1].extend([r, r + 1]);
-            }
-        }
+        // H is symmetric, so column j of its lower triangle is row j of H from the diagonal on:
+        // unknown 2p + d takes the (d, e) entries of node p's blocks with column 2q + e ≥ 2p + d.
         let mut col_ptr = Vec::with_capacity(n + 1);
-        let mut row_idx = Vec::new();
+        let mut row_idx = Vec::with_capacity(2 * problem.blocks.len());
+        let mut constant = Vec::with_capacity(2 * problem.blocks.len());
+        let mut scale_diagonal = Vec::with_capacity(n / 2);
         col_ptr.push(0usize);
-        for rows in &mut col_entries {
-            rows.sort_unstable();
-            rows.dedup();
-            row_idx.extend_from_slice(rows);
-            col_ptr.push(row_idx.len());
-        }
-        drop(col_entries);
-        let position = |col_ptr: &[usize], row_idx: &[usize], r: usize, c: usize| -> usize {
-            let (lo, hi) = (col_ptr[c], col_ptr[c + 1]);
-            lo + row_idx[lo..hi]
-                .binary_search(&r)
-                .unwrap_or_else(|_| unreachable!("entry ({r}, {c}) is in the pattern"))
-        };
-
-        // Constant part of the Hessian: 2/z Σ j jᵀ (by group) + smoothness + gauge.
-        let mut constant = vec![0.0; row_idx.len()];
-        for (k, block) in &groups {
-            let nd = &problem.nodes[*k];
-            for u in 0..16 {
-                for v in 0..16 {
-                    let (r, c) = (
-                        2 * nd[u / 2] as usize + u % 2,
-                        2 * nd[v / 2] as usize + v % 2,
-                    );
-                    if r >= c {
-                        constant[position(&col_ptr, &row_idx, r, c)] += block[16 * u + v];
+        for p in 0..n / 2 {
+            let range = problem.block_start[p]..problem.block_start[p + 1];
+            let row = problem.block_col[range.clone()]
+                .iter()
+                .zip(&problem.blocks[range]);
+            for d in 0..2 {
+                let j = 2 * p + d;
+                for (&q, b) in row.clone() {
+                    for e in 0..2 {
+                        let i = 2 * q as usize + e;
+                        if i >= j {
+                            if i == j && d == 0 {
+                                scale_diagonal.push(row_idx.len());
+                            }
+                            row_idx.push(i);
+                            constant.push(b[2 * d + e]);
+                        }
                     }
                 }
+                col_ptr.push(row_idx.len());
             }
-        }
-        for &(p, q, wgt) in &problem.edges {
-            let (lo, hi) = (2 * p.min(q) as usize, 2 * p.max(q) as usize);
-            for d in 0..2 {
-                constant[position(&col_ptr, &row_idx, lo + d, lo + d)] += 2.0 * wgt;
-                constant[position(&col_ptr, &row_idx, hi + d, hi + d)] += 2.0 * wgt;
-                constant[position(&col_ptr, &row_idx, hi + d, lo + d)] -= 2.0 * wgt;
-            }
-        }
-        let mut scale_diagonal = Vec::with_capacity(n / 2);
-        for node in 0..n / 2 {
-            let (i, j) = (2 * node, 2 * node + 1);
-            constant[position(&col_ptr, &row_idx, j, j)] += 2.0 * problem.gauge_weight;
-            scale_diagonal.push(position(&col_ptr, &row_idx, i, i));
         }
         let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
         let analysis = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower)
@@ -862,36 +953,86 @@ impl NewtonSystem {
     }
 }
 
+/// Per-pixel offset factors of a layout, separably: the factor at (x, y) of tangent t is
+/// 1/√(1 + gx² + gy²) with gx², gy² tabulated per camera column and row (the same values as
+/// [`crate::TangentCamera::spherical_factor`], without a division per pixel).
+struct FactorTable {
+    offsets: Offsets,
+    width: usize,
+    height: usize,
+    gx2: Vec<f64>,
+    gy2: Vec<f64>,
+}
+
+impl FactorTable {
+    fn new(layout: &Layout, offsets: Offsets) -> Self {
+        let (h, w) = layout.tangent_shape();
+        let mut gx2 = Vec::with_capacity(layout.cameras.len() * w);
+        let mut gy2 = Vec::with_capacity(layout.cameras.len() * h);
+        for cam in &layout.cameras {
+            gx2.extend((0..w).map(|x| cam.gnomonic(x as f64, 0.0).0.powi(2)));
+            gy2.extend((0..h).map(|y| cam.gnomonic(0.0, y as f64).1.powi(2)));
+        }
+        Self {
+            offsets,
+            width: w,
+            height: h,
+            gx2,
+            gy2,
+        }
+    }
+
+    /// Fill `out` (one tangent row) with the factors of row y of tangent t.
+    fn row(&self, t: usize, y: usize, out: &mut [f64]) {
+        match self.offsets {
+            Offsets::Spherical => out.fill(1.0),
+            Offsets::Perspective => {
+                let gy2 = self.gy2[t * self.height + y];
+                let gx2 = &self.gx2[t * self.width..(t + 1) * self.width];
+                for (f, &g) in out.iter_mut().zip(gx2) {
+                    *f = 1.0 / (1.0 + g + gy2).sqrt();
+                }
+            }
+        }
+    }
+}
+
 /// Apply solved fields to the maps in place: D ← s(x)·D + o(x)·f(x) with bilinear s, o per
 /// pixel and f the offset factor of `params.offsets`.
+///
+/// Row by row: the fields are first interpolated between the row's two grid rows at the grid
+/// columns, then linearly along the row from a per-column cell table.
 pub fn apply_fields(layout: &Layout, maps: &mut [f32], x: &[f64], params: &LevelParams) {
+    let factors = FactorTable::new(layout, params.offsets);
     let (h, w) = layout.tangent_shape();
     let (cols, rows) = (params.cols, params.rows);
     let per = cols * rows;
-    maps.par_chunks_mut(w)
-        .enumerate()
-        .for_each(|(face_row, row)| {
+    let cells: Vec<(usize, f64)> = (0..w)
+        .map(|xp| {
+            let (c0, _, fx, _) = grid_cell(xp as f64, 0.0, w, h, cols, rows);
+            (c0, fx)
+        })
+        .collect();
+    maps.par_chunks_mut(w).enumerate().for_each_init(
+        || (vec![0.0; w], vec![0.0; 2 * cols]),
+        |(f_row, field_row), (face_row, row)| {
             let (t, y) = (face_row / h, face_row % h);
-            let cam = &layout.cameras[t];
-            for (xp, v) in row.iter_mut().enumerate() {
-                let (c0, r0, fx, fy) = grid_cell(xp as f64, y as f64, w, h, cols, rows);
-                let node = |c: usize, r: usize| 2 * (t * per + r * cols + c);
-                let wts = bilinear_weights(fx, fy);
-                let ids = [
-                    node(c0, r0),
-                    node(c0 + 1, r0),
-                    node(c0, r0 + 1),
-                    node(c0 + 1, r0 + 1),
-                ];
-                let (mut s, mut o) = (0.0, 0.0);
-                for (wt, &i) in wts.iter().zip(&ids) {
-                    s += wt * x[i];
-                    o += wt * x[i + 1];
-                }
-                let f = offset_factor(params.offsets, cam, xp as f64, y as f64);
+            let (_, r0, _, fy) = grid_cell(0.0, y as f64, w, h, cols, rows);
+            let top = &x[2 * (t * per + r0 * cols)..2 * (t * per + (r0 + 1) * cols)];
+            let bottom = &x[2 * (t * per + (r0 + 1) * cols)..2 * (t * per + (r0 + 2) * cols)];
+            for ((v, a), b) in field_row.iter_mut().zip(top).zip(bottom) {
+                *v = (1.0 - fy) * a + fy * b;
+            }
+            factors.row(t, y, f_row);
+            for ((v, &(c0, fx)), f) in row.iter_mut().zip(&cells).zip(f_row.iter()) {
+                let (s0, o0) = (field_row[2 * c0], field_row[2 * c0 + 1]);
+                let (s1, o1) = (field_row[2 * c0 + 2], field_row[2 * c0 + 3]);
+                let s = (1.0 - fx) * s0 + fx * s1;
+                let o = (1.0 - fx) * o0 + fx * o1;
                 *v = (s * *v as f64 + o * f) as f32;
             }
-        });
+        },
+    );
 }
 
 /// One solved level: its parameters, fields (x, node-interleaved s/o) and report.
