@@ -1560,6 +1560,17 @@ mod tests {
             * 1e-9
     }
 
+    /// Three random layers (values near 1, weights in [0, 1)) and a target on an h x w grid:
+    /// the input of the timing tests below.
+    fn random_layers(h: usize, w: usize) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+        let n = h * w;
+        let mut r = rng(5);
+        let values: Vec<f32> = (0..3 * n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        let weights: Vec<f32> = (0..3 * n).map(|_| r() as f32).collect();
+        let target: Vec<f32> = (0..n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        (values, weights, target)
+    }
+
     /// Times the pieces of the multigrid-preconditioned solve at 2K in on-CPU seconds (all
     /// threads); run with `RAYON_NUM_THREADS=1 cargo test --release -- --ignored --nocapture
     /// multigrid_pieces`.
@@ -1568,10 +1579,7 @@ mod tests {
     fn multigrid_pieces_at_2k() {
         let (h, w) = (1024, 2048);
         let n = h * w;
-        let mut r = rng(5);
-        let values: Vec<f32> = (0..3 * n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
-        let weights: Vec<f32> = (0..3 * n).map(|_| r() as f32).collect();
-        let target: Vec<f32> = (0..n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        let (values, weights, target) = random_layers(h, w);
         let source = LayerSource {
             values: &values,
             weights: &weights,
@@ -1649,10 +1657,7 @@ mod tests {
         use faer::sparse::{SparseColMat, Triplet};
         let (h, w) = (1024, 2048);
         let n = h * w;
-        let mut r = rng(5);
-        let values: Vec<f32> = (0..3 * n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
-        let weights: Vec<f32> = (0..3 * n).map(|_| r() as f32).collect();
-        let target: Vec<f32> = (0..n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
+        let (values, weights, target) = random_layers(h, w);
         let source = LayerSource {
             values: &values,
             weights: &weights,
