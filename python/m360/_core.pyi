@@ -75,7 +75,8 @@ class Plan:
         tol: float = 1e-6,
         max_iterations: int = 2000,
         solver: str = "multigrid",
-    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32], dict[str, Any]]: ...
+        spread: bool = True,
+    ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None, dict[str, Any]]: ...
     def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
 
 def poisson_blend(

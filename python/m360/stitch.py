@@ -244,11 +244,15 @@ def stitch(
         )  # fmt: skip
         report["align"] = levels
     t2 = time.perf_counter()
-    disparity, spread, blend_report = plan.blend(spherical, blend, **options)
+    # The spread (returned as confidence) costs a second pass: only computed when returned.
+    disparity, spread, blend_report = plan.blend(
+        spherical, blend, spread=return_details, **options
+    )
     t3 = time.perf_counter()
     blend_report["seconds"] = t3 - t2
     if not return_details:
         return disparity
+    assert spread is not None  # asked for with return_details
     return StitchResult(
         disparity=disparity,
         confidence=spread,

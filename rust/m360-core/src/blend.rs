@@ -11,7 +11,7 @@
 use crate::camera::TangentCamera;
 use crate::error::{CoreError, Result};
 use crate::layout::Layout;
-use crate::resample::{ErpTaps, WeightedSample};
+use crate::resample::{ErpTaps, Run, TapWeights};
 use faer::dyn_stack::{MemBuffer, MemStack};
 use faer::matrix_free::conjugate_gradient::{
     conjugate_gradient, conjugate_gradient_scratch, CgError, CgParams,
@@ -122,44 +122,257 @@ pub fn weight_maps(layout: &Layout, kind: Weighting) -> Vec<f32> {
     out
 }
 
-/// Population standard deviation of the valid values of one pixel (0 with one, NaN with none).
-fn spread_of(samples: &[WeightedSample]) -> f32 {
-    let (mut n, mut sum, mut sum_sq) = (0usize, 0.0f64, 0.0f64);
-    for s in samples.iter().filter(|s| s.value.is_finite()) {
-        n += 1;
-        sum += s.value as f64;
-        sum_sq += (s.value as f64) * (s.value as f64);
-    }
-    if n == 0 {
-        return f32::NAN;
-    }
-    let mean = sum / n as f64;
-    (sum_sq / n as f64 - mean * mean).max(0.0).sqrt() as f32
+/// One ERP row's samples, face by face: the row's runs and, per tap (in run order), the face's
+/// value there (NaN = invalid), its blending weight (none stored: all 1) and its nearness rank
+/// at its pixel (0 = nearest axis).
+#[derive(Debug, Default)]
+pub(crate) struct RowSamples {
+    pub runs: Vec<Run>,
+    pub values: Vec<f32>,
+    pub weights: Vec<f32>,
+    pub ranks: Vec<u8>,
 }
 
-/// Normalised weighted sum of the valid samples; the plain mean where every valid sample has
-/// weight 0 (radial weights vanish near the icosahedron's vertices, which lie 37.4° from the
-/// nearest axes, beyond the 34° inscribed half field of view); NaN where none is valid.
-fn weighted_value(samples: &[WeightedSample]) -> f32 {
-    let (mut n, mut sum, mut wsum, mut wv) = (0usize, 0.0f64, 0.0f64, 0.0f64);
-    for s in samples.iter().filter(|s| s.value.is_finite()) {
-        n += 1;
-        sum += s.value as f64;
-        wsum += s.weight as f64;
-        wv += s.weight as f64 * s.value as f64;
+impl RowSamples {
+    /// The samples of ERP row `i` of tangent images through `taps`, with per-tap `weights`,
+    /// and with ranks if `ranks` (only the nearest-face statistics need them).
+    ///
+    /// # Panics
+    /// If `tangents` or `weights` do not belong to `taps`.
+    pub(crate) fn fill_from_taps(
+        &mut self,
+        taps: &ErpTaps,
+        tangents: &[f32],
+        weights: Option<&TapWeights>,
+        ranks: bool,
+        i: usize,
+    ) {
+        self.runs.clear();
+        self.runs.extend_from_slice(taps.runs(i));
+        taps.sample(tangents, i, &mut self.values);
+        self.ranks.clear();
+        if ranks {
+            taps.ranks(i, &mut self.ranks);
+        }
+        self.weights.clear();
+        if let Some(w) = weights {
+            assert_eq!(
+                w.row(i).len(),
+                self.values.len(),
+                "tap weights of other taps"
+            );
+            self.weights.extend_from_slice(w.row(i));
+        }
     }
-    if n == 0 {
-        f32::NAN
-    } else if wsum > 0.0 {
-        (wv / wsum) as f32
-    } else {
-        (sum / n as f64) as f32
+
+    #[inline(always)]
+    fn weight(&self, t: usize) -> f32 {
+        if self.weights.is_empty() {
+            1.0
+        } else {
+            self.weights[t]
+        }
     }
 }
 
-/// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (same
-/// layout): `disparity` (H·W) gets Σ w·v / Σ w over the valid samples (see [`weighted_value`]
-/// for the fall-backs), `spread` (H·W) the population standard deviation of the valid samples.
+/// Per-pixel statistics of the valid (finite) samples of one ERP row, NaN where a pixel has
+/// none. f32 is exact enough for a handful of samples per pixel, and the spread takes a second
+/// pass around the mean rather than Σv² − n·mean², which cancels.
+#[derive(Debug, Default)]
+pub(crate) struct RowStats {
+    count: Vec<f32>,
+    sum: Vec<f32>,
+    weight_sum: Vec<f32>,
+    weighted_sum: Vec<f32>,
+    rank: Vec<u8>,
+    /// The sample of the nearest valid face (NaN everywhere when the row has no ranks).
+    pub nearest: Vec<f32>,
+    /// Unweighted mean.
+    pub mean: Vec<f32>,
+    /// Σ w·v / Σ w; the plain mean where every valid sample has weight 0 (radial weights vanish
+    /// near the icosahedron's vertices, which lie 37.4° from the nearest axes, beyond the 34°
+    /// inscribed half field of view).
+    pub weighted: Vec<f32>,
+    /// Population standard deviation (0 with one sample), if asked for.
+    pub spread: Vec<f32>,
+}
+
+impl RowStats {
+    /// The statistics of `row` (an ERP row `width` pixels wide); the spread only if `spread`.
+    pub(crate) fn compute(&mut self, row: &RowSamples, width: usize, spread: bool) {
+        let reset = |v: &mut Vec<f32>, x: f32| {
+            v.clear();
+            v.resize(width, x);
+        };
+        reset(&mut self.count, 0.0);
+        reset(&mut self.sum, 0.0);
+        reset(&mut self.weight_sum, 0.0);
+        reset(&mut self.weighted_sum, 0.0);
+        reset(&mut self.nearest, f32::NAN);
+        self.rank.clear();
+        self.rank.resize(width, u8::MAX);
+        for run in &row.runs {
+            match (row.weights.is_empty(), row.ranks.is_empty()) {
+                (true, true) => self.add_run::<false>(run, row, std::iter::repeat(1.0)),
+                (true, false) => self.add_run::<true>(run, row, std::iter::repeat(1.0)),
+                (false, true) => {
+                    self.add_run::<false>(run, row, row.weights[run.taps()].iter().copied())
+                }
+                (false, false) => {
+                    self.add_run::<true>(run, row, row.weights[run.taps()].iter().copied())
+                }
+            }
+        }
+        reset(&mut self.mean, f32::NAN);
+        reset(&mut self.weighted, f32::NAN);
+        let sums = self
+            .count
+            .iter()
+            .zip(&self.sum)
+            .zip(&self.weight_sum)
+            .zip(&self.weighted_sum);
+        for ((((&n, &sum), &wsum), &wv), (mean, weighted)) in
+            sums.zip(self.mean.iter_mut().zip(self.weighted.iter_mut()))
+        {
+            if n > 0.0 {
+                *mean = sum / n;
+                *weighted = if wsum > 0.0 { wv / wsum } else { *mean };
+            }
+        }
+        if !spread {
+            return;
+        }
+        reset(&mut self.spread, 0.0);
+        for run in &row.runs {
+            let values = &row.values[run.taps()];
+            let cols = run.columns();
+            for ((&v, &mean), var) in values
+                .iter()
+                .zip(&self.mean[cols.clone()])
+                .zip(&mut self.spread[cols])
+            {
+                let d = v - mean;
+                *var += if d.is_finite() { d * d } else { 0.0 };
+            }
+        }
+        for (var, &n) in self.spread.iter_mut().zip(&self.count) {
+            *var = (*var / n).sqrt(); // 0/0 where no sample: NaN
+        }
+    }
+
+    /// Add the valid samples of one run, with `weights` in tap order (and the nearest valid
+    /// sample if `NEAREST`: the row then has ranks).
+    #[inline(always)]
+    fn add_run<const NEAREST: bool>(
+        &mut self,
+        run: &Run,
+        row: &RowSamples,
+        weights: impl Iterator<Item = f32>,
+    ) {
+        let (cols, taps) = (run.columns(), run.taps());
+        let sums = self.count[cols.clone()]
+            .iter_mut()
+            .zip(&mut self.sum[cols.clone()])
+            .zip(&mut self.weight_sum[cols.clone()])
+            .zip(&mut self.weighted_sum[cols.clone()]);
+        // Branch-free, so it vectorises: an invalid sample adds zeros.
+        for ((((n, sum), wsum), wv), (&v, w)) in
+            sums.zip(row.values[taps.clone()].iter().zip(weights))
+        {
+            let ok = v.is_finite();
+            let (v, w) = if ok { (v, w) } else { (0.0, 0.0) };
+            *n += f32::from(u8::from(ok));
+            *sum += v;
+            *wsum += w;
+            *wv += w * v;
+        }
+        if NEAREST {
+            let best = self.rank[cols.clone()]
+                .iter_mut()
+                .zip(&mut self.nearest[cols]);
+            for ((rank, nearest), (&v, &r)) in
+                best.zip(row.values[taps.clone()].iter().zip(&row.ranks[taps]))
+            {
+                // Branch-free: which face is nearest varies from pixel to pixel.
+                let nearer = v.is_finite() & (r < *rank);
+                *rank = if nearer { r } else { *rank };
+                *nearest = if nearer { v } else { *nearest };
+            }
+        }
+    }
+}
+
+/// Which statistic of the valid samples a blend outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Statistic {
+    Nearest,
+    Mean,
+    Weighted,
+}
+
+impl RowStats {
+    fn get(&self, which: Statistic) -> &[f32] {
+        match which {
+            Statistic::Nearest => &self.nearest,
+            Statistic::Mean => &self.mean,
+            Statistic::Weighted => &self.weighted,
+        }
+    }
+}
+
+/// Blend every ERP row of per-tangent maps (N·h·w, NaN = invalid) into `disparity` (H·W) with
+/// the statistic `which` of the valid samples, and their spread into `spread` (H·W) if given.
+///
+/// # Panics
+/// If the outputs are not H·W long, or `tangents` or `weights` do not belong to `taps`.
+pub(crate) fn blend_rows(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: Option<&TapWeights>,
+    which: Statistic,
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    let ew = layout.erp_width;
+    assert!(disparity.len() == layout.erp_height * ew);
+    assert!(spread.as_ref().is_none_or(|s| s.len() == disparity.len()));
+    disparity
+        .par_chunks_mut(ew)
+        .zip(optional_chunks(spread, ew, layout.erp_height))
+        .enumerate()
+        .for_each_init(
+            || (RowSamples::default(), RowStats::default()),
+            |(samples, stats), (i, (out, out_spread))| {
+                let ranks = which == Statistic::Nearest;
+                samples.fill_from_taps(taps, tangents, weights, ranks, i);
+                stats.compute(samples, ew, out_spread.is_some());
+                out.copy_from_slice(stats.get(which));
+                if let Some(out_spread) = out_spread {
+                    out_spread.copy_from_slice(&stats.spread);
+                }
+            },
+        );
+}
+
+/// `count` chunks of `size` of `data`, or `count` Nones: an output that may be skipped, to zip
+/// with the chunks of one that may not.
+fn optional_chunks(
+    data: Option<&mut [f32]>,
+    size: usize,
+    count: usize,
+) -> rayon::vec::IntoIter<Option<&mut [f32]>> {
+    let chunks: Vec<Option<&mut [f32]>> = match data {
+        Some(d) => d.chunks_mut(size).map(Some).collect(),
+        None => (0..count).map(|_| None).collect(),
+    };
+    chunks.into_par_iter()
+}
+
+/// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (at the
+/// taps, from [`ErpTaps::weights_of`]): `disparity` (H·W) gets Σ w·v / Σ w over the valid
+/// samples (see [`RowStats::weighted`] for the fall-back), `spread` (H·W, if given) the
+/// population standard deviation of the valid samples.
 ///
 /// # Panics
 /// If the outputs are not H·W long.
@@ -167,22 +380,20 @@ pub fn weighted_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &[f32],
+    weights: &TapWeights,
     disparity: &mut [f32],
-    spread: &mut [f32],
+    spread: Option<&mut [f32]>,
 ) {
-    let ew = layout.erp_width;
-    assert!(disparity.len() == layout.erp_height * ew && spread.len() == disparity.len());
-    disparity
-        .par_chunks_mut(ew)
-        .zip(spread.par_chunks_mut(ew))
-        .enumerate()
-        .for_each(|(i, (out, out_spread))| {
-            taps.visit_row_weighted(tangents, weights, i, |j, samples| {
-                out[j] = weighted_value(samples);
-                out_spread[j] = spread_of(samples);
-            });
-        });
+    let which = Statistic::Weighted;
+    blend_rows(
+        taps,
+        layout,
+        tangents,
+        Some(weights),
+        which,
+        disparity,
+        spread,
+    );
 }
 
 // ---------------------------------------------------------------------------------------------
@@ -259,20 +470,7 @@ pub struct PoissonReport {
     pub unknowns: usize,
 }
 
-/// Per-pixel samples of one ERP row in compressed form.
-#[derive(Debug, Default)]
-struct RowSamples {
-    start: Vec<usize>,
-    samples: Vec<WeightedSample>,
-}
-
-impl RowSamples {
-    fn pixel(&self, j: usize) -> &[WeightedSample] {
-        &self.samples[self.start[j]..self.start[j + 1]]
-    }
-}
-
-/// Something that yields the (face, value, weight) samples of every pixel of an ERP row.
+/// Something that yields the samples of an ERP row, face by face.
 trait RowSource: Sync {
     fn fill(&self, i: usize, out: &mut RowSamples);
 }
@@ -281,23 +479,19 @@ trait RowSource: Sync {
 struct TapSource<'a> {
     taps: &'a ErpTaps,
     tangents: &'a [f32],
-    weights: &'a [f32],
+    weights: &'a TapWeights,
+    /// Whether the target needs the nearest face.
+    ranks: bool,
 }
 
 impl RowSource for TapSource<'_> {
     fn fill(&self, i: usize, out: &mut RowSamples) {
-        out.start.clear();
-        out.samples.clear();
-        out.start.push(0);
-        self.taps
-            .visit_row_weighted(self.tangents, self.weights, i, |_, s| {
-                out.samples.extend_from_slice(s);
-                out.start.push(out.samples.len());
-            });
+        out.fill_from_taps(self.taps, self.tangents, Some(self.weights), self.ranks, i);
     }
 }
 
-/// Samples from K maps already on the ERP grid (K·H·W values and weights, NaN = invalid).
+/// Samples from K maps already on the ERP grid (K·H·W values and weights, NaN = invalid):
+/// one full-row run per map, no ranks (the target is given).
 struct LayerSource<'a> {
     values: &'a [f32],
     weights: &'a [f32],
@@ -308,68 +502,99 @@ struct LayerSource<'a> {
 
 impl RowSource for LayerSource<'_> {
     fn fill(&self, i: usize, out: &mut RowSamples) {
-        out.start.clear();
-        out.samples.clear();
-        out.start.push(0);
-        let plane = self.height * self.width;
-        for j in 0..self.width {
-            for k in 0..self.layers {
-                let at = k * plane + i * self.width + j;
-                let value = self.values[at];
-                if value.is_finite() {
-                    out.samples.push(WeightedSample {
-                        face: k as u32,
-                        value,
-                        weight: self.weights[at],
-                    });
+        let (plane, w) = (self.height * self.width, self.width);
+        out.runs.clear();
+        out.values.clear();
+        out.weights.clear();
+        out.ranks.clear();
+        for k in 0..self.layers {
+            let row = k * plane + i * w..k * plane + (i + 1) * w;
+            out.runs.push(Run {
+                face: k as u32,
+                start: 0,
+                len: w as u32,
+                start_tap: (k * w) as u32,
+            });
+            out.values.extend_from_slice(&self.values[row.clone()]);
+            out.weights.extend_from_slice(&self.weights[row]);
+        }
+    }
+}
+
+/// Weight W = Σ ω_a and weighted target gradient G = Σ ω_a·(D_a(q) − D_a(p)) of every edge
+/// p → q of one ERP row, over the faces valid at both ends, with ω_a = (ω_a(p) + ω_a(q))/2
+/// taken where the forward difference lives, at the edge's midpoint. (Taking ω_a(p) alone
+/// would make the operator change when the image is flipped: the poles would no longer be
+/// treated alike.)
+#[derive(Debug, Default)]
+struct RowEdges {
+    weight: Vec<f64>,
+    gradient: Vec<f64>,
+}
+
+impl RowEdges {
+    fn reset(&mut self, width: usize) {
+        for v in [&mut self.weight, &mut self.gradient] {
+            v.clear();
+            v.resize(width, 0.0);
+        }
+    }
+
+    /// Add face term (value p, weight wp) → (value q, weight wq) to the edge at column `j`.
+    #[inline(always)]
+    fn add(&mut self, j: usize, (p, wp): (f32, f32), (q, wq): (f32, f32)) {
+        if p.is_finite() && q.is_finite() {
+            let w = 0.5 * (wp as f64 + wq as f64);
+            self.weight[j] += w;
+            self.gradient[j] += w * (q as f64 - p as f64);
+        }
+    }
+
+    /// The edges from each pixel of `row` to its right neighbour (column W−1 wraps to 0).
+    fn horizontal(&mut self, row: &RowSamples, width: usize) {
+        self.reset(width);
+        let at = |t: usize| (row.values[t], row.weight(t));
+        for run in &row.runs {
+            let taps = run.taps();
+            for (j, t) in run.columns().zip(taps.clone()).take(taps.len() - 1) {
+                self.add(j, at(t), at(t + 1));
+            }
+            if run.columns().end == width {
+                // The run goes on at column 0 of the same row, if the face sees it there.
+                let wrap = row.runs.iter().find(|r| r.face == run.face && r.start == 0);
+                if let Some(next) = wrap {
+                    self.add(width - 1, at(taps.end - 1), at(next.start_tap as usize));
                 }
             }
-            out.start.push(out.samples.len());
         }
     }
-}
 
-/// Weight and weighted target gradient of the edge p → q: W = Σ ω_a, G = Σ ω_a·(D_a(q) − D_a(p))
-/// over the faces valid at both ends, with ω_a = (ω_a(p) + ω_a(q))/2 taken where the forward
-/// difference lives, at the edge's midpoint. (Taking ω_a(p) alone would make the operator change
-/// when the image is flipped: the poles would no longer be treated alike.)
-#[inline]
-fn edge(p: &[WeightedSample], q: &[WeightedSample]) -> (f64, f64) {
-    let (mut wsum, mut g) = (0.0f64, 0.0f64);
-    for a in p {
-        if !a.value.is_finite() {
-            continue;
-        }
-        if let Some(b) = q.iter().find(|b| b.face == a.face && b.value.is_finite()) {
-            let w = 0.5 * (a.weight as f64 + b.weight as f64);
-            wsum += w;
-            g += w * (b.value as f64 - a.value as f64);
-        }
-    }
-    (wsum, g)
-}
-
-fn target_of(samples: &[WeightedSample], fidelity: Fidelity) -> f64 {
-    match fidelity {
-        Fidelity::Nearest => samples
-            .iter()
-            .find(|s| s.value.is_finite())
-            .map_or(f64::NAN, |s| s.value as f64),
-        Fidelity::Frustum => weighted_value(samples) as f64,
-        Fidelity::Mean => {
-            let (n, sum) = samples
-                .iter()
-                .filter(|s| s.value.is_finite())
-                .fold((0usize, 0.0f64), |(n, sum), s| {
-                    (n + 1, sum + s.value as f64)
-                });
-            if n == 0 {
-                f64::NAN
-            } else {
-                sum / n as f64
+    /// The edges from each pixel of `upper` to the one below it in `lower`.
+    fn vertical(&mut self, upper: &RowSamples, lower: &RowSamples, width: usize) {
+        self.reset(width);
+        for a in &upper.runs {
+            for b in lower.runs.iter().filter(|b| b.face == a.face) {
+                let (lo, hi) = (a.start.max(b.start), (a.start + a.len).min(b.start + b.len));
+                for j in lo..hi {
+                    let ta = (a.start_tap + j - a.start) as usize;
+                    let tb = (b.start_tap + j - b.start) as usize;
+                    self.add(
+                        j as usize,
+                        (upper.values[ta], upper.weight(ta)),
+                        (lower.values[tb], lower.weight(tb)),
+                    );
+                }
             }
         }
     }
+}
+
+fn target_of(stats: &RowStats, j: usize, fidelity: Fidelity) -> f64 {
+    f64::from(match fidelity {
+        Fidelity::Nearest => stats.nearest[j],
+        Fidelity::Frustum => stats.weighted[j],
+        Fidelity::Mean => stats.mean[j],
+    })
 }
 
 /// The assembled normal equations (λ_p I + L_W) x = λ_p t + div G on an H×W ERP grid.
@@ -416,80 +641,67 @@ fn assemble(
     let mut down = vec![0.0f32; n];
     let mut rhs = vec![0.0f64; n];
     let mut target = vec![0.0f64; n];
-    let mut spare = Vec::new();
-    let spread = match spread {
-        Some(s) => s,
-        None => {
-            spare = vec![0.0f32; n];
-            &mut spare[..]
-        }
-    };
     let chunk = ROWS_PER_CHUNK * width;
     right
         .par_chunks_mut(chunk)
         .zip(down.par_chunks_mut(chunk))
         .zip(rhs.par_chunks_mut(chunk))
         .zip(target.par_chunks_mut(chunk))
-        .zip(spread.par_chunks_mut(chunk))
+        .zip(optional_chunks(
+            spread,
+            chunk,
+            height.div_ceil(ROWS_PER_CHUNK),
+        ))
         .enumerate()
-        .for_each(|(c, ((((right, down), div), target), spread))| {
+        .for_each(|(c, ((((right, down), div), target), mut spread))| {
             let i0 = c * ROWS_PER_CHUNK;
             let rows = right.len() / width;
-            let fill = |i: usize, buf: &mut RowSamples| source.fill(i, buf);
-            let (mut prev, mut cur, mut next) = (
-                RowSamples::default(),
-                RowSamples::default(),
-                RowSamples::default(),
+            let (mut cur, mut next) = (RowSamples::default(), RowSamples::default());
+            let mut stats = RowStats::default();
+            let (mut across, mut below, mut above) = (
+                RowEdges::default(),
+                RowEdges::default(),
+                RowEdges::default(),
             );
-            fill(i0, &mut cur);
-            // Gradient of the edges entering this row from above (0 on row 0: no edge there).
-            let mut g_up = vec![0.0f64; width];
+            source.fill(i0, &mut cur);
+            // Edges entering this row from above (none on row 0).
+            above.reset(width);
             if i0 > 0 {
-                fill(i0 - 1, &mut prev);
-                for (j, g) in g_up.iter_mut().enumerate() {
-                    *g = edge(prev.pixel(j), cur.pixel(j)).1;
-                }
+                let mut prev = RowSamples::default();
+                source.fill(i0 - 1, &mut prev);
+                above.vertical(&prev, &cur, width);
             }
-            let mut g_right = vec![0.0f64; width];
-            let mut g_down = vec![0.0f64; width];
             for r in 0..rows {
                 let i = i0 + r;
-                let has_next = i + 1 < height;
-                if has_next {
-                    fill(i + 1, &mut next);
+                across.horizontal(&cur, width);
+                if i + 1 < height {
+                    source.fill(i + 1, &mut next);
+                    below.vertical(&cur, &next, width);
+                } else {
+                    below.reset(width);
                 }
+                stats.compute(&cur, width, spread.is_some());
                 let row = r * width..(r + 1) * width;
                 let (right, down) = (&mut right[row.clone()], &mut down[row.clone()]);
                 let (div, target) = (&mut div[row.clone()], &mut target[row.clone()]);
-                let spread = &mut spread[row];
+                if let Some(spread) = spread.as_deref_mut() {
+                    spread[row.clone()].copy_from_slice(&stats.spread);
+                }
                 for j in 0..width {
-                    let p = cur.pixel(j);
-                    let (w, g) = edge(p, cur.pixel((j + 1) % width));
-                    right[j] = w as f32;
-                    g_right[j] = g;
-                    let (w, g) = if has_next {
-                        edge(p, next.pixel(j))
-                    } else {
-                        (0.0, 0.0)
-                    };
-                    down[j] = w as f32;
-                    g_down[j] = g;
+                    right[j] = across.weight[j] as f32;
+                    down[j] = below.weight[j] as f32;
                     target[j] = match target_spec {
-                        Target::FromSamples(f) => target_of(p, f),
+                        Target::FromSamples(f) => target_of(&stats, j, f),
                         Target::Given(t) => t[i * width + j] as f64,
                     };
-                    spread[j] = spread_of(p);
-                }
-                for j in 0..width {
                     let left = (j + width - 1) % width;
-                    div[j] = g_right[left] - g_right[j] + g_up[j] - g_down[j];
+                    div[j] = across.gradient[left] - across.gradient[j] + above.gradient[j]
+                        - below.gradient[j];
                 }
-                std::mem::swap(&mut g_up, &mut g_down);
-                std::mem::swap(&mut prev, &mut cur);
+                std::mem::swap(&mut above, &mut below);
                 std::mem::swap(&mut cur, &mut next);
             }
         });
-    drop(spare);
     // diag and rhs need the left and upper neighbours' edges: a second, cheap pass.
     let mut diag = vec![0.0f64; n];
     diag.par_chunks_mut(width)
@@ -1036,7 +1248,8 @@ fn check_params(params: &PoissonParams) -> Result<()> {
 /// Poisson blend of per-tangent maps (N·h·w, NaN = invalid) through the plan's taps, with
 /// per-face gradient weights `weights` (the frustum maps): minimises
 /// Σ_a Σ_x ω_a(x)‖∇B(x) − ∇D_a(x)‖² + λ Σ_x (B(x) − T(x))² with T the fidelity target.
-/// `disparity` (H·W) gets B (NaN where no face is valid), `spread` the overlap disagreement.
+/// `disparity` (H·W) gets B (NaN where no face is valid), `spread` (if given) the overlap
+/// disagreement.
 ///
 /// ∇ is the forward difference on the ERP grid; for the edge x → x' the face term is
 /// ω̄_a·((B(x') − B(x)) − (D_a(x') − D_a(x)))² with ω̄_a = (ω_a(x) + ω_a(x'))/2, counted for the
@@ -1045,10 +1258,10 @@ pub fn poisson_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &[f32],
+    weights: &TapWeights,
     params: &PoissonParams,
     disparity: &mut [f32],
-    spread: &mut [f32],
+    spread: Option<&mut [f32]>,
 ) -> Result<PoissonReport> {
     check_params(params)?;
     let t0 = Instant::now();
@@ -1056,6 +1269,7 @@ pub fn poisson_blend(
         taps,
         tangents,
         weights,
+        ranks: params.fidelity == Fidelity::Nearest,
     };
     let (h, w) = (layout.erp_height, layout.erp_width);
     let system = assemble(
@@ -1064,7 +1278,7 @@ pub fn poisson_blend(
         w,
         params.lambda,
         Target::FromSamples(params.fidelity),
-        Some(spread),
+        spread,
     );
     let assemble_seconds = t0.elapsed().as_secs_f64();
     solve_assembled(system, params, assemble_seconds, disparity, None)
@@ -1191,15 +1405,24 @@ mod tests {
         let plan = Plan::new(layout(1024));
         let maps = weight_maps(plan.layout(), Weighting::Nearest);
         let ones = vec![1.0f32; maps.len()];
+        let tap_weights = plan.erp_taps().weights_of(&maps);
         let (mut total, mut exact) = (0usize, 0usize);
+        let (mut row, mut sums) = (RowSamples::default(), Vec::new());
         for i in 0..plan.layout().erp_height {
-            plan.erp_taps().visit_row_weighted(&ones, &maps, i, |_, s| {
-                let sum: f32 = s.iter().map(|s| s.weight).sum();
+            row.fill_from_taps(plan.erp_taps(), &ones, Some(&tap_weights), false, i);
+            sums.clear();
+            sums.resize(plan.layout().erp_width, 0.0f32);
+            for run in &row.runs {
+                for (j, t) in run.columns().zip(run.taps()) {
+                    sums[j] += row.weights[t];
+                }
+            }
+            for &sum in &sums {
                 total += 1;
                 exact += usize::from((sum - 1.0).abs() < 1e-4);
                 // Near the 12 vertices up to five faces mix: bounded, not exact.
                 assert!((0.0..2.0).contains(&sum), "{sum}");
-            });
+            }
         }
         assert!(exact as f64 > 0.93 * total as f64, "{exact} of {total}");
     }
@@ -1476,7 +1699,7 @@ mod tests {
                 })
             })
             .collect();
-        let weights = weight_maps(l, Weighting::Frustum);
+        let weights = plan.tap_weights(Weighting::Frustum);
         let n = l.erp_height * l.erp_width;
         let (mut mean, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
         crate::stitch::blend(
@@ -1485,17 +1708,17 @@ mod tests {
             &tangents,
             crate::stitch::Blend::Mean,
             &mut mean,
-            &mut spread,
+            Some(&mut spread),
         );
         let mut out = vec![0.0f32; n];
         let report = poisson_blend(
             plan.erp_taps(),
             l,
             &tangents,
-            &weights,
+            weights,
             &PoissonParams::default(),
             &mut out,
-            &mut spread,
+            Some(&mut spread),
         )
         .expect("solve");
         assert!(report.relative_residual <= 1e-6);
@@ -1514,7 +1737,6 @@ mod tests {
         let (h, w) = l.tangent_shape();
         let mut r = rng(3);
         let tangents: Vec<f32> = (0..20 * h * w).map(|_| (1.0 + 0.1 * r()) as f32).collect();
-        let weights = weight_maps(l, Weighting::Frustum);
         let n = l.erp_height * l.erp_width;
         let run = || {
             let (mut out, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
@@ -1523,10 +1745,10 @@ mod tests {
                 p.erp_taps(),
                 p.layout(),
                 &tangents,
-                &weights,
+                p.tap_weights(Weighting::Frustum),
                 &PoissonParams::default(),
                 &mut out,
-                &mut spread,
+                Some(&mut spread),
             )
             .expect("solve");
             out
@@ -1569,6 +1791,105 @@ mod tests {
         let weights: Vec<f32> = (0..3 * n).map(|_| r() as f32).collect();
         let target: Vec<f32> = (0..n).map(|_| (1.0 + 0.01 * r()) as f32).collect();
         (values, weights, target)
+    }
+
+    /// Median wall seconds of the tap walks at 2K (weighted and plain blends, Poisson assembly);
+    /// run with `cargo test --release -- --ignored --nocapture tap_walks`.
+    #[test]
+    #[ignore = "timing, not a check"]
+    fn tap_walks_at_2k() {
+        let width = std::env::var("M360_TAP_WIDTH").map_or(2048, |v| v.parse().expect("width"));
+        let plan = Plan::new(layout(width));
+        let l = plan.layout();
+        let (h, w) = l.tangent_shape();
+        let mut r = rng(9);
+        let tangents: Vec<f32> = (0..20 * h * w).map(|_| (1.0 + 0.1 * r()) as f32).collect();
+        let weights = plan.tap_weights(Weighting::Frustum);
+        let n = l.erp_height * l.erp_width;
+        let (mut out, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
+        let median = |f: &mut dyn FnMut()| {
+            let mut t: Vec<f64> = (0..9)
+                .map(|_| {
+                    let t0 = Instant::now();
+                    f();
+                    t0.elapsed().as_secs_f64()
+                })
+                .collect();
+            t.sort_by(f64::total_cmp);
+            t[4]
+        };
+        let t_frustum = median(&mut || {
+            weighted_blend(
+                plan.erp_taps(),
+                l,
+                &tangents,
+                weights,
+                &mut out,
+                Some(&mut spread),
+            )
+        });
+        let t_mean = median(&mut || {
+            crate::stitch::blend(
+                plan.erp_taps(),
+                l,
+                &tangents,
+                crate::stitch::Blend::Mean,
+                &mut out,
+                Some(&mut spread),
+            )
+        });
+        let source = TapSource {
+            taps: plan.erp_taps(),
+            tangents: &tangents,
+            weights,
+            ranks: false,
+        };
+        let t_assemble = median(&mut || {
+            let s = assemble(
+                &source,
+                l.erp_height,
+                l.erp_width,
+                0.1,
+                Target::FromSamples(Fidelity::Frustum),
+                Some(&mut spread),
+            );
+            assert_eq!(s.rhs.len(), n);
+        });
+        let runs: usize = (0..l.erp_height)
+            .map(|i| plan.erp_taps().runs(i).len())
+            .sum();
+        eprintln!("{} taps in {runs} runs", plan.erp_taps().len());
+        let t_sample = median(&mut || {
+            (0..l.erp_height)
+                .into_par_iter()
+                .for_each_init(Vec::new, |buf, i| {
+                    plan.erp_taps().sample(&tangents, i, buf);
+                })
+        });
+        let t_fill = median(&mut || {
+            (0..l.erp_height)
+                .into_par_iter()
+                .for_each_init(RowSamples::default, |row, i| {
+                    row.fill_from_taps(plan.erp_taps(), &tangents, Some(weights), false, i);
+                })
+        });
+        let mut rows: Vec<RowSamples> = (0..l.erp_height)
+            .map(|i| {
+                let mut row = RowSamples::default();
+                row.fill_from_taps(plan.erp_taps(), &tangents, Some(weights), false, i);
+                row
+            })
+            .collect();
+        let t_stats = median(&mut || {
+            rows.par_iter_mut()
+                .for_each_init(RowStats::default, |stats, row| {
+                    stats.compute(row, l.erp_width, true);
+                })
+        });
+        eprintln!(
+            "frustum {t_frustum:.4} s, mean {t_mean:.4} s, assemble {t_assemble:.4} s, \
+             sampling alone {t_sample:.4} s, fill {t_fill:.4} s, stats {t_stats:.4} s"
+        );
     }
 
     /// Times the pieces of the multigrid-preconditioned solve at 2K in on-CPU seconds (all

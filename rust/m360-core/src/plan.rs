@@ -3,7 +3,7 @@
 use crate::align::Overlaps;
 use crate::blend::{weight_maps, Weighting};
 use crate::layout::Layout;
-use crate::resample::{ErpTaps, TangentTaps};
+use crate::resample::{ErpTaps, TangentTaps, TapWeights};
 use std::sync::{Arc, Mutex, OnceLock};
 
 /// (sample fraction, pole cap) as bit patterns: the options overlap samples depend on.
@@ -20,8 +20,9 @@ pub struct Plan {
     erp_taps: OnceLock<ErpTaps>,
     /// Overlap samples per (sample fraction, pole cap) — a handful of option sets at most.
     overlaps: Mutex<Vec<(OverlapKey, Arc<Overlaps>)>>,
-    frustum_weights: OnceLock<Vec<f32>>,
-    radial_weights: OnceLock<Vec<f32>>,
+    /// Weights at every ERP tap, per [`Weighting`] (the weight maps themselves are not kept:
+    /// the blends only ever read them at the taps).
+    tap_weights: [OnceLock<TapWeights>; 4],
 }
 
 impl Plan {
@@ -32,8 +33,7 @@ impl Plan {
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
-            frustum_weights: OnceLock::new(),
-            radial_weights: OnceLock::new(),
+            tap_weights: Default::default(),
         }
     }
 
@@ -66,23 +66,27 @@ impl Plan {
         built
     }
 
-    /// Per-face blending weights (N·h·w, f32) of the weighted blends (built on first call);
-    /// `None` for the kinds no blend samples (nearest, mean: see [`weight_maps`]).
-    pub fn blend_weights(&self, kind: Weighting) -> Option<&[f32]> {
-        let cell = match kind {
-            Weighting::Frustum => &self.frustum_weights,
-            Weighting::Radial => &self.radial_weights,
-            Weighting::Nearest | Weighting::Mean => return None,
+    /// Blending weights of `kind` at every ERP tap (built on first call, with the ERP taps).
+    pub fn tap_weights(&self, kind: Weighting) -> &TapWeights {
+        let slot = match kind {
+            Weighting::Nearest => 0,
+            Weighting::Mean => 1,
+            Weighting::Radial => 2,
+            Weighting::Frustum => 3,
         };
-        Some(cell.get_or_init(|| weight_maps(&self.layout, kind)))
+        self.tap_weights[slot]
+            .get_or_init(|| self.erp_taps().weights_of(&weight_maps(&self.layout, kind)))
     }
 
     /// Bytes held by the maps built so far.
     pub fn memory_bytes(&self) -> usize {
-        let weights = |c: &OnceLock<Vec<f32>>| c.get().map_or(0, |v| v.len() * 4);
         self.tangent_taps.get().map_or(0, TangentTaps::memory_bytes)
             + self.erp_taps.get().map_or(0, ErpTaps::memory_bytes)
-            + weights(&self.frustum_weights)
-            + weights(&self.radial_weights)
+            + self
+                .tap_weights
+                .iter()
+                .filter_map(OnceLock::get)
+                .map(TapWeights::memory_bytes)
+                .sum::<usize>()
     }
 }

@@ -455,6 +455,31 @@ mod simd {
     }
 }
 
+/// Bilinear value of `stack` at top-left neighbour `k` (rows `w` apart) with the fractions of
+/// `tap`: along the rows, then down. NaN when any neighbour is NaN.
+///
+/// # Safety
+/// `k + w + 1 < stack.len()`: ERP taps point at a top-left neighbour with x0 ≤ w − 2 and
+/// y0 ≤ h − 2 of a face inside the stack they were built for.
+#[inline(always)]
+unsafe fn lerp_f32(stack: &[f32], k: usize, w: usize, tap: Tap) -> f32 {
+    debug_assert!(k + w + 1 < stack.len());
+    let fx = tap.fx as f32 * (1.0 / FRAC_SCALE);
+    let fy = tap.fy as f32 * (1.0 / FRAC_SCALE);
+    // SAFETY: see the function's contract.
+    let [tl, tr, bl, br] = unsafe {
+        [
+            *stack.get_unchecked(k),
+            *stack.get_unchecked(k + 1),
+            *stack.get_unchecked(k + w),
+            *stack.get_unchecked(k + w + 1),
+        ]
+    };
+    let top = tl + fx * (tr - tl);
+    let bottom = bl + fx * (br - bl);
+    top + fy * (bottom - top)
+}
+
 /// Most tangents one ERP pixel can be seen by (the icosahedron layout needs 5).
 const MAX_FACES_PER_PIXEL: usize = 16;
 
@@ -523,85 +548,126 @@ fn erp_index_wrapped(i: i64, j: i64, height: usize, width: usize) -> u32 {
     (i * w + j.rem_euclid(w)) as u32
 }
 
+/// Consecutive pixels of one ERP row that one face sees: columns `start..start + len`, whose
+/// taps are `start_tap..start_tap + len` of the row (see [`ErpTaps::runs`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct Run {
+    /// Index of the tangent (camera) in the layout.
+    pub face: u32,
+    /// First ERP column.
+    pub start: u32,
+    /// Number of columns (≥ 1).
+    pub len: u32,
+    /// Index of the first column's tap (and sample) in the row.
+    pub start_tap: u32,
+}
+
+impl Run {
+    /// The run's columns.
+    #[inline]
+    pub fn columns(&self) -> std::ops::Range<usize> {
+        self.start as usize..(self.start + self.len) as usize
+    }
+
+    /// The run's taps (and samples) in the row.
+    #[inline]
+    pub fn taps(&self) -> std::ops::Range<usize> {
+        self.start_tap as usize..(self.start_tap + self.len) as usize
+    }
+}
+
+/// ERP taps keep the tap's nearness rank at its pixel (0: the face whose axis is nearest) in
+/// the index's top bits; the rest is the offset of the top-left neighbour within the face.
+const RANK_SHIFT: u32 = 28;
+const OFFSET_MASK: u32 = (1 << RANK_SHIFT) - 1;
+
 /// Tangents → ERP map: for every ERP pixel, the tangent images that see it and where.
 ///
-/// Stored per ERP pixel (a compressed-row layout), so blending runs over ERP rows in parallel
-/// without write conflicts and per-face data is never expanded to ERP size. Each pixel's taps are
-/// ordered by angular distance from the camera axis, nearest first: the first valid tap is the
-/// nearest face (for the icosahedron, the face whose triangle contains the pixel).
+/// Stored face by face within each ERP row: a row is a list of [`Run`]s (sorted by face, then
+/// column) over one array of taps. Blending walks a face's consecutive pixels without
+/// per-pixel branching, the per-face images of `tangents_to_erp` are written as whole runs,
+/// and the Poisson blend finds a face's neighbour sample one tap along. Per-face data is never
+/// expanded to ERP size. Each tap carries its rank among the faces that see the pixel, nearest
+/// axis first (for the icosahedron, rank 0 is the face whose triangle contains the pixel).
 #[derive(Debug, Clone)]
 pub struct ErpTaps {
     /// Number of taps of each ERP pixel.
     counts: Vec<u8>,
-    /// Per ERP row, its pixels' taps into the flat tangent stack (face·h·w + y·w + x of the
-    /// top-left neighbour). Kept as built, row by row: gathering them into one array would
-    /// cost a second copy of the largest structure of the plan.
-    rows: Vec<Vec<Tap>>,
+    /// Per ERP row, its runs and taps. Kept as built, row by row: gathering them into one
+    /// array would cost a second copy of the largest structure of the plan.
+    rows: Vec<ErpRow>,
     tangent_width: usize,
     tangent_pixels: usize,
     faces: usize,
-    erp_width: usize,
+}
+
+#[derive(Debug, Clone, Default)]
+struct ErpRow {
+    runs: Vec<Run>,
+    taps: Vec<Tap>,
 }
 
 impl ErpTaps {
     /// Taps for every ERP pixel of `layout`.
     pub fn build(layout: &Layout) -> Self {
         let (h, w) = layout.tangent_shape();
+        assert!(
+            h * w <= OFFSET_MASK as usize,
+            "tangent images too large for ERP taps"
+        );
         let (eh, ew) = (layout.erp_height, layout.erp_width);
         let grid = ErpGrid::new(eh, ew);
-        // A direction outside a camera's bounding cone cannot land on its image: per row, the
-        // latitude gap to the axis rejects about half the cameras, and per pixel one dot product
-        // rejects most of the rest before any projection.
-        let cones: Vec<(nalgebra::Vector3<f64>, f64, f64, f64)> = layout
-            .cameras
-            .iter()
-            .map(|cam| {
-                let (axis, min_cos) = (cam.axis(), cone_cosine(cam));
-                (axis, min_cos, (-axis.y).asin(), min_cos.acos())
-            })
-            .collect();
-        let rows: Vec<(Vec<u8>, Vec<Tap>)> = (0..eh)
+        let cones: Vec<Cone> = layout.cameras.iter().map(Cone::of).collect();
+        let rows: Vec<(Vec<u8>, ErpRow)> = (0..eh)
             .into_par_iter()
             .map(|i| {
                 let lat = crate::sphere::row_latitude(i as f64, eh);
-                let candidates: Vec<usize> = (0..cones.len())
-                    .filter(|&k| (lat - cones[k].2).abs() <= cones[k].3 + 1e-9)
-                    .collect();
-                let mut counts = Vec::with_capacity(ew);
-                // Four faces see a pixel on average; the row vector is sized once.
-                let mut taps = Vec::with_capacity(ew * 4);
-                let mut seen = [(0.0f64, Tap::default()); MAX_FACES_PER_PIXEL];
-                for j in 0..ew {
-                    let d = grid.direction(i, j);
-                    let mut n = 0;
-                    for &k in &candidates {
-                        let (axis, min_cos, _, _) = &cones[k];
-                        let cos = axis.dot(&d);
-                        if cos < *min_cos || n == MAX_FACES_PER_PIXEL {
-                            continue;
-                        }
-                        if let Some(tap) = tangent_tap(&layout.cameras[k], &d, k * h * w) {
-                            // Insertion keeps the pixel's taps nearest-axis first.
-                            let mut at = n;
-                            while at > 0 && seen[at - 1].0 < cos {
-                                seen[at] = seen[at - 1];
-                                at -= 1;
+                let mut counts = vec![0u8; ew];
+                let mut row = ErpRow::default();
+                // Four faces see a pixel on average.
+                row.taps.reserve(ew * 4);
+                let mut cosines: Vec<f64> = Vec::with_capacity(ew * 4);
+                for (k, (cone, cam)) in cones.iter().zip(&layout.cameras).enumerate() {
+                    for columns in cone.columns(lat, ew) {
+                        let mut open = false;
+                        for j in columns {
+                            let d = grid.direction(i, j);
+                            let cos = cone.axis.dot(&d);
+                            let tap = (cos >= cone.min_cos
+                                && (counts[j] as usize) < MAX_FACES_PER_PIXEL)
+                                .then(|| tangent_tap(cam, &d, 0))
+                                .flatten();
+                            let Some(tap) = tap else {
+                                open = false;
+                                continue;
+                            };
+                            if !open {
+                                row.runs.push(Run {
+                                    face: k as u32,
+                                    start: j as u32,
+                                    len: 0,
+                                    start_tap: row.taps.len() as u32,
+                                });
+                                open = true;
                             }
-                            seen[at] = (cos, tap);
-                            n += 1;
+                            if let Some(run) = row.runs.last_mut() {
+                                run.len += 1;
+                            }
+                            row.taps.push(tap);
+                            cosines.push(cos);
+                            counts[j] += 1;
                         }
                     }
-                    taps.extend(seen[..n].iter().map(|s| s.1));
-                    counts.push(n as u8);
                 }
-                (counts, taps)
+                rank_taps(&mut row, &cosines, &counts);
+                (counts, row)
             })
             .collect();
         let mut counts = Vec::with_capacity(eh * ew);
         let mut taps = Vec::with_capacity(eh);
-        for (row_counts, row_taps) in rows {
+        for (row_counts, row) in rows {
             counts.extend(row_counts);
-            taps.push(row_taps);
+            taps.push(row);
         }
         Self {
             counts,
@@ -609,23 +675,25 @@ impl ErpTaps {
             tangent_width: w,
             tangent_pixels: h * w,
             faces: layout.cameras.len(),
-            erp_width: ew,
         }
     }
 
     /// Bytes held by the map.
     pub fn memory_bytes(&self) -> usize {
-        self.len() * std::mem::size_of::<Tap>() + self.counts.len() + self.rows.len() * 24
+        let per_row = |r: &ErpRow| {
+            r.taps.len() * std::mem::size_of::<Tap>() + r.runs.len() * std::mem::size_of::<Run>()
+        };
+        self.rows.iter().map(|r| per_row(r) + 48).sum::<usize>() + self.counts.len()
     }
 
     /// Total number of (ERP pixel, tangent) pairs.
     pub fn len(&self) -> usize {
-        self.rows.iter().map(Vec::len).sum()
+        self.rows.iter().map(|r| r.taps.len()).sum()
     }
 
     /// Whether no ERP pixel is seen by any tangent.
     pub fn is_empty(&self) -> bool {
-        self.rows.iter().all(Vec::is_empty)
+        self.rows.iter().all(|r| r.taps.is_empty())
     }
 
     /// Number of tangents that see each ERP pixel (H·W, row-major).
@@ -633,116 +701,178 @@ impl ErpTaps {
         &self.counts
     }
 
-    /// The (face, bilinear value) samples of every pixel of ERP row `i`, in pixel order: calls
-    /// `visit(j, samples)` with the samples of pixel (i, j), nearest face first. A sample is NaN
-    /// when any of its four tangent neighbours is NaN.
-    ///
-    /// # Panics
-    /// If `tangents` is not the size the taps were built for (the bindings check shapes first).
-    #[inline]
-    pub fn visit_row(&self, tangents: &[f32], i: usize, visit: impl FnMut(usize, &[(usize, f32)])) {
-        self.assert_stack(tangents, "tangent");
-        // SAFETY: `tangents` has the size the taps were built for (asserted above).
-        let sample = |tap: Tap| {
-            (tap.index as usize / self.tangent_pixels, unsafe {
-                self.lerp(tangents, tap)
-            })
-        };
-        self.walk_row(tangents, i, sample, visit);
+    /// The runs of ERP row `i`, sorted by face, then column.
+    pub fn runs(&self, i: usize) -> &[Run] {
+        &self.rows[i].runs
     }
 
-    /// Like [`ErpTaps::visit_row`], but each sample also carries the bilinear value of a second
-    /// per-tangent map (`weights`, same layout as `tangents`) at the same position: the blending
-    /// weight of that face there. Calls `visit(j, samples)` nearest face first.
-    ///
-    /// # Panics
-    /// If `tangents` or `weights` is not the size the taps were built for.
-    #[inline]
-    pub fn visit_row_weighted(
-        &self,
-        tangents: &[f32],
-        weights: &[f32],
-        i: usize,
-        visit: impl FnMut(usize, &[WeightedSample]),
-    ) {
-        self.assert_stack(tangents, "tangent");
-        self.assert_stack(weights, "weight");
-        let sample = |tap: Tap| WeightedSample {
-            face: (tap.index as usize / self.tangent_pixels) as u32,
-            // SAFETY: both stacks have the size the taps were built for (asserted above).
-            value: unsafe { self.lerp(tangents, tap) },
-            weight: unsafe { self.lerp(weights, tap) },
-        };
-        self.walk_row(tangents, i, sample, visit);
-    }
-
-    fn assert_stack(&self, stack: &[f32], what: &str) {
-        assert_eq!(
-            stack.len(),
-            self.tangent_pixels * self.faces,
-            "{what} stack size mismatch"
+    /// Nearness rank (0 = nearest axis) of every tap of ERP row `i`, in tap order, into `out`.
+    pub fn ranks(&self, i: usize, out: &mut Vec<u8>) {
+        out.clear();
+        out.extend(
+            self.rows[i]
+                .taps
+                .iter()
+                .map(|t| (t.index >> RANK_SHIFT) as u8),
         );
     }
 
-    /// Bilinear value of a tangent stack at `tap`.
+    /// The bilinear value of a tangent stack (N·h·w) at every tap of ERP row `i`, in tap order,
+    /// into `out`: NaN when any of the four neighbours is NaN.
     ///
-    /// # Safety
-    /// `stack` must be faces·h·w long: taps point at a top-left neighbour with x0 ≤ w − 2 and
-    /// y0 ≤ h − 2 of a face < faces, so all four neighbours are then in bounds.
-    #[inline(always)]
-    unsafe fn lerp(&self, stack: &[f32], tap: Tap) -> f32 {
-        let (k, w, wts) = (tap.index as usize, self.tangent_width, tap.weights());
-        debug_assert!(k + w + 1 < stack.len());
-        // SAFETY: see the function's contract.
-        unsafe {
-            wts[0] * stack.get_unchecked(k)
-                + wts[1] * stack.get_unchecked(k + 1)
-                + wts[2] * stack.get_unchecked(k + w)
-                + wts[3] * stack.get_unchecked(k + w + 1)
+    /// # Panics
+    /// If `stack` is not the size the taps were built for (the bindings check shapes first).
+    #[inline]
+    pub fn sample(&self, stack: &[f32], i: usize, out: &mut Vec<f32>) {
+        assert_eq!(
+            stack.len(),
+            self.tangent_pixels * self.faces,
+            "tangent stack size mismatch"
+        );
+        let row = &self.rows[i];
+        let w = self.tangent_width;
+        out.clear();
+        out.resize(row.taps.len(), 0.0);
+        for run in &row.runs {
+            let base = run.face as usize * self.tangent_pixels;
+            let (taps, out) = (&row.taps[run.taps()], &mut out[run.taps()]);
+            for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
+                if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
+                    let k = base + (ahead.index & OFFSET_MASK) as usize;
+                    prefetch(stack, k);
+                    prefetch(stack, k + w);
+                }
+                // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the
+                // size asserted above.
+                *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
+            }
         }
     }
 
-    /// Walk ERP row `i`: for each pixel, `sample` each of its taps (nearest face first) and
-    /// `visit(j, samples)`; the tangent rows of taps further along are prefetched from `ahead_in`.
-    #[inline(always)]
-    fn walk_row<S>(
-        &self,
-        ahead_in: &[f32],
-        i: usize,
-        mut sample: impl FnMut(Tap) -> S,
-        mut visit: impl FnMut(usize, &[S]),
-    ) {
-        let w = self.tangent_width;
-        let row = &self.rows[i];
-        let counts = &self.counts[i * self.erp_width..(i + 1) * self.erp_width];
-        let mut at = 0;
-        let mut samples: Vec<S> = Vec::with_capacity(MAX_FACES_PER_PIXEL);
-        for (j, &n) in counts.iter().enumerate() {
-            let n = n as usize;
-            samples.clear();
-            for (t, &tap) in row[at..at + n].iter().enumerate() {
-                if let Some(ahead) = row.get(at + t + PREFETCH_DISTANCE) {
-                    let k = ahead.index as usize;
-                    prefetch(ahead_in, k);
-                    prefetch(ahead_in, k + w);
-                }
-                samples.push(sample(tap));
-            }
-            at += n;
-            visit(j, &samples);
+    /// The bilinear value of per-face weight maps (N·h·w, same layout as a tangent stack) at
+    /// every tap: what the weighted blends read instead of interpolating the maps per image.
+    ///
+    /// # Panics
+    /// If `maps` is not the size the taps were built for.
+    pub fn weights_of(&self, maps: &[f32]) -> TapWeights {
+        let rows = (0..self.rows.len())
+            .into_par_iter()
+            .map(|i| {
+                let mut row = Vec::new();
+                self.sample(maps, i, &mut row);
+                row
+            })
+            .collect();
+        TapWeights { rows }
+    }
+}
+
+/// Per-tap blending weights of one [`ErpTaps`] (same row-by-row tap order), from
+/// [`ErpTaps::weights_of`].
+#[derive(Debug, Clone)]
+pub struct TapWeights {
+    rows: Vec<Vec<f32>>,
+}
+
+impl TapWeights {
+    /// The weights of the taps of ERP row `i`, in tap order.
+    pub fn row(&self, i: usize) -> &[f32] {
+        &self.rows[i]
+    }
+
+    /// Bytes held.
+    pub fn memory_bytes(&self) -> usize {
+        self.rows.iter().map(|r| r.len() * 4 + 24).sum()
+    }
+}
+
+/// Set each tap's nearness rank at its pixel: taps sorted by the cosine to their camera's
+/// axis, largest first, ties to the lower face index (the order faces were visited in).
+fn rank_taps(row: &mut ErpRow, cosines: &[f64], counts: &[u8]) {
+    // The taps of each pixel, in face order, as a compressed-row list.
+    let mut first = Vec::with_capacity(counts.len() + 1);
+    let mut total = 0usize;
+    first.push(0);
+    for &n in counts {
+        total += n as usize;
+        first.push(total);
+    }
+    let mut fill = first.clone();
+    let mut by_pixel = vec![0u32; total];
+    for run in &row.runs {
+        for (j, t) in run.columns().zip(run.taps()) {
+            by_pixel[fill[j]] = t as u32;
+            fill[j] += 1;
+        }
+    }
+    for j in 0..counts.len() {
+        let taps = &mut by_pixel[first[j]..first[j + 1]];
+        // Stable: equal cosines keep face order.
+        taps.sort_by(|&a, &b| cosines[b as usize].total_cmp(&cosines[a as usize]));
+        for (rank, &t) in taps.iter().enumerate() {
+            row.taps[t as usize].index |= (rank as u32) << RANK_SHIFT;
         }
     }
 }
 
-/// One tangent's bilinear value at an ERP pixel, with that tangent's blending weight there.
-#[derive(Debug, Clone, Copy, PartialEq)]
-pub struct WeightedSample {
-    /// Index of the tangent (camera) in the layout.
-    pub face: u32,
-    /// Bilinear value; NaN when any of the four neighbours is NaN.
-    pub value: f32,
-    /// Bilinear weight of the face at the same position.
-    pub weight: f32,
+/// The cone around a camera's axis that holds every ray through its image.
+struct Cone {
+    axis: nalgebra::Vector3<f64>,
+    min_cos: f64,
+    /// Latitude and longitude of the axis.
+    lat: f64,
+    lon: f64,
+}
+
+impl Cone {
+    fn of(cam: &TangentCamera) -> Self {
+        let axis = cam.axis();
+        Self {
+            axis,
+            min_cos: cone_cosine(cam),
+            lat: (-axis.y).asin(),
+            lon: axis.x.atan2(axis.z),
+        }
+    }
+
+    /// The columns of an ERP row at latitude `lat` (W columns) that may lie inside the cone, as
+    /// two ascending ranges, either may be empty (a superset: one column of margin each side).
+    fn columns(&self, lat: f64, width: usize) -> [std::ops::Range<usize>; 2] {
+        const NONE: std::ops::Range<usize> = 0..0;
+        // cos(angle to axis) = sin φ sin φ_a + cos φ cos φ_a cos(λ − λ_a) ≥ min_cos.
+        let (sp, cp) = lat.sin_cos();
+        let (sa, ca) = self.lat.sin_cos();
+        let denom = cp * ca;
+        let half = if denom <= 1e-12 {
+            // At a pole (of the row or the axis) every column has the same angle.
+            if sp * sa >= self.min_cos - 1e-9 {
+                std::f64::consts::PI
+            } else {
+                return [NONE, NONE];
+            }
+        } else {
+            let c = (self.min_cos - sp * sa) / denom;
+            if c > 1.0 + 1e-9 {
+                return [NONE, NONE];
+            }
+            c.clamp(-1.0, 1.0).acos()
+        };
+        let per_radian = width as f64 / std::f64::consts::TAU;
+        let centre = (self.lon + std::f64::consts::PI) * per_radian - 0.5;
+        let lo = (centre - half * per_radian).floor() as i64 - 1;
+        let hi = (centre + half * per_radian).ceil() as i64 + 1; // inclusive
+        let w = width as i64;
+        if hi - lo + 1 >= w {
+            return [0..width, NONE];
+        }
+        let a = lo.rem_euclid(w);
+        let b = a + (hi - lo);
+        if b < w {
+            [a as usize..(b + 1) as usize, NONE]
+        } else {
+            [0..(b + 1 - w) as usize, a as usize..width]
+        }
+    }
 }
 
 /// Cosine of the widest angle between the axis of `cam` and a ray through its image (a corner),
@@ -797,30 +927,41 @@ pub fn erp_to_tangents<T: Texel>(
 /// Each tangent image mapped onto the ERP grid: `out` (N, H, W) is overwritten, NaN where a face
 /// does not see the pixel (or a bilinear neighbour is NaN).
 ///
+/// One pass over the output: each row of each face plane is written once, runs and NaN gaps in
+/// column order, while the row's samples are still in cache.
+///
 /// # Panics
-/// If `out` is not N·H·W long.
+/// If `out` is not N·H·W long or `tangents` not N·h·w.
 pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32], out: &mut [f32]) {
     let (eh, ew) = (layout.erp_height, layout.erp_width);
-    let plane = eh * ew;
+    let (faces, plane) = (layout.cameras.len(), eh * ew);
     assert_eq!(
         out.len(),
-        layout.cameras.len() * plane,
+        faces * plane,
         "output size does not match the plan"
     );
-    out.par_chunks_mut(1 << 16)
-        .for_each(|chunk| chunk.fill(f32::NAN));
     let ptr = SharedMut(out.as_mut_ptr());
-    (0..eh).into_par_iter().for_each(|i| {
-        let ptr = &ptr;
-        taps.visit_row(tangents, i, |j, samples| {
-            for &(face, v) in samples {
-                // SAFETY: face < N, i < H and j < W, so the index is in bounds (length asserted
-                // above); each (face, i, j) element is written by exactly one iteration (rows are
-                // disjoint across threads, a face appears once per pixel).
-                unsafe { *ptr.0.add(face * plane + i * ew + j) = v };
+    (0..eh)
+        .into_par_iter()
+        .for_each_init(Vec::new, |values, i| {
+            let ptr = &ptr;
+            taps.sample(tangents, i, values);
+            let mut runs = taps.runs(i).iter().peekable();
+            for face in 0..faces {
+                // SAFETY: face < N and i < H, so the row lies inside `out` (length asserted
+                // above); each (face, row) is written by exactly one iteration, so no two
+                // slices alias.
+                let row =
+                    unsafe { std::slice::from_raw_parts_mut(ptr.0.add(face * plane + i * ew), ew) };
+                let mut at = 0;
+                while let Some(run) = runs.next_if(|r| r.face as usize == face) {
+                    row[at..run.start as usize].fill(f32::NAN);
+                    row[run.columns()].copy_from_slice(&values[run.taps()]);
+                    at = run.columns().end;
+                }
+                row[at..].fill(f32::NAN);
             }
         });
-    });
 }
 
 /// A raw pointer that may be shared between threads for provably disjoint writes.
@@ -844,6 +985,65 @@ mod tests {
             let expected = (k - base) as f64 * 512.0 / 5.0;
             let diff = (shift - expected).rem_euclid(512.0);
             assert!(diff.min(512.0 - diff) < 1e-9, "camera {k}: shift {shift}");
+        }
+    }
+
+    /// The runs hold exactly the taps a brute-force search over every camera finds, each
+    /// pixel's taps ranked by angle to the axis, and runs are sorted, disjoint and unwrapped.
+    #[test]
+    fn runs_match_a_brute_force_search() {
+        for (width, padding) in [(256, 0.3), (300, 0.0), (512, 0.6)] {
+            let layout = Layout::icosahedron(width, padding, None).expect("layout");
+            let taps = ErpTaps::build(&layout);
+            let (eh, ew) = (layout.erp_height, layout.erp_width);
+            let grid = ErpGrid::new(eh, ew);
+            for i in 0..eh {
+                let runs = taps.runs(i);
+                let row = &taps.rows[i];
+                assert!(runs
+                    .windows(2)
+                    .all(|p| (p[0].face, p[0].start + p[0].len) <= (p[1].face, p[1].start)));
+                assert!(runs
+                    .iter()
+                    .all(|r| r.len > 0 && (r.start + r.len) as usize <= ew));
+                // (face, tap, rank) per pixel from the runs...
+                let mut got = vec![Vec::new(); ew];
+                for run in runs {
+                    for (j, t) in run.columns().zip(run.taps()) {
+                        let tap = row.taps[t];
+                        let rank = tap.index >> RANK_SHIFT;
+                        got[j].push((
+                            run.face as usize,
+                            tap.index & OFFSET_MASK,
+                            tap.fx,
+                            tap.fy,
+                            rank,
+                        ));
+                    }
+                }
+                // ... and from every camera, ranked by the cosine to its axis.
+                for (j, got) in got.iter_mut().enumerate() {
+                    let d = grid.direction(i, j);
+                    let mut want: Vec<(f64, usize, Tap)> = layout
+                        .cameras
+                        .iter()
+                        .enumerate()
+                        .filter_map(|(k, cam)| {
+                            Some((-cam.axis().dot(&d), k, tangent_tap(cam, &d, 0)?))
+                        })
+                        .collect();
+                    want.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
+                    let mut want: Vec<_> = want
+                        .iter()
+                        .enumerate()
+                        .map(|(rank, &(_, k, tap))| (k, tap.index, tap.fx, tap.fy, rank as u32))
+                        .collect();
+                    want.sort();
+                    got.sort();
+                    assert_eq!(*got, want, "width {width}, pixel ({i}, {j})");
+                    assert_eq!(taps.counts()[i * ew + j] as usize, got.len());
+                }
+            }
         }
     }
 

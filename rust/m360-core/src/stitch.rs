@@ -1,5 +1,6 @@
 //! From per-tangent perspective disparity to one ERP spherical disparity map: the simple blends.
 
+use crate::blend::{blend_rows, Statistic};
 use crate::layout::Layout;
 use crate::resample::ErpTaps;
 use rayon::prelude::*;
@@ -50,7 +51,7 @@ pub fn spherical_disparity(
 }
 
 /// Blend per-tangent maps (N·h·w, NaN = invalid) onto the ERP grid of `layout`: `disparity`
-/// (H·W) gets the blend, NaN where no tangent has a valid sample; `spread` (H·W) the population
+/// (H·W) gets the blend, NaN where no tangent has a valid sample; `spread` (H·W, if given) the population
 /// standard deviation of the valid samples (0 with one, NaN with none).
 ///
 /// # Panics
@@ -61,41 +62,13 @@ pub fn blend(
     tangents: &[f32],
     mode: Blend,
     disparity: &mut [f32],
-    spread: &mut [f32],
+    spread: Option<&mut [f32]>,
 ) {
-    let (eh, ew) = (layout.erp_height, layout.erp_width);
-    assert!(disparity.len() == eh * ew && spread.len() == eh * ew);
-    disparity
-        .par_chunks_mut(ew)
-        .zip(spread.par_chunks_mut(ew))
-        .enumerate()
-        .for_each(|(i, (out, out_spread))| {
-            taps.visit_row(tangents, i, |j, samples| {
-                let (mut n, mut sum, mut sum_sq) = (0usize, 0.0f64, 0.0f64);
-                let mut nearest = f32::NAN;
-                for &(_, v) in samples {
-                    if v.is_finite() {
-                        if n == 0 {
-                            nearest = v;
-                        }
-                        n += 1;
-                        sum += v as f64;
-                        sum_sq += (v as f64) * (v as f64);
-                    }
-                }
-                if n == 0 {
-                    out[j] = f32::NAN;
-                    out_spread[j] = f32::NAN;
-                } else {
-                    let mean = sum / n as f64;
-                    out[j] = match mode {
-                        Blend::Mean => mean as f32,
-                        Blend::Nearest => nearest,
-                    };
-                    out_spread[j] = (sum_sq / n as f64 - mean * mean).max(0.0).sqrt() as f32;
-                }
-            });
-        });
+    let which = match mode {
+        Blend::Mean => Statistic::Mean,
+        Blend::Nearest => Statistic::Nearest,
+    };
+    blend_rows(taps, layout, tangents, None, which, disparity, spread);
 }
 
 /// [`blend`] into new vectors: (disparity, spread).
@@ -107,7 +80,14 @@ pub fn blend_to_vec(
 ) -> (Vec<f32>, Vec<f32>) {
     let n = layout.erp_height * layout.erp_width;
     let (mut disparity, mut spread) = (vec![0.0; n], vec![0.0; n]);
-    blend(taps, layout, tangents, mode, &mut disparity, &mut spread);
+    blend(
+        taps,
+        layout,
+        tangents,
+        mode,
+        &mut disparity,
+        Some(&mut spread),
+    );
     (disparity, spread)
 }
 

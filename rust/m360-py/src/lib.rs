@@ -586,10 +586,10 @@ impl Plan {
 
     /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with `blend` in
     /// {"mean", "nn", "radial", "frustum", "poisson"}: (disparity (H,W) float32, spread (H,W)
-    /// float32, report dict). `fidelity` ("nn", "frustum", "mean"), `lam`, `tol` and
-    /// `max_iterations` apply to "poisson" only.
+    /// float32 or None without `spread`, report dict). `fidelity` ("nn", "frustum", "mean"),
+    /// `lam`, `tol` and `max_iterations` apply to "poisson" only.
     #[pyo3(signature = (tangents, blend, fidelity="frustum", lam=0.1,
-                        tol=1e-6, max_iterations=2000, solver="multigrid"))]
+                        tol=1e-6, max_iterations=2000, solver="multigrid", spread=true))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn blend<'py>(
         &self,
@@ -601,9 +601,10 @@ impl Plan {
         tol: f64,
         max_iterations: usize,
         solver: &str,
+        spread: bool,
     ) -> PyResult<(
         Bound<'py, PyArrayDyn<f32>>,
-        Bound<'py, PyArrayDyn<f32>>,
+        Option<Bound<'py, PyArrayDyn<f32>>>,
         Bound<'py, PyDict>,
     )> {
         enum Mode {
@@ -633,12 +634,15 @@ impl Plan {
         self.check_tangents("tangents", tangents.shape())?;
         let data = contiguous(&tangents, "tangents")?;
         let shape = [layout.erp_height, layout.erp_width];
-        let (disparity, spread) = (output_array(py, &shape)?, output_array(py, &shape)?);
+        let disparity = output_array(py, &shape)?;
+        let spread = spread.then(|| output_array(py, &shape)).transpose()?;
         let report = PyDict::new(py);
         report.set_item("mode", blend)?;
         let poisson = {
-            let (mut rw_d, mut rw_s) = (disparity.readwrite(), spread.readwrite());
-            let (dst_d, dst_s) = (writable(&mut rw_d)?, writable(&mut rw_s)?);
+            let mut rw_d = disparity.readwrite();
+            let mut rw_s = spread.as_ref().map(|s| s.readwrite());
+            let dst_d = writable(&mut rw_d)?;
+            let dst_s = rw_s.as_mut().map(writable).transpose()?;
             let plan = &self.inner;
             detached(py, || match &mode {
                 Mode::Simple(m) => {
@@ -646,30 +650,26 @@ impl Plan {
                     Ok(None)
                 }
                 Mode::Weighted(kind) => {
-                    let weights = plan.blend_weights(*kind).unwrap_or_default();
                     core_blend::weighted_blend(
                         plan.erp_taps(),
                         layout,
                         data,
-                        weights,
+                        plan.tap_weights(*kind),
                         dst_d,
                         dst_s,
                     );
                     Ok(None)
                 }
-                Mode::Poisson(params) => {
-                    let weights = plan.blend_weights(Weighting::Frustum).unwrap_or_default();
-                    core_blend::poisson_blend(
-                        plan.erp_taps(),
-                        layout,
-                        data,
-                        weights,
-                        params,
-                        dst_d,
-                        dst_s,
-                    )
-                    .map(Some)
-                }
+                Mode::Poisson(params) => core_blend::poisson_blend(
+                    plan.erp_taps(),
+                    layout,
+                    data,
+                    plan.tap_weights(Weighting::Frustum),
+                    params,
+                    dst_d,
+                    dst_s,
+                )
+                .map(Some),
             })?
             .map_err(PyCoreError)?
         };
@@ -689,10 +689,7 @@ impl Plan {
         let kind = parse_weighting(kind)?;
         let layout = self.inner.layout();
         let (h, w) = layout.tangent_shape();
-        let data = detached(py, || match self.inner.blend_weights(kind) {
-            Some(cached) => cached.to_vec(),
-            None => core_blend::weight_maps(layout, kind),
-        })?;
+        let data = detached(py, || core_blend::weight_maps(layout, kind))?;
         to_numpy(py, data, &[layout.cameras.len(), h, w])
     }
 }
