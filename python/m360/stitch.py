@@ -245,9 +245,7 @@ def stitch(
         report["align"] = levels
     t2 = time.perf_counter()
     # The spread (returned as confidence) costs a second pass: only computed when returned.
-    disparity, spread, blend_report = plan.blend(
-        spherical, blend, spread=return_details, **options
-    )
+    disparity, spread, blend_report = plan.blend(spherical, blend, spread=return_details, **options)
     t3 = time.perf_counter()
     blend_report["seconds"] = t3 - t2
     if not return_details:

@@ -37,15 +37,20 @@ pub fn spherical_disparity(
         .enumerate()
         .for_each(|(face_row, (dst, src))| {
             let cam = &layout.cameras[face_row / h];
-            let r = (face_row % h) as f64;
-            let keep = mask.map(|m| &m[face_row * w..(face_row + 1) * w]);
+            // The factor 1/|(gx, gy, 1)| of `TangentCamera::spherical_factor`, with gy fixed
+            // along the row: a branch-free loop the compiler vectorises.
+            let gy = (((face_row % h) as f64 - cam.cy) / cam.fy).powi(2);
+            let (inv_fx, cx) = (1.0 / cam.fx, cam.cx);
             for (c, (d, &s)) in dst.iter_mut().zip(src).enumerate() {
-                let valid = keep.is_none_or(|k| k[c]);
-                *d = if valid {
-                    s * cam.spherical_factor(c as f64, r) as f32
-                } else {
-                    f32::NAN
-                };
+                let gx = (c as f64 - cx) * inv_fx;
+                *d = s * (1.0 / (1.0 + gx * gx + gy).sqrt()) as f32;
+            }
+            if let Some(m) = mask {
+                for (d, &keep) in dst.iter_mut().zip(&m[face_row * w..(face_row + 1) * w]) {
+                    if !keep {
+                        *d = f32::NAN;
+                    }
+                }
             }
         });
 }
