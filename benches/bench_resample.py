@@ -5,8 +5,13 @@ Baselines, measured in the same run on the same inputs:
   one is the baseline), the fastest known way to do the same sampling from Python, on as many
   threads as m360;
 - ``py360convert.e2p`` called once per tangent (what most 360° code does);
-- tangents → ERP: ``cv2.remap`` of every face at its precomputed footprint positions, then a
-  ``np.bincount`` mean: the same work as ``stitch(align="none", blend="mean")``.
+- tangents → ERP (N, H, W), the output of ``tangents_to_erp``: per face, ``cv2.remap`` with
+  precomputed maps over the ERP rows the face reaches, written in place into a stack that is
+  NaN elsewhere (map entries outside the footprint fall on the NaN border); float and
+  fixed-point maps, the faster is the baseline. Also, for scale, ``cv2.remap`` of the footprint
+  pixels alone into one compact array (not the same output: 4 values per pixel, not 20);
+- tangents → ERP mean: that compact ``cv2.remap``, then a ``np.bincount`` mean: the same work
+  as ``stitch(align="none", blend="mean")``.
 
 Run: ``.venv/bin/python benches/bench_resample.py [--sizes 2048 4096 8192] [--repeats 5]``.
 """
@@ -66,6 +71,24 @@ def footprints(layout: m360.Layout) -> list[tuple[np.ndarray, np.ndarray, np.nda
             xs.append(np.clip(x.ravel()[flat], 0, cam.width - 1).astype(np.float32))
             ys.append(np.clip(y.ravel()[flat], 0, cam.height - 1).astype(np.float32))
         out.append((np.concatenate(idx), _blocks(np.concatenate(xs)), _blocks(np.concatenate(ys))))
+    return out
+
+
+def row_maps(
+    layout: m360.Layout, prints: list[tuple[np.ndarray, np.ndarray, np.ndarray]]
+) -> list[tuple[int, int, np.ndarray, np.ndarray]]:
+    """Per face: the ERP rows r0..r1 it reaches and cv2 maps (r1 - r0, W) of those rows, -1
+    (outside the tile: the border) where the face does not see the pixel."""
+    width = layout.erp_shape[1]
+    out = []
+    for idx, xs, ys in prints:
+        rows = idx // width
+        r0, r1 = int(rows.min()), int(rows.max()) + 1
+        mx = np.full((r1 - r0, width), -1.0, np.float32)
+        my = np.full((r1 - r0, width), -1.0, np.float32)
+        mx.ravel()[idx - r0 * width] = xs.ravel()[: len(idx)]
+        my.ravel()[idx - r0 * width] = ys.ravel()[: len(idx)]
+        out.append((r0, r1, mx, my))
     return out
 
 
@@ -140,6 +163,39 @@ def bench_size(size: int, repeats: int, e2p_repeats: int) -> list[Row]:
         c = np.bincount(flat_idx, minlength=n_pixels)
         return (s / c).reshape(layout.erp_shape)
 
+    def cv2_stack(maps: list) -> np.ndarray:
+        out = np.empty((len(maps), *layout.erp_shape), np.float32)
+        for k, (r0, r1, m1, m2) in enumerate(maps):
+            out[k, :r0] = np.nan
+            out[k, r1:] = np.nan
+            dst = out[k, r0:r1]
+            cv2.remap(tiles[k], m1, m2, lin, dst=dst, borderMode=cv2.BORDER_CONSTANT,
+                      borderValue=float("nan"))  # fmt: skip
+        return out
+
+    def measure_stack(maps: list) -> h.Timing:
+        return h.measure(lambda: cv2_stack(maps), repeats=repeats)
+
+    # One set of maps alive at a time (8K float maps take gigabytes).
+    t_stack_fix = measure_stack(
+        [
+            (r0, r1, *cv2.convertMaps(x, y, cv2.CV_16SC2))
+            for r0, r1, x, y in row_maps(layout, prints)
+        ]
+    )
+    boxes = row_maps(layout, prints)
+    t_stack_f32 = measure_stack(boxes)
+    # The baseline must produce what tangents_to_erp produces: checked once, not timed.
+    want = m360.tangents_to_erp(tiles, layout)
+    got = cv2_stack(boxes)
+    # cv2's bilinear reads its NaN border at the outermost half pixel of a tile, where m360
+    # clamps: it may lose those pixels, nothing else.
+    lost = np.isnan(got) & ~np.isnan(want)
+    assert not (~np.isnan(got) & np.isnan(want)).any(), "cv2 stack: pixels outside a footprint"
+    assert lost.sum() < 0.01 * (~np.isnan(want)).sum(), "cv2 stack: footprints differ"
+    assert np.nanmax(np.abs(got - want)) < 1e-3 * np.nanmax(np.abs(want)), "cv2 stack: values"
+    del boxes, got, want
+    stack_base = min(t_stack_fix.median, t_stack_f32.median)
     t_fp = h.measure(cv2_footprints, repeats=repeats)
     t_mean = h.measure(cv2_mean, repeats=repeats)
     t_stitch = h.measure(
@@ -149,8 +205,10 @@ def bench_size(size: int, repeats: int, e2p_repeats: int) -> list[Row]:
     out += [
         (size, "tangents->ERP mean", "m360 stitch(none, mean)", t_stitch, t_mean.median),
         (size, "tangents->ERP mean", "cv2 footprints + bincount", t_mean, t_mean.median),
-        (size, "tangents->ERP", "cv2.remap footprints only", t_fp, t_fp.median),
-        (size, "tangents->ERP", "m360 tangents_to_erp (N,H,W)", t_maps, t_fp.median),
+        (size, "tangents->ERP (N,H,W)", "m360 tangents_to_erp", t_maps, stack_base),
+        (size, "tangents->ERP (N,H,W)", "cv2.remap float maps", t_stack_f32, stack_base),
+        (size, "tangents->ERP (N,H,W)", "cv2.remap fixed maps", t_stack_fix, stack_base),
+        (size, "tangents->ERP compact", "cv2.remap footprints only", t_fp, stack_base),
     ]
     clear_plan_cache()
     return out

@@ -175,17 +175,23 @@ impl RowSamples {
     }
 }
 
-/// Per-pixel statistics of the valid (finite) samples of one ERP row, NaN where a pixel has
-/// none. f32 is exact enough for a handful of samples per pixel, and the spread takes a second
-/// pass around the mean rather than Σv² − n·mean², which cancels.
+/// Per-pixel statistics of the valid (finite) samples of one ERP row, accumulated run by run;
+/// NaN where a pixel has none.
+///
+/// Sums are kept relative to each pixel's first valid sample (a shift close to the mean), so the
+/// spread comes from the same single pass without the cancellation of Σv² − n·mean²; f32 is
+/// exact enough for a handful of samples per pixel.
 #[derive(Debug, Default)]
 pub(crate) struct RowStats {
+    extras: Extras,
     count: Vec<f32>,
-    sum: Vec<f32>,
+    shift: Vec<f32>,
+    shifted_sum: Vec<f32>,
+    shifted_squares: Vec<f32>,
     weight_sum: Vec<f32>,
     weighted_sum: Vec<f32>,
     rank: Vec<u8>,
-    /// The sample of the nearest valid face (NaN everywhere when the row has no ranks).
+    /// The sample of the nearest valid face (with [`Extras::nearest`]).
     pub nearest: Vec<f32>,
     /// Unweighted mean.
     pub mean: Vec<f32>,
@@ -193,112 +199,154 @@ pub(crate) struct RowStats {
     /// near the icosahedron's vertices, which lie 37.4° from the nearest axes, beyond the 34°
     /// inscribed half field of view).
     pub weighted: Vec<f32>,
-    /// Population standard deviation (0 with one sample), if asked for.
+    /// Population standard deviation, 0 with one sample (with [`Extras::spread`]).
     pub spread: Vec<f32>,
 }
 
+/// What [`RowStats`] computes beyond the mean and the weighted mean.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct Extras {
+    /// The nearest valid face's sample (needs ranks).
+    pub nearest: bool,
+    /// The spread.
+    pub spread: bool,
+}
+
 impl RowStats {
-    /// The statistics of `row` (an ERP row `width` pixels wide); the spread only if `spread`.
-    pub(crate) fn compute(&mut self, row: &RowSamples, width: usize, spread: bool) {
+    /// Start a row `width` pixels wide.
+    pub(crate) fn start(&mut self, width: usize, extras: Extras) {
         let reset = |v: &mut Vec<f32>, x: f32| {
             v.clear();
             v.resize(width, x);
         };
+        self.extras = extras;
         reset(&mut self.count, 0.0);
-        reset(&mut self.sum, 0.0);
+        reset(&mut self.shifted_sum, 0.0);
         reset(&mut self.weight_sum, 0.0);
         reset(&mut self.weighted_sum, 0.0);
-        reset(&mut self.nearest, f32::NAN);
-        self.rank.clear();
-        self.rank.resize(width, u8::MAX);
-        for run in &row.runs {
-            match (row.weights.is_empty(), row.ranks.is_empty()) {
-                (true, true) => self.add_run::<false>(run, row, std::iter::repeat(1.0)),
-                (true, false) => self.add_run::<true>(run, row, std::iter::repeat(1.0)),
-                (false, true) => {
-                    self.add_run::<false>(run, row, row.weights[run.taps()].iter().copied())
-                }
-                (false, false) => {
-                    self.add_run::<true>(run, row, row.weights[run.taps()].iter().copied())
-                }
-            }
+        // Set by each pixel's first valid sample before it is read.
+        self.shift.resize(width, 0.0);
+        if extras.spread {
+            reset(&mut self.shifted_squares, 0.0);
         }
-        reset(&mut self.mean, f32::NAN);
-        reset(&mut self.weighted, f32::NAN);
-        let sums = self
-            .count
-            .iter()
-            .zip(&self.sum)
-            .zip(&self.weight_sum)
-            .zip(&self.weighted_sum);
-        for ((((&n, &sum), &wsum), &wv), (mean, weighted)) in
-            sums.zip(self.mean.iter_mut().zip(self.weighted.iter_mut()))
-        {
-            if n > 0.0 {
-                *mean = sum / n;
-                *weighted = if wsum > 0.0 { wv / wsum } else { *mean };
-            }
-        }
-        if !spread {
-            return;
-        }
-        reset(&mut self.spread, 0.0);
-        for run in &row.runs {
-            let values = &row.values[run.taps()];
-            let cols = run.columns();
-            for ((&v, &mean), var) in values
-                .iter()
-                .zip(&self.mean[cols.clone()])
-                .zip(&mut self.spread[cols])
-            {
-                let d = v - mean;
-                *var += if d.is_finite() { d * d } else { 0.0 };
-            }
-        }
-        for (var, &n) in self.spread.iter_mut().zip(&self.count) {
-            *var = (*var / n).sqrt(); // 0/0 where no sample: NaN
+        if extras.nearest {
+            reset(&mut self.nearest, f32::NAN);
+            self.rank.clear();
+            self.rank.resize(width, u8::MAX);
         }
     }
 
-    /// Add the valid samples of one run, with `weights` in tap order (and the nearest valid
-    /// sample if `NEAREST`: the row then has ranks).
+    /// Add the samples `values` of one run over `columns`, with their blending `weights` (none:
+    /// all 1) and nearness `ranks` (read only for [`Extras::nearest`]).
     #[inline(always)]
-    fn add_run<const NEAREST: bool>(
+    pub(crate) fn add_run(
         &mut self,
-        run: &Run,
-        row: &RowSamples,
-        weights: impl Iterator<Item = f32>,
+        columns: std::ops::Range<usize>,
+        values: &[f32],
+        weights: Option<&[f32]>,
+        ranks: impl Iterator<Item = u8>,
     ) {
-        let (cols, taps) = (run.columns(), run.taps());
-        let sums = self.count[cols.clone()]
-            .iter_mut()
-            .zip(&mut self.sum[cols.clone()])
-            .zip(&mut self.weight_sum[cols.clone()])
-            .zip(&mut self.weighted_sum[cols.clone()]);
-        // Branch-free, so it vectorises: an invalid sample adds zeros.
-        for ((((n, sum), wsum), wv), (&v, w)) in
-            sums.zip(row.values[taps.clone()].iter().zip(weights))
-        {
-            let ok = v.is_finite();
-            let (v, w) = if ok { (v, w) } else { (0.0, 0.0) };
-            *n += f32::from(u8::from(ok));
-            *sum += v;
-            *wsum += w;
-            *wv += w * v;
+        match (weights, self.extras.spread) {
+            (Some(w), true) => self.add::<true>(columns.clone(), values, w.iter().copied()),
+            (Some(w), false) => self.add::<false>(columns.clone(), values, w.iter().copied()),
+            (None, true) => self.add::<true>(columns.clone(), values, std::iter::repeat(1.0)),
+            (None, false) => self.add::<false>(columns.clone(), values, std::iter::repeat(1.0)),
         }
-        if NEAREST {
-            let best = self.rank[cols.clone()]
+        if self.extras.nearest {
+            let best = self.rank[columns.clone()]
                 .iter_mut()
-                .zip(&mut self.nearest[cols]);
-            for ((rank, nearest), (&v, &r)) in
-                best.zip(row.values[taps.clone()].iter().zip(&row.ranks[taps]))
-            {
+                .zip(&mut self.nearest[columns]);
+            for ((rank, nearest), (&v, r)) in best.zip(values.iter().zip(ranks)) {
                 // Branch-free: which face is nearest varies from pixel to pixel.
                 let nearer = v.is_finite() & (r < *rank);
                 *rank = if nearer { r } else { *rank };
                 *nearest = if nearer { v } else { *nearest };
             }
         }
+    }
+
+    #[inline(always)]
+    fn add<const SPREAD: bool>(
+        &mut self,
+        columns: std::ops::Range<usize>,
+        values: &[f32],
+        weights: impl Iterator<Item = f32>,
+    ) {
+        let sums = self.count[columns.clone()]
+            .iter_mut()
+            .zip(&mut self.shift[columns.clone()])
+            .zip(&mut self.shifted_sum[columns.clone()])
+            .zip(&mut self.weight_sum[columns.clone()])
+            .zip(&mut self.weighted_sum[columns.clone()]);
+        let mut squares = if SPREAD {
+            self.shifted_squares[columns].iter_mut()
+        } else {
+            [].iter_mut()
+        };
+        // Branch-free, so it vectorises: an invalid sample adds zeros.
+        for (((((n, shift), sum), wsum), wv), (&v, w)) in sums.zip(values.iter().zip(weights)) {
+            let ok = v.is_finite();
+            *shift = if ok & (*n == 0.0) { v } else { *shift };
+            let d = if ok { v - *shift } else { 0.0 };
+            let (v, w) = if ok { (v, w) } else { (0.0, 0.0) };
+            *n += f32::from(u8::from(ok));
+            *sum += d;
+            *wsum += w;
+            *wv += w * v;
+            if SPREAD {
+                if let Some(sq) = squares.next() {
+                    *sq += d * d;
+                }
+            }
+        }
+    }
+
+    /// The per-pixel results, once every run is added.
+    pub(crate) fn finish(&mut self) {
+        let width = self.count.len();
+        for v in [&mut self.mean, &mut self.weighted] {
+            v.clear();
+            v.resize(width, f32::NAN);
+        }
+        let sums = self.count.iter().zip(&self.shift).zip(&self.shifted_sum);
+        let weighted = self.weight_sum.iter().zip(&self.weighted_sum);
+        let outs = self.mean.iter_mut().zip(self.weighted.iter_mut());
+        for ((((&n, &shift), &sum), (&wsum, &wv)), (mean, weighted)) in sums.zip(weighted).zip(outs)
+        {
+            if n > 0.0 {
+                *mean = shift + sum / n;
+                *weighted = if wsum > 0.0 { wv / wsum } else { *mean };
+            }
+        }
+        if self.extras.spread {
+            self.spread.clear();
+            let parts = self
+                .count
+                .iter()
+                .zip(&self.shifted_sum)
+                .zip(&self.shifted_squares);
+            self.spread.extend(parts.map(|((&n, &sum), &squares)| {
+                let mean = sum / n; // NaN where no sample
+                (squares / n - mean * mean).max(0.0).sqrt()
+            }));
+        }
+    }
+
+    /// The statistics of a whole row of samples.
+    pub(crate) fn compute(&mut self, row: &RowSamples, width: usize, spread: bool) {
+        let nearest = !row.ranks.is_empty();
+        self.start(width, Extras { nearest, spread });
+        let weights = (!row.weights.is_empty()).then_some(&row.weights[..]);
+        for run in &row.runs {
+            let ranks = row.ranks.get(run.taps()).unwrap_or_default();
+            self.add_run(
+                run.columns(),
+                &row.values[run.taps()],
+                weights.map(|w| &w[run.taps()]),
+                ranks.iter().copied(),
+            );
+        }
+        self.finish();
     }
 }
 
@@ -342,11 +390,17 @@ pub(crate) fn blend_rows(
         .zip(optional_chunks(spread, ew, layout.erp_height))
         .enumerate()
         .for_each_init(
-            || (RowSamples::default(), RowStats::default()),
-            |(samples, stats), (i, (out, out_spread))| {
-                let ranks = which == Statistic::Nearest;
-                samples.fill_from_taps(taps, tangents, weights, ranks, i);
-                stats.compute(samples, ew, out_spread.is_some());
+            || (Vec::new(), RowStats::default()),
+            |(buffer, stats), (i, (out, out_spread))| {
+                let nearest = which == Statistic::Nearest;
+                let spread = out_spread.is_some();
+                stats.start(ew, Extras { nearest, spread });
+                let row_weights = weights.map(|w| w.row(i));
+                taps.sample_runs(tangents, i, buffer, |run, values, ranks| {
+                    let run_weights = row_weights.map(|w| &w[run.taps()]);
+                    stats.add_run(run.columns(), values, run_weights, ranks);
+                });
+                stats.finish();
                 out.copy_from_slice(stats.get(which));
                 if let Some(out_spread) = out_spread {
                     out_spread.copy_from_slice(&stats.spread);

@@ -722,30 +722,67 @@ impl ErpTaps {
     ///
     /// # Panics
     /// If `stack` is not the size the taps were built for (the bindings check shapes first).
-    #[inline]
     pub fn sample(&self, stack: &[f32], i: usize, out: &mut Vec<f32>) {
+        self.assert_stack(stack);
+        let row = &self.rows[i];
+        out.clear();
+        out.resize(row.taps.len(), 0.0);
+        for run in &row.runs {
+            // SAFETY: the stack has the size the taps were built for (asserted above).
+            unsafe { self.sample_run(stack, run, &row.taps[run.taps()], &mut out[run.taps()]) };
+        }
+    }
+
+    /// [`ErpTaps::sample`] one run at a time: calls `visit(run, values, ranks)` for each run of
+    /// ERP row `i` with the run's values (in a buffer the size of one run, which stays in
+    /// cache) and an iterator over their nearness ranks.
+    ///
+    /// # Panics
+    /// If `stack` is not the size the taps were built for.
+    #[inline]
+    pub fn sample_runs(
+        &self,
+        stack: &[f32],
+        i: usize,
+        buffer: &mut Vec<f32>,
+        mut visit: impl FnMut(&Run, &[f32], Ranks<'_>),
+    ) {
+        self.assert_stack(stack);
+        let row = &self.rows[i];
+        for run in &row.runs {
+            let taps = &row.taps[run.taps()];
+            buffer.clear();
+            buffer.resize(taps.len(), 0.0);
+            // SAFETY: the stack has the size the taps were built for (asserted above).
+            unsafe { self.sample_run(stack, run, taps, buffer) };
+            visit(run, buffer, Ranks(taps.iter()));
+        }
+    }
+
+    fn assert_stack(&self, stack: &[f32]) {
         assert_eq!(
             stack.len(),
             self.tangent_pixels * self.faces,
             "tangent stack size mismatch"
         );
-        let row = &self.rows[i];
-        let w = self.tangent_width;
-        out.clear();
-        out.resize(row.taps.len(), 0.0);
-        for run in &row.runs {
-            let base = run.face as usize * self.tangent_pixels;
-            let (taps, out) = (&row.taps[run.taps()], &mut out[run.taps()]);
-            for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
-                if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
-                    let k = base + (ahead.index & OFFSET_MASK) as usize;
-                    prefetch(stack, k);
-                    prefetch(stack, k + w);
-                }
-                // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the
-                // size asserted above.
-                *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
+    }
+
+    /// Bilinear values of `stack` at the taps of `run` into `out` (as long as `taps`).
+    ///
+    /// # Safety
+    /// `stack` must have the size the taps were built for.
+    #[inline(always)]
+    unsafe fn sample_run(&self, stack: &[f32], run: &Run, taps: &[Tap], out: &mut [f32]) {
+        let (w, base) = (self.tangent_width, run.face as usize * self.tangent_pixels);
+        for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
+            if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
+                let k = base + (ahead.index & OFFSET_MASK) as usize;
+                prefetch(stack, k);
+                prefetch(stack, k + w);
             }
+            // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the size
+            // they were built for (the caller's contract).
+            *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
         }
     }
 
@@ -783,6 +820,19 @@ impl TapWeights {
     /// Bytes held.
     pub fn memory_bytes(&self) -> usize {
         self.rows.iter().map(|r| r.len() * 4 + 24).sum()
+    }
+}
+
+/// The nearness ranks (0 = nearest axis) of the taps of one run, in tap order.
+#[derive(Debug, Clone)]
+pub struct Ranks<'a>(std::slice::Iter<'a, Tap>);
+
+impl Iterator for Ranks<'_> {
+    type Item = u8;
+
+    #[inline(always)]
+    fn next(&mut self) -> Option<u8> {
+        self.0.next().map(|t| (t.index >> RANK_SHIFT) as u8)
     }
 }
 
