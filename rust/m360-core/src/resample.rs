@@ -627,17 +627,27 @@ impl ErpTaps {
                 // Four faces see a pixel on average.
                 row.taps.reserve(ew * 4);
                 let mut cosines: Vec<f64> = Vec::with_capacity(ew * 4);
+                let (sp, cp) = grid.row_sin_cos(i);
                 for (k, (cone, cam)) in cones.iter().zip(&layout.cameras).enumerate() {
+                    // Along the row, the camera-frame ray R·d(λ) = sin λ·u + cos λ·v + c, and
+                    // its z is the cosine to the axis: no trigonometry, one product per pixel.
+                    let r = &cam.rotation;
+                    let (u, v) = (r.column(0) * cp, r.column(2) * cp);
+                    let c = r.column(1) * -sp;
                     for columns in cone.columns(lat, ew) {
                         let mut open = false;
                         for j in columns {
-                            let d = grid.direction(i, j);
-                            let cos = cone.axis.dot(&d);
-                            let tap = (cos >= cone.min_cos
-                                && (counts[j] as usize) < MAX_FACES_PER_PIXEL)
-                                .then(|| tangent_tap(cam, &d, 0))
-                                .flatten();
-                            let Some(tap) = tap else {
+                            let (sl, cl) = grid.column_sin_cos(j);
+                            let p = u * sl + v * cl + c;
+                            let seen = p.z >= cone.min_cos
+                                && p.z > 0.0
+                                && (counts[j] as usize) < MAX_FACES_PER_PIXEL;
+                            let tap = seen.then(|| {
+                                let inv_z = 1.0 / p.z;
+                                let x = cam.fx * p.x * inv_z + cam.cx;
+                                tap_at(cam, x, cam.fy * p.y * inv_z + cam.cy, 0)
+                            });
+                            let Some(tap) = tap.flatten() else {
                                 open = false;
                                 continue;
                             };
@@ -654,7 +664,7 @@ impl ErpTaps {
                                 run.len += 1;
                             }
                             row.taps.push(tap);
-                            cosines.push(cos);
+                            cosines.push(p.z);
                             counts[j] += 1;
                         }
                     }
@@ -867,7 +877,6 @@ fn rank_taps(row: &mut ErpRow, cosines: &[f64], counts: &[u8]) {
 
 /// The cone around a camera's axis that holds every ray through its image.
 struct Cone {
-    axis: nalgebra::Vector3<f64>,
     min_cos: f64,
     /// Latitude and longitude of the axis.
     lat: f64,
@@ -878,7 +887,6 @@ impl Cone {
     fn of(cam: &TangentCamera) -> Self {
         let axis = cam.axis();
         Self {
-            axis,
             min_cos: cone_cosine(cam),
             lat: (-axis.y).asin(),
             lon: axis.x.atan2(axis.z),
@@ -936,10 +944,11 @@ fn cone_cosine(cam: &TangentCamera) -> f64 {
         - 1e-9
 }
 
-/// Tap of the tangent pixel grid of `cam` (flat offset `base`) seen by direction `d`, if any.
-/// Positions within half a pixel of the border are clamped onto the outermost pixel centres.
-fn tangent_tap(cam: &TangentCamera, d: &nalgebra::Vector3<f64>, base: usize) -> Option<Tap> {
-    let (x, y) = cam.project(d)?;
+/// Tap of the tangent pixel grid of `cam` (flat offset `base`) at continuous position (x, y),
+/// if on the image; positions within half a pixel of the border are clamped onto the outermost
+/// pixel centres.
+#[inline]
+fn tap_at(cam: &TangentCamera, x: f64, y: f64, base: usize) -> Option<Tap> {
     if !cam.contains(x, y) {
         return None;
     }
@@ -1071,26 +1080,44 @@ mod tests {
                         ));
                     }
                 }
-                // ... and from every camera, ranked by the cosine to its axis.
+                // ... and from every camera, ranked by the cosine to its axis: the projection
+                // of the pixel's direction, computed here the plain way. Rounding may flip a
+                // position lying on an image edge or change a fraction's last unit.
                 for (j, got) in got.iter_mut().enumerate() {
                     let d = grid.direction(i, j);
-                    let mut want: Vec<(f64, usize, Tap)> = layout
+                    let mut want: Vec<(f64, usize, Tap, (f64, f64))> = layout
                         .cameras
                         .iter()
                         .enumerate()
                         .filter_map(|(k, cam)| {
-                            Some((-cam.axis().dot(&d), k, tangent_tap(cam, &d, 0)?))
+                            let (x, y) = cam.project(&d)?;
+                            Some((-cam.axis().dot(&d), k, tap_at(cam, x, y, 0)?, (x, y)))
                         })
                         .collect();
                     want.sort_by(|a, b| a.0.total_cmp(&b.0).then(a.1.cmp(&b.1)));
-                    let mut want: Vec<_> = want
+                    let ranked: Vec<_> = want
                         .iter()
                         .enumerate()
-                        .map(|(rank, &(_, k, tap))| (k, tap.index, tap.fx, tap.fy, rank as u32))
+                        .map(|(rank, &(_, k, tap, _))| (k, tap.index, tap.fx, tap.fy, rank as u32))
                         .collect();
-                    want.sort();
                     got.sort();
-                    assert_eq!(*got, want, "width {width}, pixel ({i}, {j})");
+                    let on_edge = |&(_, k, _, (x, y)): &(f64, usize, Tap, (f64, f64))| {
+                        let cam = &layout.cameras[k];
+                        let (w, h) = (cam.width as f64 - 0.5, cam.height as f64 - 0.5);
+                        [x + 0.5, w - x, y + 0.5, h - y]
+                            .iter()
+                            .any(|e| e.abs() < 1e-9)
+                    };
+                    if got.len() != ranked.len() {
+                        assert!(want.iter().any(on_edge), "width {width}, pixel ({i}, {j})");
+                        continue;
+                    }
+                    let mut ranked = ranked;
+                    ranked.sort();
+                    for (g, r) in got.iter().zip(&ranked) {
+                        assert_eq!((g.0, g.1, g.4), (r.0, r.1, r.4), "pixel ({i}, {j})");
+                        assert!(g.2.abs_diff(r.2) <= 1 && g.3.abs_diff(r.3) <= 1);
+                    }
                     assert_eq!(taps.counts()[i * ew + j] as usize, got.len());
                 }
             }

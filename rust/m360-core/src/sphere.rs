@@ -70,6 +70,18 @@ impl ErpGrid {
         }
     }
 
+    /// (sin, cos) of the latitude of row `i`.
+    #[inline]
+    pub fn row_sin_cos(&self, i: usize) -> (f64, f64) {
+        (self.sin_lat[i], self.cos_lat[i])
+    }
+
+    /// (sin, cos) of the longitude of column `j`.
+    #[inline]
+    pub fn column_sin_cos(&self, j: usize) -> (f64, f64) {
+        (self.sin_lon[j], self.cos_lon[j])
+    }
+
     /// Unit direction of the centre of pixel (row `i`, column `j`).
     #[inline]
     pub fn direction(&self, i: usize, j: usize) -> Vector3<f64> {
