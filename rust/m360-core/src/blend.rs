@@ -1847,7 +1847,7 @@ mod tests {
         (values, weights, target)
     }
 
-    /// Median wall seconds of the tap walks at 2K (weighted and plain blends, Poisson assembly);
+    /// Median on-CPU seconds of the tap walks at 2K (weighted and plain blends, Poisson assembly);
     /// run with `cargo test --release -- --ignored --nocapture tap_walks`.
     #[test]
     #[ignore = "timing, not a check"]
@@ -1861,12 +1861,13 @@ mod tests {
         let weights = plan.tap_weights(Weighting::Frustum);
         let n = l.erp_height * l.erp_width;
         let (mut out, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
+        // On-CPU seconds of all threads: steadier than wall time on a shared machine.
         let median = |f: &mut dyn FnMut()| {
             let mut t: Vec<f64> = (0..9)
                 .map(|_| {
-                    let t0 = Instant::now();
+                    let t0 = cpu_seconds();
                     f();
-                    t0.elapsed().as_secs_f64()
+                    cpu_seconds() - t0
                 })
                 .collect();
             t.sort_by(f64::total_cmp);
