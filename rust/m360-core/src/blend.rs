@@ -109,7 +109,7 @@ pub fn weight_maps(layout: &Layout, kind: Weighting) -> Vec<f32> {
                     Weighting::Nearest => {
                         let d = cam.pixel_direction(x, r);
                         let own = axes[k].dot(&d);
-                        // Ties go to the lower index, as the nearest-first tap order does.
+                        // Ties go to the lower index, as the taps' nearness ranks do.
                         let nearest = axes
                             .iter()
                             .enumerate()
