@@ -308,6 +308,24 @@ def test_same_result_with_one_and_two_threads(blend: str) -> None:
         assert outs[0].report["blend"]["iterations"] == outs[1].report["blend"]["iterations"]
 
 
+@pytest.mark.parametrize("blend", ["nn", "mean", "frustum", "poisson"])
+def test_confidence_is_the_samples_spread_and_is_skipped_unless_asked(blend: str) -> None:
+    """The one-pass spread against numpy's std of the per-face ERP stack; ``spread=False``
+    gives the same disparity and no spread."""
+    lay = layout(512)
+    plan = plan_for(lay)
+    spherical = plan.spherical_disparity(_distorted(512))
+    stack = plan.tangents_to_erp(spherical).astype(np.float64)
+    want = np.nanstd(stack, axis=0)
+    assert np.isfinite(want).all() and want.max() > 1e-3
+    disparity, spread, _ = plan.blend(spherical, blend)
+    assert spread is not None
+    np.testing.assert_allclose(spread, want, rtol=1e-3, atol=1e-6)
+    again, skipped, _ = plan.blend(spherical, blend, spread=False)
+    assert skipped is None
+    np.testing.assert_array_equal(again, disparity)
+
+
 def test_masked_faces_and_uncovered_pixels() -> None:
     lay = layout(512)
     tiles = tangent_disparity(0, 512)
