@@ -1629,18 +1629,30 @@ mod tests {
         (values, weights, target)
     }
 
-    #[test]
-    fn multigrid_cg_matches_a_dense_solve_over_several_levels() {
-        let (h, w, k) = (32, 64, 3);
-        let (values, weights, target) = layered_problem(h, w, k, 13);
+    /// The normal equations of `k` layers on an h x w grid with a given target.
+    fn assemble_layers(
+        values: &[f32],
+        weights: &[f32],
+        target: &[f32],
+        k: usize,
+        h: usize,
+        w: usize,
+    ) -> System {
         let source = LayerSource {
-            values: &values,
-            weights: &weights,
+            values,
+            weights,
             layers: k,
             height: h,
             width: w,
         };
-        let system = assemble(&source, h, w, POISSON_LAMBDA, Target::Given(&target), None);
+        assemble(&source, h, w, POISSON_LAMBDA, Target::Given(target), None)
+    }
+
+    #[test]
+    fn multigrid_cg_matches_a_dense_solve_over_several_levels() {
+        let (h, w, k) = (32, 64, 3);
+        let (values, weights, target) = layered_problem(h, w, k, 13);
+        let system = assemble_layers(&values, &weights, &target, k, h, w);
         let mg = Multigrid::build(h, w, &system.right, &system.down, &system.diag);
         assert!(mg.levels() >= 3, "{} levels", mg.levels());
         let params = PoissonParams {
@@ -1670,14 +1682,7 @@ mod tests {
     fn the_v_cycle_is_symmetric_positive_definite_and_cuts_iterations() {
         let (h, w, k) = (64, 128, 3);
         let (values, weights, target) = layered_problem(h, w, k, 17);
-        let source = LayerSource {
-            values: &values,
-            weights: &weights,
-            layers: k,
-            height: h,
-            width: w,
-        };
-        let system = assemble(&source, h, w, POISSON_LAMBDA, Target::Given(&target), None);
+        let system = assemble_layers(&values, &weights, &target, k, h, w);
         let mut mg = Multigrid::build(h, w, &system.right, &system.down, &system.diag);
         let n = h * w;
         let mut r = rng(19);
@@ -2034,14 +2039,7 @@ mod tests {
         let (h, w) = (1024, 2048);
         let n = h * w;
         let (values, weights, target) = random_layers(h, w);
-        let source = LayerSource {
-            values: &values,
-            weights: &weights,
-            layers: 3,
-            height: h,
-            width: w,
-        };
-        let system = assemble(&source, h, w, POISSON_LAMBDA, Target::Given(&target), None);
+        let system = assemble_layers(&values, &weights, &target, 3, h, w);
         let t0 = Instant::now();
         let mut triplets = Vec::with_capacity(3 * n);
         for p in 0..n {

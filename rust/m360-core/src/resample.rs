@@ -789,12 +789,7 @@ impl ErpTaps {
     /// Nearness rank (0 = nearest axis) of every tap of ERP row `i`, in tap order, into `out`.
     pub fn ranks(&self, i: usize, out: &mut Vec<u8>) {
         out.clear();
-        out.extend(
-            self.rows[i]
-                .taps
-                .iter()
-                .map(|t| (t.index >> RANK_SHIFT) as u8),
-        );
+        out.extend(Ranks(self.rows[i].taps.iter()));
     }
 
     /// The bilinear value of a tangent stack (N·h·w) at every tap of ERP row `i`, in tap order,
