@@ -42,7 +42,7 @@ fn plan_building(c: &mut Criterion) {
     let mut group = c.benchmark_group("plan");
     group.sample_size(10);
     group.bench_function("erp taps", |b| {
-        b.iter(|| black_box(ErpTaps::build(&layout)))
+        b.iter(|| black_box(ErpTaps::build(&layout)));
     });
     group.bench_function("overlaps 1%", |b| {
         b.iter(|| black_box(Overlaps::build(&layout, 0.01, 0.0)));

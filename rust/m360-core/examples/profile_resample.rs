@@ -50,7 +50,7 @@ fn main() {
         erp_to_tangents(plan.tangent_taps(), layout, &erp, 3, &mut out);
         std::hint::black_box(out);
     });
-    let erpf: Vec<f32> = erp.iter().step_by(3).map(|&v| v as f32).collect();
+    let erpf: Vec<f32> = erp.iter().step_by(3).map(|&v| f32::from(v)).collect();
     time("erp->tangents f32x1", || {
         let mut out = vec![0f32; 20 * layout.tangent_shape().0 * layout.tangent_shape().1];
         erp_to_tangents(plan.tangent_taps(), layout, &erpf, 1, &mut out);

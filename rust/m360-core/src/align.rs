@@ -42,6 +42,7 @@ impl Energy {
     /// Default (smoothness, scale_weight) term weights. The paper's are λ_s = 40, λ_c = 0.007;
     /// the normalized energy's were chosen by measurement on synthetic rooms
     /// (benches/bench_align.py).
+    #[must_use]
     pub fn default_weights(self) -> (f64, f64) {
         match self {
             Self::Normalized => (1.0, 0.01),
@@ -50,6 +51,7 @@ impl Energy {
     }
 
     /// Default offset space: perspective for the normalized energy, the paper's spherical.
+    #[must_use]
     pub fn default_offsets(self) -> Offsets {
         match self {
             Self::Normalized => Offsets::Perspective,
@@ -58,10 +60,11 @@ impl Energy {
     }
 
     /// The (cols, rows) grids of `align="multiscale"`, coarse to fine. The paper's energy gets
-    /// the paper's 4x3 → 8x7 → 16x14. With the normalized energy a third 16x14 level measured no
-    /// more accurate on synthetic rooms (median AbsRel 0.0173 with and without it,
-    /// benches/bench_align.py) while its Newton system (8,960 unknowns, heavy fill from
-    /// overlapping tangents) costs several times the first two levels, so it stops at 8x7.
+    /// the paper's 4x3 → 8x7 → 16x14. With the normalized energy a third 16x14 level buys
+    /// little on synthetic rooms (median AbsRel 0.023 → 0.021 over 2K–8K in
+    /// benches/bench_align.py) for about twice the alignment time (its Newton system has 8,960
+    /// unknowns with heavy fill from overlapping tangents), so the default stops at 8x7.
+    #[must_use]
     pub fn default_schedule(self) -> &'static [(usize, usize)] {
         match self {
             Self::Normalized => &[(4, 3), (8, 7)],
@@ -126,6 +129,7 @@ choice!(
 impl Solver {
     /// Iteration cap per level when none is given: Newton converges long before its cap;
     /// L-BFGS stops after the paper's 50.
+    #[must_use]
     pub fn default_iterations(self) -> usize {
         match self {
             Self::Newton => 100,
@@ -167,6 +171,7 @@ pub struct Overlaps {
 impl Overlaps {
     /// Samples of `layout` keeping `fraction` of the pixels, excluding directions within
     /// `pole_cap_deg` degrees of either pole.
+    #[must_use]
     pub fn build(layout: &Layout, fraction: f64, pole_cap_deg: f64) -> Self {
         let (h, w) = layout.tangent_shape();
         let threshold = (fraction.clamp(0.0, 1.0) * u64::MAX as f64) as u64;
@@ -217,11 +222,13 @@ impl Overlaps {
     }
 
     /// Number of samples.
+    #[must_use]
     pub fn len(&self) -> usize {
         self.a.len()
     }
 
     /// Whether there are no samples.
+    #[must_use]
     pub fn is_empty(&self) -> bool {
         self.a.is_empty()
     }
@@ -267,11 +274,11 @@ fn median_and_spread(values: &[f32]) -> Option<(f64, f64)> {
         .filter(|&v| v.is_finite() && (key(v) >> 16) as usize == bin)
         .collect();
     let (_, &mut median, _) = in_bin.select_nth_unstable_by(rank, f32::total_cmp);
-    let median = median as f64;
+    let median = f64::from(median);
     let spread = values
         .iter()
         .filter(|v| v.is_finite())
-        .map(|&v| (v as f64 - median).abs())
+        .map(|&v| (f64::from(v) - median).abs())
         .sum::<f64>()
         / count as f64;
     Some((median, spread))
@@ -292,6 +299,9 @@ fn offset_factor(offsets: Offsets, cam: &crate::TangentCamera, x: f64, y: f64) -
 /// standardising is itself one of the affine maps the alignment can represent.
 /// Returns the (median, spread) used per tangent; a tangent without finite values or with zero
 /// spread is an error naming it.
+///
+/// # Errors
+/// [`CoreError::Degenerate`] naming a tangent without finite values or with zero spread.
 pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
     let (h, w) = layout.tangent_shape();
     let factors = FactorTable::new(layout, offsets);
@@ -303,7 +313,11 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
             let mut values = Vec::with_capacity(h * w);
             for (y, row) in map.chunks_exact(w).enumerate() {
                 factors.row(t, y, &mut f_row);
-                values.extend(row.iter().zip(&f_row).map(|(&v, f)| (v as f64 / f) as f32));
+                values.extend(
+                    row.iter()
+                        .zip(&f_row)
+                        .map(|(&v, f)| (f64::from(v) / f) as f32),
+                );
             }
             median_and_spread(&values)
         })
@@ -332,7 +346,7 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
             let inv = 1.0 / spread;
             factors.row(t, y, f_row);
             for (v, f) in row.iter_mut().zip(f_row.iter()) {
-                *v = ((*v as f64 - m * f) * inv) as f32;
+                *v = ((f64::from(*v) - m * f) * inv) as f32;
             }
         },
     );
@@ -453,6 +467,7 @@ const EDGE_RANGE: f64 = 0.1;
 impl Problem {
     /// The problem of aligning `maps` (N·h·w, NaN = invalid) with `params` over `overlaps`.
     /// Samples whose a-pixel or any of the four b-neighbours is invalid are dropped.
+    #[must_use]
     pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -466,7 +481,7 @@ impl Problem {
                 let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
                 let pa = overlaps.pa[k] as usize;
                 let da = maps[a * tp + pa];
-                let (xb, yb) = (overlaps.xb[k] as f64, overlaps.yb[k] as f64);
+                let (xb, yb) = (f64::from(overlaps.xb[k]), f64::from(overlaps.yb[k]));
                 let x0 = (xb as usize).min(w - 2);
                 let y0 = (yb as usize).min(h - 2);
                 let (fx, fy) = (xb - x0 as f64, yb - y0 as f64);
@@ -486,10 +501,10 @@ impl Problem {
                 let (lo, hi) = corners
                     .iter()
                     .fold((f32::MAX, f32::MIN), |(l, u), &v| (l.min(v), u.max(v)));
-                if params.energy == Energy::Normalized && (hi - lo) as f64 > EDGE_RANGE {
+                if params.energy == Energy::Normalized && f64::from(hi - lo) > EDGE_RANGE {
                     return None;
                 }
-                let c = corners.map(|v| v as f64);
+                let c = corners.map(f64::from);
                 let db: f64 = bilinear_weights(fx, fy)
                     .iter()
                     .zip(&c)
@@ -503,7 +518,7 @@ impl Problem {
                     node_b: (b * per + rb * cols + cb) as u32,
                     frac_a: [ax, ay],
                     frac_b: [bx, by],
-                    da: da as f64,
+                    da: f64::from(da),
                     fa: offset_factor(
                         params.offsets,
                         &layout.cameras[a],
@@ -571,7 +586,7 @@ impl Problem {
             .par_iter()
             .enumerate()
             .map(|(k, sample)| {
-                let key = ((sample.node_a as u64) << 32) | sample.node_b as u64;
+                let key = (u64::from(sample.node_a) << 32) | u64::from(sample.node_b);
                 (key, k as u32)
             })
             .collect();
@@ -583,7 +598,7 @@ impl Problem {
             .map(|group| {
                 // Upper triangle only; mirrored below.
                 let mut block = [0.0; 256];
-                for &(_, k) in group.iter() {
+                for &(_, k) in *group {
                     let (coef_s, coef_o) = self.samples[k as usize].coefficients();
                     let mut c = [0.0; 16];
                     for j in 0..8 {
@@ -664,16 +679,19 @@ impl Problem {
     }
 
     /// Number of unknowns (2 per node).
+    #[must_use]
     pub fn len(&self) -> usize {
         2 * self.tangents * self.params.cols * self.params.rows
     }
 
     /// Whether the problem has no unknowns.
+    #[must_use]
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
 
     /// Number of valid overlap samples.
+    #[must_use]
     pub fn samples(&self) -> usize {
         self.samples.len()
     }
@@ -709,6 +727,7 @@ impl Problem {
     }
 
     /// Identity fields: s = 1, o = 0.
+    #[must_use]
     pub fn identity(&self) -> Vec<f64> {
         (0..self.len())
             .map(|i| if i % 2 == 0 { 1.0 } else { 0.0 })
@@ -734,6 +753,7 @@ impl Problem {
     /// The data term is summed over the samples' residuals (not as ½·xᵀHx, whose rounding
     /// error is relative to the terms' size rather than to the energy), reduced over fixed
     /// chunks in index order, so the result does not depend on the number of threads.
+    #[must_use]
     pub fn energy(&self, x: &[f64], grad: Option<&mut [f64]>) -> f64 {
         const CHUNK: usize = 4096;
         if x.iter().step_by(2).any(|&s| s <= 0.0) {
@@ -855,6 +875,10 @@ fn line_search(problem: &Problem, x: &[f64], g: &[f64], dir: &[f64]) -> Option<(
 
 /// Minimise `problem` from `x0` with `solver`, at most `max_iterations` iterations, stopping when
 /// the gradient's max-norm is below `tolerance`·max(1, |E|).
+///
+/// # Errors
+/// [`CoreError::NonFinite`] for a non-finite energy or step, [`CoreError::NotPositiveDefinite`]
+/// when Newton's Hessian cannot be factorised.
 pub fn solve(
     problem: &Problem,
     x0: &[f64],
@@ -877,8 +901,12 @@ pub fn solve(
         Solver::Newton => Some(NewtonSystem::new(problem)?),
         Solver::Lbfgs => None,
     };
-    let mut history: Vec<(Vec<f64>, Vec<f64>, f64)> = Vec::new(); // (s_k, y_k, 1/(y·s))
+    #[expect(
+        clippy::items_after_statements,
+        reason = "L-BFGS's memory, next to its use"
+    )]
     const MEMORY: usize = 10;
+    let mut history: Vec<(Vec<f64>, Vec<f64>, f64)> = Vec::new(); // (s_k, y_k, 1/(y·s))
     while iterations < max_iterations && !gradient_small(&g, e, tolerance) {
         let dir = match newton.as_mut() {
             Some(system) => system.step(problem, &x, &g)?,
@@ -934,7 +962,7 @@ fn lbfgs_direction(g: &[f64], history: &[(Vec<f64>, Vec<f64>, f64)]) -> Vec<f64>
     let gamma = history
         .last()
         .map_or(1.0, |(s, y, _)| dot(s, y) / dot(y, y).max(1e-300));
-    for qi in q.iter_mut() {
+    for qi in &mut q {
         *qi *= gamma;
     }
     for ((s, y, rho), alpha) in history.iter().zip(alphas.iter().rev()) {
@@ -943,7 +971,9 @@ fn lbfgs_direction(g: &[f64], history: &[(Vec<f64>, Vec<f64>, f64)]) -> Vec<f64>
             *qi += (alpha - beta) * si;
         }
     }
-    q.iter_mut().for_each(|v| *v = -*v);
+    for v in &mut q {
+        *v = -*v;
+    }
     q
 }
 
@@ -1107,7 +1137,7 @@ pub fn apply_fields(layout: &Layout, maps: &mut [f32], x: &[f64], params: &Level
                 let (s1, o1) = (field_row[2 * c0 + 2], field_row[2 * c0 + 3]);
                 let s = (1.0 - fx) * s0 + fx * s1;
                 let o = (1.0 - fx) * o0 + fx * o1;
-                *v = (s * *v as f64 + o * f) as f32;
+                *v = (s * f64::from(*v) + o * f) as f32;
             }
         },
     );
@@ -1160,6 +1190,7 @@ impl Options {
     pub const DEFAULT_SAMPLE_FRACTION: f64 = 0.01;
 
     /// The defaults of `energy` with `solver`: its schedule, weights and offsets.
+    #[must_use]
     pub fn new(energy: Energy, solver: Solver) -> Self {
         let (smoothness, scale_weight) = energy.default_weights();
         Self {
@@ -1223,6 +1254,7 @@ impl Options {
     }
 
     /// The parameters of each level.
+    #[must_use]
     pub fn level_params(&self) -> Vec<LevelParams> {
         self.levels
             .iter()
@@ -1248,8 +1280,13 @@ impl Default for Options {
 ///
 /// Each tangent is standardised, then every level is solved from identity fields on the maps
 /// as the previous level left them, and its fields are applied before the next level (so no
-/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md). Finally the common standardisation is
-/// undone with the mean median and spread of the inputs, so the result is in the inputs' range.
+/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md).
+/// Finally the common standardisation is undone with the mean median and spread of the inputs,
+/// so the result is in the inputs' range.
+///
+/// # Errors
+/// Those of [`standardize`] and [`solve`], and [`CoreError::Degenerate`] when the tangents
+/// have no valid overlapping pixels.
 pub fn align(
     layout: &Layout,
     maps: &mut [f32],
@@ -1279,7 +1316,9 @@ pub fn align(
         // The paper applies its fields as they are.
         if params.energy == Energy::Normalized {
             let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
-            fields.iter_mut().for_each(|v| *v /= mean_scale);
+            for v in &mut fields {
+                *v /= mean_scale;
+            }
         }
         apply_fields(layout, maps, &fields, params);
         levels.push(Level {
@@ -1294,7 +1333,7 @@ pub fn align(
     let median = stats.iter().map(|s| s.0).sum::<f64>() / n;
     let spread = stats.iter().map(|s| s.1).sum::<f64>() / n;
     maps.par_iter_mut()
-        .for_each(|v| *v = (*v as f64 * spread + median) as f32);
+        .for_each(|v| *v = (f64::from(*v) * spread + median) as f32);
     Ok(levels)
 }
 
@@ -1348,7 +1387,7 @@ mod tests {
                 })
                 .collect();
             let mut g = vec![0.0; x.len()];
-            problem.energy(&x, Some(&mut g));
+            let _ = problem.energy(&x, Some(&mut g));
             for i in (0..x.len()).step_by(7) {
                 let h = 1e-6;
                 let (mut xp, mut xm) = (x.clone(), x.clone());
@@ -1394,7 +1433,7 @@ mod tests {
             })
             .collect();
         let mut g = vec![0.0; n];
-        problem.energy(&x, Some(&mut g));
+        let _ = problem.energy(&x, Some(&mut g));
         let mut system = NewtonSystem::new(&problem).expect("system");
         let dir = system.step(&problem, &x, &g).expect("step");
         // Dense Hessian by finite differences of the analytic gradient: H·dir must equal −g.
@@ -1405,8 +1444,8 @@ mod tests {
             xp[j] += h;
             xm[j] -= h;
             let (mut gp, mut gm) = (vec![0.0; n], vec![0.0; n]);
-            problem.energy(&xp, Some(&mut gp));
-            problem.energy(&xm, Some(&mut gm));
+            let _ = problem.energy(&xp, Some(&mut gp));
+            let _ = problem.energy(&xm, Some(&mut gm));
             for i in 0..n {
                 hd[i] += (gp[i] - gm[i]) / (2.0 * h) * dir[j];
             }

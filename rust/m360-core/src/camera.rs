@@ -1,4 +1,4 @@
-//! Pinhole tangent cameras: world direction ↔ tangent pixel (`DESIGN.md` §1).
+//! Pinhole tangent cameras: world direction ↔ tangent pixel (docs/conventions.md, "Tangent cameras").
 
 use nalgebra::{Matrix3, Vector3};
 
@@ -28,12 +28,14 @@ pub struct TangentCamera {
 impl TangentCamera {
     /// World direction of the optical axis.
     #[inline]
+    #[must_use]
     pub fn axis(&self) -> Vector3<f64> {
         self.rotation.row(2).transpose()
     }
 
     /// Continuous pixel position `(x, y)` of a world direction, or `None` behind the camera.
     #[inline]
+    #[must_use]
     pub fn project(&self, d: &Vector3<f64>) -> Option<(f64, f64)> {
         let p = self.rotation * d;
         (p.z > 0.0).then(|| {
@@ -47,12 +49,14 @@ impl TangentCamera {
 
     /// Whether a continuous pixel position lies on the image (pixel areas included).
     #[inline]
+    #[must_use]
     pub fn contains(&self, x: f64, y: f64) -> bool {
         x >= -0.5 && x <= self.width as f64 - 0.5 && y >= -0.5 && y <= self.height as f64 - 0.5
     }
 
     /// Gnomonic (tangent-plane) coordinates of a pixel position.
     #[inline]
+    #[must_use]
     pub fn gnomonic(&self, x: f64, y: f64) -> (f64, f64) {
         ((x - self.cx) / self.fx, (y - self.cy) / self.fy)
     }
@@ -60,6 +64,7 @@ impl TangentCamera {
     /// `1/|q|` for the pixel ray `q = (gx, gy, 1)`: the factor from perspective disparity (1/z)
     /// to spherical disparity (1/distance) at that pixel.
     #[inline]
+    #[must_use]
     pub fn spherical_factor(&self, x: f64, y: f64) -> f64 {
         let (gx, gy) = self.gnomonic(x, y);
         1.0 / (1.0 + gx * gx + gy * gy).sqrt()
@@ -67,6 +72,7 @@ impl TangentCamera {
 
     /// Unit world direction of a pixel position.
     #[inline]
+    #[must_use]
     pub fn pixel_direction(&self, x: f64, y: f64) -> Vector3<f64> {
         let (gx, gy) = self.gnomonic(x, y);
         (self.rotation.transpose() * Vector3::new(gx, gy, 1.0)).normalize()

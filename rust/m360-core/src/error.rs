@@ -72,6 +72,7 @@ impl CoreError {
     }
 
     /// Whether the error is about the input (as opposed to a failed solve).
+    #[must_use]
     pub fn is_input_error(&self) -> bool {
         matches!(
             self,

@@ -1,4 +1,4 @@
-//! Tangent layouts: a set of cameras covering the sphere for one ERP size (`DESIGN.md` §2).
+//! Tangent layouts: a set of cameras covering the sphere for one ERP size (docs/conventions.md).
 
 use crate::camera::TangentCamera;
 use crate::error::{CoreError, Result};
@@ -27,6 +27,9 @@ pub struct Layout {
 
 impl Layout {
     /// A layout from explicit cameras, checked for consistency.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidLayout`] saying what is inconsistent.
     pub fn new(
         erp_height: usize,
         erp_width: usize,
@@ -86,6 +89,9 @@ impl Layout {
     /// Tangents are `tangent_width` pixels wide (default: 400 at ERP width 2048, scaled linearly),
     /// with square pixels; the height follows from the bounding box (346 at width 400). Faces 0–4
     /// touch the north pole, 5–9 and 10–14 are the equatorial band, 15–19 touch the south pole.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidLayout`] for an unusable size or padding.
     pub fn icosahedron(
         erp_width: usize,
         padding: f64,
@@ -116,6 +122,7 @@ impl Layout {
     }
 
     /// Tangent image size `(height, width)`.
+    #[must_use]
     pub fn tangent_shape(&self) -> (usize, usize) {
         let cam = &self.cameras[0];
         (cam.height, cam.width)

@@ -6,15 +6,17 @@
 //! 2. [`camera`] and [`layout`]: pinhole tangent cameras, and the icosahedron layout of the paper.
 //! 3. [`plan`]: per-(layout, ERP size) sampling maps, built once and reused for every image.
 //! 4. [`resample`]: ERP → tangent images and tangent images → ERP, bilinear and parallel.
-//! 5. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
-//! 6. [`stitch`]: perspective → spherical disparity and the simple blends (mean, nearest face).
-//! 7. [`blend`]: per-face weight maps, radial/frustum blends and the Poisson gradient-domain
-//!    blend (matrix-free conjugate gradients).
+//! 5. [`stitch`]: the network's perspective disparity → spherical disparity.
+//! 6. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
+//! 7. [`blend`]: per-face weights, the row blends (mean, nearest, radial, frustum) and the
+//!    Poisson gradient-domain blend; [`Plan::blend`] dispatches on a [`blend::Method`].
 //!
-//! Conventions (world frame x right, y down, z forward; pixel centres at integer coordinates) are
-//! those of `DESIGN.md` §1. This crate knows nothing of Python: the bindings crate validates user
-//! input, so functions here only `debug_assert!` their preconditions, and report the failures that
-//! can happen on valid input through [`CoreError`].
+//! [`options`] holds what the options share (names, limits); each option type lives with its
+//! stage and says its own names and defaults, so the bindings and Python only read them.
+//! Conventions (world frame x right, y down, z forward; pixel centres at integer coordinates)
+//! are those of docs/conventions.md. This crate knows nothing of Python: it checks option values
+//! itself (typed [`CoreError`]s), while array shapes are checked by the bindings, so functions
+//! here only `debug_assert!` or document (`# Panics`) their size preconditions.
 #![deny(missing_docs)]
 
 pub mod align;

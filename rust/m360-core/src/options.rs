@@ -51,6 +51,7 @@ pub trait Choice: Sized + Copy + PartialEq + 'static {
     }
 
     /// The default value (the first of [`Choice::ALL`]).
+    #[must_use]
     fn default_choice() -> Self {
         Self::ALL[0].0
     }
@@ -107,6 +108,10 @@ pub(crate) fn check_range(option: &'static str, value: f64, low: f64, high: f64)
 }
 
 /// A bound as a person writes it: 1e-13 rather than 0.0000000000001, "inf" for no bound.
+#[expect(
+    clippy::float_cmp,
+    reason = "f64::MAX is the sentinel for no upper bound"
+)]
 fn shown(bound: f64) -> String {
     if bound == f64::MAX {
         "inf".into()

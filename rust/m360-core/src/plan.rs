@@ -57,6 +57,7 @@ pub struct Plan {
 
 impl Plan {
     /// A plan for `layout`; no map is built yet.
+    #[must_use]
     pub fn new(layout: Layout) -> Self {
         Self {
             layout,
@@ -84,7 +85,9 @@ impl Plan {
             return;
         }
         if rayon::current_thread_index().is_some() {
-            needs.iter().for_each(|&need| self.build(need));
+            for &need in needs {
+                self.build(need);
+            }
             return;
         }
         // Poisoning only means another thread panicked mid-build: the maps stay valid.

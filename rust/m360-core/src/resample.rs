@@ -2,7 +2,8 @@
 //!
 //! Both directions use precomputed taps (see [`crate::plan::Plan`]): the position of every output
 //! pixel in the source image, stored as the index of its top-left source pixel and two fixed-point
-//! fractions (8 bytes a pixel). Nothing is rounded to whole pixels (reference bug B8).
+//! fractions (8 bytes a pixel). Nothing is rounded to whole pixels (reference pitfall B8,
+//! docs/reference-pitfalls.md).
 
 use crate::camera::TangentCamera;
 use crate::layout::Layout;
@@ -32,7 +33,7 @@ impl Tap {
     fn new(index: u32, fx: f64, fy: f64) -> Self {
         debug_assert!((0.0..=1.0).contains(&fx) && (0.0..=1.0).contains(&fy));
         // `as` truncates; for f ≥ 0 this rounds without a libm call (no SSE4.1 in baseline x86-64).
-        let q = |f: f64| (f * FRAC_SCALE as f64 + 0.5) as u16;
+        let q = |f: f64| (f * f64::from(FRAC_SCALE) + 0.5) as u16;
         Self {
             index,
             fx: q(fx),
@@ -41,10 +42,14 @@ impl Tap {
     }
 
     /// Weights of the top-left, top-right, bottom-left and bottom-right neighbours.
+    #[expect(
+        clippy::inline_always,
+        reason = "per-pixel kernel; inlined it measured faster"
+    )]
     #[inline(always)]
     fn weights(self) -> [f32; 4] {
-        let fx = self.fx as f32 * (1.0 / FRAC_SCALE);
-        let fy = self.fy as f32 * (1.0 / FRAC_SCALE);
+        let fx = f32::from(self.fx) * (1.0 / FRAC_SCALE);
+        let fy = f32::from(self.fy) * (1.0 / FRAC_SCALE);
         let (gx, gy) = (1.0 - fx, 1.0 - fy);
         [gx * gy, fx * gy, gx * fy, fx * fy]
     }
@@ -68,12 +73,15 @@ impl Texel for u8 {
     #[inline(always)]
     fn bilinear(p: [Self; 4], tap: Tap) -> Self {
         const ONE: u32 = FRAC_SCALE as u32;
-        let (fx, fy) = (tap.fx as u32, tap.fy as u32);
+        let (fx, fy) = (u32::from(tap.fx), u32::from(tap.fy));
         let w11 = (fx * fy) >> 15;
         let (w01, w10) = (fx - w11, fy - w11);
         // w11 ≥ fx + fy − ONE, so adding first never underflows.
         let w00 = ONE + w11 - fx - fy;
-        let v = w00 * p[0] as u32 + w01 * p[1] as u32 + w10 * p[2] as u32 + w11 * p[3] as u32;
+        let v = w00 * u32::from(p[0])
+            + w01 * u32::from(p[1])
+            + w10 * u32::from(p[2])
+            + w11 * u32::from(p[3]);
         ((v + ONE / 2) >> 15) as u8
     }
 
@@ -96,6 +104,10 @@ impl Texel for u8 {
 }
 
 impl Texel for f32 {
+    #[expect(
+        clippy::inline_always,
+        reason = "per-pixel kernel; inlined it measured faster"
+    )]
     #[inline(always)]
     fn bilinear(p: [Self; 4], tap: Tap) -> Self {
         let w = tap.weights();
@@ -119,6 +131,7 @@ impl TangentTaps {
     /// ERP positions cost two `atan2` per pixel, so they are computed once per set of cameras
     /// that differ only by a turn about the vertical axis (the five faces of each icosahedron
     /// band): such a camera sees the same positions shifted in longitude.
+    #[must_use]
     pub fn build(layout: &Layout) -> Self {
         let (h, w) = layout.tangent_shape();
         let (eh, ew) = (layout.erp_height, layout.erp_width);
@@ -192,6 +205,7 @@ impl TangentTaps {
     }
 
     /// Bytes held by the map.
+    #[must_use]
     pub fn memory_bytes(&self) -> usize {
         self.taps.len() * std::mem::size_of::<Tap>() + self.wrapped.len() * 16
     }
@@ -234,6 +248,10 @@ pub struct ErpSource<'a, T> {
 
 impl<T: Copy> ErpSource<'_, T> {
     /// The four neighbours (top-left, top-right, bottom-left, bottom-right) of channel `ch`.
+    #[expect(
+        clippy::inline_always,
+        reason = "per-pixel kernel; inlined it measured faster"
+    )]
     #[inline(always)]
     fn corners<const C: usize>(&self, tap: Tap, ch: usize) -> [T; 4] {
         let corners = if tap.index & WRAPPED == 0 {
@@ -250,6 +268,10 @@ impl<T: Copy> ErpSource<'_, T> {
 }
 
 /// [`Texel::sample_run`] one channel at a time, for any pixel type.
+#[expect(
+    clippy::inline_always,
+    reason = "per-pixel kernel; inlined it measured faster"
+)]
 #[inline(always)]
 fn sample_run_scalar<T: Texel, const C: usize>(
     src: &ErpSource<'_, T>,
@@ -267,6 +289,10 @@ fn sample_run_scalar<T: Texel, const C: usize>(
 }
 
 /// Prefetch the two ERP rows a plain tap reads.
+#[expect(
+    clippy::inline_always,
+    reason = "per-pixel kernel; inlined it measured faster"
+)]
 #[inline(always)]
 fn prefetch_tap<T, const C: usize>(src: &ErpSource<'_, T>, tap: Tap) {
     if tap.index & WRAPPED == 0 {
@@ -285,7 +311,17 @@ fn prefetch_tap<T, const C: usize>(src: &ErpSource<'_, T>, tap: Tap) {
 #[cfg(target_arch = "x86_64")]
 mod simd {
     use super::{prefetch_tap, ErpSource, Tap, Texel, PREFETCH_DISTANCE, WRAPPED};
-    use std::arch::x86_64::*;
+    use std::arch::x86_64::{
+        __m128, __m128i, _mm256_add_epi16, _mm256_broadcastsi128_si256, _mm256_extract_epi32,
+        _mm256_mulhrs_epi16, _mm256_packus_epi16, _mm256_set1_epi16, _mm256_set_m128i,
+        _mm256_shuffle_epi8, _mm256_slli_epi16, _mm256_srli_epi16, _mm256_sub_epi16, _mm_add_epi16,
+        _mm_add_ps, _mm_and_si128, _mm_castpd_ps, _mm_castps_si128, _mm_castsi128_ps,
+        _mm_cvtepi32_ps, _mm_cvtsi128_si32, _mm_load_sd, _mm_loadl_epi64, _mm_loadu_si128,
+        _mm_movehl_ps, _mm_movelh_ps, _mm_mul_ps, _mm_mulhrs_epi16, _mm_packus_epi16,
+        _mm_set1_epi16, _mm_set1_epi32, _mm_set1_ps, _mm_shuffle_epi8, _mm_shuffle_ps,
+        _mm_slli_epi16, _mm_srli_epi16, _mm_srli_epi32, _mm_storeu_ps, _mm_sub_epi16, _mm_sub_ps,
+        _mm_unpacklo_epi64, _mm_unpacklo_ps,
+    };
 
     /// What every pixel of a run needs.
     struct Kernel {
@@ -311,6 +347,7 @@ mod simd {
             } else {
                 0
             };
+            #[expect(clippy::items_after_statements, reason = "used only by the mask below")]
             const ZERO: i8 = -128; // pshufb writes 0 for a set high bit
             let mut m = [[ZERO; 16]; 3];
             for k in 0..2 * C {
@@ -480,6 +517,10 @@ mod simd {
         let offset = |tap: &Tap| base + (tap.index & super::OFFSET_MASK) as usize;
         // SAFETY (all loads below): `offset(tap) + w + 1 < stack.len()` (contract), so both
         // 8-byte pairs of a tap are inside `stack`.
+        #[expect(
+            clippy::cast_ptr_alignment,
+            reason = "_mm_load_sd is an unaligned load"
+        )]
         let pair = |k: usize| unsafe { _mm_castpd_ps(_mm_load_sd(src.add(k).cast::<f64>())) };
         let full = taps.len() / 4 * 4;
         for at in (0..full).step_by(4) {
@@ -490,6 +531,7 @@ mod simd {
             }
             // SAFETY: four taps are 32 readable bytes; a Tap is (index, fx | fy << 16) (repr(C)).
             let (a, b) = unsafe {
+                #[expect(clippy::cast_ptr_alignment, reason = "read with unaligned loads")]
                 let p = quad.as_ptr().cast::<__m128i>();
                 (_mm_loadu_si128(p), _mm_loadu_si128(p.add(1)))
             };
@@ -531,11 +573,15 @@ mod simd {
 /// # Safety
 /// `k + w + 1 < stack.len()`: ERP taps point at a top-left neighbour with x0 ≤ w − 2 and
 /// y0 ≤ h − 2 of a face inside the stack they were built for.
+#[expect(
+    clippy::inline_always,
+    reason = "per-pixel kernel; inlined it measured faster"
+)]
 #[inline(always)]
 unsafe fn lerp_f32(stack: &[f32], k: usize, w: usize, tap: Tap) -> f32 {
     debug_assert!(k + w + 1 < stack.len());
-    let fx = tap.fx as f32 * (1.0 / FRAC_SCALE);
-    let fy = tap.fy as f32 * (1.0 / FRAC_SCALE);
+    let fx = f32::from(tap.fx) * (1.0 / FRAC_SCALE);
+    let fy = f32::from(tap.fy) * (1.0 / FRAC_SCALE);
     // SAFETY: see the function's contract.
     let [tl, tr, bl, br] = unsafe {
         [
@@ -558,6 +604,10 @@ const MAX_FACES_PER_PIXEL: usize = 16;
 const PREFETCH_DISTANCE: usize = 32;
 
 /// Hint the CPU to load the cache line holding `data[index]` (no-op where unsupported).
+#[expect(
+    clippy::inline_always,
+    reason = "per-pixel kernel; inlined it measured faster"
+)]
 #[inline(always)]
 fn prefetch<T>(data: &[T], index: usize) {
     #[cfg(target_arch = "x86_64")]
@@ -635,12 +685,14 @@ pub struct Run {
 impl Run {
     /// The run's columns.
     #[inline]
+    #[must_use]
     pub fn columns(&self) -> std::ops::Range<usize> {
         self.start as usize..(self.start + self.len) as usize
     }
 
     /// The run's taps (and samples) in the row.
     #[inline]
+    #[must_use]
     pub fn taps(&self) -> std::ops::Range<usize> {
         self.start_tap as usize..(self.start_tap + self.len) as usize
     }
@@ -679,6 +731,10 @@ struct ErpRow {
 
 impl ErpTaps {
     /// Taps for every ERP pixel of `layout`.
+    ///
+    /// # Panics
+    /// If a tangent has more pixels than a tap can index (2^28; a layout check keeps them far
+    /// smaller).
     pub fn build(layout: &Layout) -> Self {
         let (h, w) = layout.tangent_shape();
         assert!(
@@ -759,6 +815,7 @@ impl ErpTaps {
     }
 
     /// Bytes held by the map.
+    #[must_use]
     pub fn memory_bytes(&self) -> usize {
         let per_row = |r: &ErpRow| {
             r.taps.len() * std::mem::size_of::<Tap>() + r.runs.len() * std::mem::size_of::<Run>()
@@ -767,21 +824,25 @@ impl ErpTaps {
     }
 
     /// Total number of (ERP pixel, tangent) pairs.
+    #[must_use]
     pub fn len(&self) -> usize {
         self.rows.iter().map(|r| r.taps.len()).sum()
     }
 
     /// Whether no ERP pixel is seen by any tangent.
+    #[must_use]
     pub fn is_empty(&self) -> bool {
         self.rows.iter().all(|r| r.taps.is_empty())
     }
 
     /// Number of tangents that see each ERP pixel (H·W, row-major).
+    #[must_use]
     pub fn counts(&self) -> &[u8] {
         &self.counts
     }
 
     /// The runs of ERP row `i`, sorted by face, then column.
+    #[must_use]
     pub fn runs(&self, i: usize) -> &[Run] {
         &self.rows[i].runs
     }
@@ -846,6 +907,10 @@ impl ErpTaps {
     ///
     /// # Safety
     /// `stack` must have the size the taps were built for.
+    #[expect(
+        clippy::inline_always,
+        reason = "per-pixel kernel; inlined it measured faster"
+    )]
     #[inline(always)]
     unsafe fn sample_run(&self, stack: &[f32], run: &Run, taps: &[Tap], out: &mut [f32]) {
         let (w, base) = (self.tangent_width, run.face as usize * self.tangent_pixels);
@@ -872,6 +937,7 @@ impl ErpTaps {
     ///
     /// # Panics
     /// If `maps` is not the size the taps were built for.
+    #[must_use]
     pub fn weights_of(&self, maps: &[f32]) -> TapWeights {
         let rows = (0..self.rows.len())
             .into_par_iter()
@@ -894,11 +960,13 @@ pub struct TapWeights {
 
 impl TapWeights {
     /// The weights of the taps of ERP row `i`, in tap order.
+    #[must_use]
     pub fn row(&self, i: usize) -> &[f32] {
         &self.rows[i]
     }
 
     /// Bytes held.
+    #[must_use]
     pub fn memory_bytes(&self) -> usize {
         self.rows.iter().map(|r| r.len() * 4 + 24).sum()
     }
@@ -911,6 +979,10 @@ pub struct Ranks<'a>(std::slice::Iter<'a, Tap>);
 impl Iterator for Ranks<'_> {
     type Item = u8;
 
+    #[expect(
+        clippy::inline_always,
+        reason = "per-pixel kernel; inlined it measured faster"
+    )]
     #[inline(always)]
     fn next(&mut self) -> Option<u8> {
         self.0.next().map(|t| (t.index >> RANK_SHIFT) as u8)
@@ -1171,7 +1243,7 @@ mod tests {
                         .enumerate()
                         .map(|(rank, &(_, k, tap, _))| (k, tap.index, tap.fx, tap.fy, rank as u32))
                         .collect();
-                    got.sort();
+                    got.sort_unstable();
                     let on_edge = |&(_, k, _, (x, y)): &(f64, usize, Tap, (f64, f64))| {
                         let cam = &layout.cameras[k];
                         let (w, h) = (cam.width as f64 - 0.5, cam.height as f64 - 0.5);
@@ -1184,7 +1256,7 @@ mod tests {
                         continue;
                     }
                     let mut ranked = ranked;
-                    ranked.sort();
+                    ranked.sort_unstable();
                     for (g, r) in got.iter().zip(&ranked) {
                         assert_eq!((g.0, g.1, g.4), (r.0, r.1, r.4), "pixel ({i}, {j})");
                         assert!(g.2.abs_diff(r.2) <= 1 && g.3.abs_diff(r.3) <= 1);
@@ -1206,8 +1278,8 @@ mod tests {
         let stack: Vec<f32> = (0..20 * h * w)
             .map(|p| {
                 state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
                 if p % 97 == 0 {
                     f32::NAN
                 } else {
@@ -1254,8 +1326,8 @@ mod tests {
         let erp: Vec<u8> = (0..128 * 256 * C)
             .map(|_| {
                 state = state
-                    .wrapping_mul(6364136223846793005)
-                    .wrapping_add(1442695040888963407);
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1_442_695_040_888_963_407);
                 (state >> 56) as u8
             })
             .collect();

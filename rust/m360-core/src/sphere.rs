@@ -1,4 +1,4 @@
-//! The equirectangular grid: pixel centres ↔ unit viewing directions (`DESIGN.md` §1).
+//! The equirectangular grid: pixel centres ↔ unit viewing directions (docs/conventions.md).
 //!
 //! Pixel (row i, column j) of an H×W ERP image has longitude λ = 2π(j+0.5)/W − π and latitude
 //! φ = π/2 − π(i+0.5)/H; its direction is (cos φ sin λ, −sin φ, cos φ cos λ).
@@ -8,18 +8,21 @@ use std::f64::consts::{FRAC_PI_2, PI};
 
 /// Longitude of the centre of column `j` of a `width`-wide ERP image, in radians.
 #[inline]
+#[must_use]
 pub fn column_longitude(j: f64, width: usize) -> f64 {
     2.0 * PI * (j + 0.5) / width as f64 - PI
 }
 
 /// Latitude of the centre of row `i` of a `height`-tall ERP image, in radians.
 #[inline]
+#[must_use]
 pub fn row_latitude(i: f64, height: usize) -> f64 {
     FRAC_PI_2 - PI * (i + 0.5) / height as f64
 }
 
 /// Unit direction of longitude `lon` and latitude `lat`.
 #[inline]
+#[must_use]
 pub fn lonlat_direction(lon: f64, lat: f64) -> Vector3<f64> {
     let (sl, cl) = lon.sin_cos();
     let (sp, cp) = lat.sin_cos();
@@ -30,6 +33,7 @@ pub fn lonlat_direction(lon: f64, lat: f64) -> Vector3<f64> {
 ///
 /// The column lies in [−0.5, W − 0.5) and the row in [−0.5, H − 0.5].
 #[inline]
+#[must_use]
 pub fn direction_to_pixel(d: &Vector3<f64>, height: usize, width: usize) -> (f64, f64) {
     let lon = d.x.atan2(d.z);
     let lat = (-d.y).atan2((d.x * d.x + d.z * d.z).sqrt());
@@ -53,6 +57,7 @@ pub struct ErpGrid {
 
 impl ErpGrid {
     /// Tables for an `height`×`width` ERP image.
+    #[must_use]
     pub fn new(height: usize, width: usize) -> Self {
         let (sin_lat, cos_lat) = (0..height)
             .map(|i| row_latitude(i as f64, height).sin_cos())
@@ -72,18 +77,21 @@ impl ErpGrid {
 
     /// (sin, cos) of the latitude of row `i`.
     #[inline]
+    #[must_use]
     pub fn row_sin_cos(&self, i: usize) -> (f64, f64) {
         (self.sin_lat[i], self.cos_lat[i])
     }
 
     /// (sin, cos) of the longitude of column `j`.
     #[inline]
+    #[must_use]
     pub fn column_sin_cos(&self, j: usize) -> (f64, f64) {
         (self.sin_lon[j], self.cos_lon[j])
     }
 
     /// Unit direction of the centre of pixel (row `i`, column `j`).
     #[inline]
+    #[must_use]
     pub fn direction(&self, i: usize, j: usize) -> Vector3<f64> {
         let cp = self.cos_lat[i];
         Vector3::new(cp * self.sin_lon[j], -self.sin_lat[i], cp * self.cos_lon[j])

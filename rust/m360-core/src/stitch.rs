@@ -6,6 +6,7 @@ use rayon::prelude::*;
 
 /// The length |q| of every tangent pixel's ray q = ((x − cx)/fx, (y − cy)/fy, 1) (N·h·w, f32):
 /// spherical disparity = perspective disparity / |q|.
+#[must_use]
 pub fn ray_lengths(layout: &Layout) -> Vec<f32> {
     let (h, w) = layout.tangent_shape();
     let mut out = vec![0.0f32; layout.cameras.len() * h * w];
@@ -24,7 +25,8 @@ pub fn ray_lengths(layout: &Layout) -> Vec<f32> {
 
 /// Spherical disparity (1/distance) of every tangent pixel from perspective disparity (1/z):
 /// each pixel divided by the length of its own ray `(gx, gy, 1)`, computed from its own camera,
-/// so no face can use another's factor (reference bug B1). Pixels whose `mask` is false become NaN.
+/// so no face can use another's factor (reference pitfall B1,
+/// docs/reference-pitfalls.md). Pixels whose `mask` is false become NaN.
 /// `out` (N·h·w) is overwritten.
 ///
 /// # Panics
@@ -82,7 +84,7 @@ mod tests {
         let cam = &layout.cameras[0];
         let (cx, cy) = (cam.cx.round(), cam.cy.round());
         let centre = s[cy as usize * cam.width + cx as usize];
-        assert!((centre as f64 - cam.spherical_factor(cx, cy)).abs() < 1e-6 && centre > 0.99);
+        assert!((f64::from(centre) - cam.spherical_factor(cx, cy)).abs() < 1e-6 && centre > 0.99);
         assert!(s[0] < 0.7, "the corner ray is long: {}", s[0]);
     }
 

@@ -34,7 +34,7 @@ pub(crate) fn blend<'py>(
     let spread = confidence.then(|| output_array(py, &shape)).transpose()?;
     let report = {
         let mut rw_d = disparity.readwrite();
-        let mut rw_s = spread.as_ref().map(|s| s.readwrite());
+        let mut rw_s = spread.as_ref().map(numpy::PyArrayMethods::readwrite);
         let dst_d = writable(&mut rw_d)?;
         let dst_s = rw_s.as_mut().map(writable).transpose()?;
         let needs = Plan::blend_needs(&method);

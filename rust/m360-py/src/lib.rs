@@ -5,6 +5,11 @@
 //! The Python package checks argument *types* before calling in here; values are checked by the
 //! core, so a bad value gives `m360.errors.InputError` naming the option, never a panic.
 
+#![expect(
+    clippy::needless_pass_by_value,
+    reason = "pyo3 hands extracted arguments (arrays, bound objects) to functions by value"
+)]
+
 mod align;
 mod arrays;
 mod blend;

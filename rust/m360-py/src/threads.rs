@@ -18,7 +18,7 @@ fn default_threads() -> usize {
         .ok()
         .and_then(|v| v.parse::<usize>().ok())
         .filter(|&n| (1..=MAX_THREADS).contains(&n))
-        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, |n| n.get()))
+        .unwrap_or_else(|| std::thread::available_parallelism().map_or(1, std::num::NonZero::get))
 }
 
 fn build_pool(threads: usize) -> PyResult<Arc<rayon::ThreadPool>> {

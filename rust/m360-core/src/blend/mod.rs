@@ -48,6 +48,7 @@ impl Method {
     pub const NAMES: &'static [&'static str] = &["poisson", "frustum", "radial", "mean", "nn"];
 
     /// The method's name.
+    #[must_use]
     pub fn name(&self) -> &'static str {
         match self {
             Self::Poisson(_) => "poisson",
@@ -60,6 +61,7 @@ impl Method {
 
     /// The per-face weights the method reads at the taps, if any (Poisson weighs its gradients
     /// with the frustum weights).
+    #[must_use]
     pub fn weighting(&self) -> Option<Weighting> {
         match self {
             Self::Poisson(_) | Self::Frustum => Some(Weighting::Frustum),

@@ -26,6 +26,10 @@ fn layout(erp_width: usize) -> Layout {
 }
 
 #[test]
+#[expect(
+    clippy::float_cmp,
+    reason = "weights are exactly 0 or 1 there by construction"
+)]
 fn frustum_values_at_centre_border_and_ramp_start() {
     let cam = &layout(2048).cameras[0];
     let (w, h) = (cam.width as f64, cam.height as f64);
@@ -48,6 +52,10 @@ fn frustum_values_at_centre_border_and_ramp_start() {
 }
 
 #[test]
+#[expect(
+    clippy::float_cmp,
+    reason = "weights are exactly 0 or 1 there by construction"
+)]
 fn radial_values_on_the_axis_at_15_degrees_and_at_the_inscribed_edge() {
     let cam = &layout(2048).cameras[3];
     let edge = inscribed_half_fov(cam);
@@ -66,7 +74,7 @@ fn radial_values_on_the_axis_at_15_degrees_and_at_the_inscribed_edge() {
     assert_eq!(radial_weight(cam, cam.cx, cam.cy), 1.0);
     assert_eq!(at_angle(14.9), 1.0);
     assert!((at_angle(15.0) - 1.0).abs() < 1e-9);
-    let mid = (15.0 + edge.to_degrees()) / 2.0;
+    let mid = f64::midpoint(15.0, edge.to_degrees());
     assert!((at_angle(mid) - 0.5).abs() < 1e-9);
     assert!(at_angle(edge.to_degrees()).abs() < 1e-9);
     assert_eq!(at_angle(edge.to_degrees() + 1.0), 0.0);
@@ -115,8 +123,8 @@ fn dense_solve(values: &[f32], weights: &[f32], target: &[f32], h: usize, w: usi
             if !(vp.is_finite() && vq.is_finite()) {
                 continue;
             }
-            let wgt = 0.5 * (weights[l * n + p] as f64 + weights[l * n + q] as f64);
-            let g = vq as f64 - vp as f64;
+            let wgt = 0.5 * (f64::from(weights[l * n + p]) + f64::from(weights[l * n + q]));
+            let g = f64::from(vq) - f64::from(vp);
             a[p * n + p] += wgt;
             a[q * n + q] += wgt;
             a[p * n + q] -= wgt;
@@ -135,7 +143,7 @@ fn dense_solve(values: &[f32], weights: &[f32], target: &[f32], h: usize, w: usi
     }
     for p in 0..n {
         a[p * n + p] += PoissonParams::DEFAULT_LAM;
-        b[p] += PoissonParams::DEFAULT_LAM * target[p] as f64;
+        b[p] += PoissonParams::DEFAULT_LAM * f64::from(target[p]);
     }
     // Gaussian elimination without pivoting: the matrix is SPD.
     for c in 0..n {
@@ -316,7 +324,7 @@ fn the_v_cycle_is_symmetric_positive_definite_and_cuts_iterations() {
     let (mut mu, mut mv) = (vec![0.0f32; n], vec![0.0f32; n]);
     let umu = mg.apply(&system.right, &system.down, &u, &mut mu);
     let vmv = mg.apply(&system.right, &system.down, &v, &mut mv);
-    let dot = |a: &[f64], b: &[f32]| a.iter().zip(b).map(|(a, b)| a * *b as f64).sum::<f64>();
+    let dot = |a: &[f64], b: &[f32]| a.iter().zip(b).map(|(a, b)| a * f64::from(*b)).sum::<f64>();
     let (vmu, umv) = (dot(&v, &mu), dot(&u, &mv));
     assert!(umu > 0.0 && vmv > 0.0);
     assert!(
@@ -328,7 +336,7 @@ fn the_v_cycle_is_symmetric_positive_definite_and_cuts_iterations() {
     // An order of magnitude fewer iterations than the Jacobi preconditioner.
     let start: Vec<f64> = target
         .iter()
-        .map(|&t| if t.is_finite() { t as f64 } else { 0.0 })
+        .map(|&t| if t.is_finite() { f64::from(t) } else { 0.0 })
         .collect();
     let params = PoissonParams {
         tolerance: 1e-8,
@@ -514,7 +522,7 @@ fn mean_and_nearest_reproduce_a_smooth_field() {
         for (p, &v) in disparity.iter().enumerate() {
             let want = field(&grid.direction(p / layout.erp_width, p % layout.erp_width));
             assert!(
-                (v as f64 - want).abs() < 2e-3,
+                (f64::from(v) - want).abs() < 2e-3,
                 "{mode:?} pixel {p}: {v} vs {want}"
             );
         }

@@ -40,6 +40,7 @@ choice!(
 );
 
 /// Frustum weight of continuous pixel position (x, y) of `cam` (0 outside the image).
+#[must_use]
 pub fn frustum_weight(cam: &TangentCamera, x: f64, y: f64) -> f64 {
     let (w, h) = (cam.width as f64, cam.height as f64);
     let dx = (x + 0.5).min(w - 0.5 - x);
@@ -50,6 +51,7 @@ pub fn frustum_weight(cam: &TangentCamera, x: f64, y: f64) -> f64 {
 }
 
 /// Half-angle (radians) of the widest cone about the optical axis of `cam` inside its image.
+#[must_use]
 pub fn inscribed_half_fov(cam: &TangentCamera) -> f64 {
     let (w, h) = (cam.width as f64, cam.height as f64);
     // The principal point is off-centre for the icosahedron: the nearest border decides.
@@ -61,6 +63,7 @@ pub fn inscribed_half_fov(cam: &TangentCamera) -> f64 {
 }
 
 /// Radial weight of continuous pixel position (x, y) of `cam`.
+#[must_use]
 pub fn radial_weight(cam: &TangentCamera, x: f64, y: f64) -> f64 {
     let full = RADIAL_FULL_DEG.to_radians();
     let edge = inscribed_half_fov(cam);
@@ -95,6 +98,7 @@ pub fn weight_maps(layout: &Layout, kind: Weighting) -> Vec<f32> {
                         let d = cam.pixel_direction(x, r);
                         let own = axes[k].dot(&d);
                         // Ties go to the lower index, as the taps' nearness ranks do.
+                        #[expect(clippy::float_cmp, reason = "an exact tie is what needs a rule")]
                         let nearest = axes
                             .iter()
                             .enumerate()

@@ -428,7 +428,7 @@ pub(crate) fn solve_multigrid(
         let mut rz = mg.apply(right, down, &r, &mut z);
         p.par_iter_mut()
             .zip(z.par_iter())
-            .for_each(|(p, &z)| *p = z as f64);
+            .for_each(|(p, &z)| *p = f64::from(z));
         let threshold = 0.8 * params.tolerance * b_norm;
         while iterations < params.iterations {
             let pap = ordered_sum(
@@ -469,7 +469,7 @@ pub(crate) fn solve_multigrid(
                 .zip(z.par_chunks(chunk))
                 .for_each(|(p, z)| {
                     for (p, &z) in p.iter_mut().zip(z) {
-                        *p = z as f64 + beta * *p;
+                        *p = f64::from(z) + beta * *p;
                     }
                 });
         }

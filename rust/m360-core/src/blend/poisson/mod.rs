@@ -133,7 +133,7 @@ pub struct PoissonReport {
 }
 
 fn solve_assembled(
-    system: System,
+    system: &System,
     params: &PoissonParams,
     assemble_seconds: f64,
     out: &mut [f32],
@@ -145,7 +145,7 @@ fn solve_assembled(
         .par_iter()
         .map(|&t| if t.is_finite() { t } else { 0.0 })
         .collect();
-    let (iterations, relative_residual, initial_residual) = solve(&system, &mut x, params)?;
+    let (iterations, relative_residual, initial_residual) = solve(system, &mut x, params)?;
     out.par_iter_mut()
         .zip(x.par_iter())
         .zip(system.target.par_iter())
@@ -175,6 +175,10 @@ fn solve_assembled(
 /// ∇ is the forward difference on the ERP grid; for the edge x → x' the face term is
 /// ω̄_a·((B(x') − B(x)) − (D_a(x') − D_a(x)))² with ω̄_a = (ω_a(x) + ω_a(x'))/2, counted for the
 /// faces valid at both ends.
+///
+/// # Errors
+/// [`CoreError::InvalidOption`] for unusable `params`; [`CoreError::NotConverged`],
+/// [`CoreError::NotPositiveDefinite`] or [`CoreError::NonFinite`] when the solve fails.
 pub fn poisson_blend(
     taps: &ErpTaps,
     layout: &Layout,
@@ -202,13 +206,17 @@ pub fn poisson_blend(
         spread,
     );
     let assemble_seconds = t0.elapsed().as_secs_f64();
-    solve_assembled(system, params, assemble_seconds, disparity, None)
+    solve_assembled(&system, params, assemble_seconds, disparity, None)
 }
 
 /// The same Poisson blend for K maps already on an H×W ERP grid: `values` and `weights` are
 /// K·H·W (NaN value = invalid), `target` H·W is the fidelity image (NaN = no fidelity and no
 /// unknown there, allowed only where no layer is valid; `params.fidelity` is ignored).
 /// Returns B in f64 (NaN where `target` is NaN).
+///
+/// # Errors
+/// As [`poisson_blend`], and [`CoreError::ShapeMismatch`] or [`CoreError::InvalidOption`]
+/// (naming the pixel) for inconsistent layers and target.
 pub fn poisson_blend_layers(
     values: &[f32],
     weights: &[f32],
@@ -262,5 +270,5 @@ pub fn poisson_blend_layers(
     );
     let assemble_seconds = t0.elapsed().as_secs_f64();
     let mut scratch = vec![0.0f32; n];
-    solve_assembled(system, params, assemble_seconds, &mut scratch, Some(out))
+    solve_assembled(&system, params, assemble_seconds, &mut scratch, Some(out))
 }
