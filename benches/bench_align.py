@@ -6,6 +6,7 @@ Tables:
    for
    - no alignment (``align="none"``): the distorted tangents blended as they are,
    - the default (normalized energy, perspective offsets, Newton to convergence, 4x3 → 8x7),
+   - the default with a third 16x14 level (the schedule the default stops short of),
    - ``energy="paper"`` with 50 L-BFGS iterations per level (the paper's recipe, 4x3 → 8x7 →
      16x14),
    - the default energy with m360's L-BFGS run to convergence,
@@ -60,6 +61,7 @@ from m360.geometry import clear_plan_cache, plan_for
 METHODS = {
     "no alignment": {"align": "none"},
     "default (newton)": {},
+    "default + 16x14 level": {"align": [(4, 3), (8, 7), (16, 14)]},
     "paper, L-BFGS 50/level": {"energy": "paper", "solver": "lbfgs"},
     "default energy, L-BFGS conv.": {"solver": "lbfgs", "iterations": 5000},
     "paper, Newton conv.": {"energy": "paper", "solver": "newton"},
@@ -243,7 +245,7 @@ def solver_race(
 
 
 def bench_size(
-    width: int, repeats: int, seed: int, fractions: list[float], maxiter: int
+    width: int, repeats: int, seed: int, fractions: list[float], maxiter: int, race: bool
 ) -> tuple[list, ...]:
     """All measurements at one ERP width: (rows, level rows, problem rows, race rows, json)."""
     rows: list = []
@@ -307,10 +309,12 @@ def bench_size(
             }
         )
 
-    problem_rows, race_rows, race_json = solver_race(
-        plan, tiles, width, repeats, fractions, maxiter
-    )
-    json_rows += race_json
+    problem_rows, race_rows = [], []
+    if race:
+        problem_rows, race_rows, race_json = solver_race(
+            plan, tiles, width, repeats, fractions, maxiter
+        )
+        json_rows += race_json
     print(f"  done {width} (sampling {sampling:.3f} s)", flush=True)
     return rows, level_rows, problem_rows, race_rows, json_rows
 
@@ -329,6 +333,9 @@ def main() -> None:
     parser.add_argument(
         "--scipy-maxiter", type=int, default=1000, help="scipy L-BFGS-B iteration cap (1000)"
     )
+    parser.add_argument(
+        "--no-race", action="store_true", help="skip the time-to-energy solver comparison"
+    )
     args = parser.parse_args()
     meta = h.metadata()
     print(
@@ -338,7 +345,7 @@ def main() -> None:
     rows, level_rows, problem_rows, race_rows, json_rows = [], [], [], [], []
     for width in args.sizes:
         r, lr, pr, rr, jr = bench_size(
-            width, args.repeats, args.seed, args.fractions, args.scipy_maxiter
+            width, args.repeats, args.seed, args.fractions, args.scipy_maxiter, not args.no_race
         )
         rows += r
         level_rows += lr
@@ -382,6 +389,10 @@ def main() -> None:
         ],
         level_rows,
     )
+    if args.no_race:
+        if args.json:
+            h.write_json(args.json, json_rows, meta)
+        return
     h.print_table(
         f"solver comparison problem: paper energy, {GRID[0]}x{GRID[1]} level from identity; "
         "E* = Newton to convergence; build s = m360's problem build (median of the runs), "
