@@ -22,13 +22,15 @@ from pathlib import Path
 from typing import Any
 
 __all__ = [
+    "ProcessRss",
     "Timing",
     "bench_argparser",
+    "fresh_process_rss",
     "measure",
     "metadata",
     "peak_rss_mb",
     "print_table",
-    "run_in_subprocess_peak_rss",
+    "timing_of",
     "write_json",
 ]
 
@@ -63,6 +65,14 @@ def measure(fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1) -> Timi
         t0 = time.perf_counter()
         fn()
         runs.append(time.perf_counter() - t0)
+    return timing_of(runs)
+
+
+def timing_of(runs: Sequence[float]) -> Timing:
+    """Median, interquartile range (q75 - q25) and minimum of times measured elsewhere."""
+    runs = list(runs)
+    if not runs:
+        raise ValueError("no runs")
     if len(runs) >= 2:
         q = statistics.quantiles(runs, n=4, method="inclusive")
         iqr = q[2] - q[0]
@@ -72,24 +82,67 @@ def measure(fn: Callable[[], Any], *, repeats: int = 5, warmup: int = 1) -> Timi
 
 
 def peak_rss_mb() -> float:
-    """Peak resident set size of this process so far, in MB (``getrusage(RUSAGE_SELF)``)."""
+    """Peak resident set size of this process so far, in MB (``getrusage(RUSAGE_SELF)``).
+
+    On Linux this figure survives fork + exec: a child's ``ru_maxrss`` starts at its parent's
+    high-water mark. Use :func:`fresh_process_rss` to measure an operation's memory.
+    """
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / _RSS_PER_MB
 
 
-def run_in_subprocess_peak_rss(code: str, *, timeout: float | None = None) -> float:
-    """Run a Python snippet in a fresh interpreter and return that interpreter's peak RSS in MB.
+@dataclass(frozen=True)
+class ProcessRss:
+    """Peak RSS of one fresh interpreter, in MB.
 
-    The child (same ``sys.executable``, same environment) reports its own
-    ``getrusage(RUSAGE_SELF).ru_maxrss`` on exit, so the figure covers exactly one interpreter:
-    imports plus whatever ``code`` does. Subtract a run of ``"import m360"`` for the operation
-    alone. Raises ``RuntimeError`` with the child's stderr if it fails.
+    ``baseline_mb`` is the peak after the setup (imports) and ``peak_mb`` the peak at exit, both
+    read in the same child, so ``delta_mb`` = what the measured code added on top of its imports.
+    ``source`` names the counter: ``"VmHWM"`` (Linux, /proc/self/status: the high-water mark of
+    the child's own address space, which exec starts afresh) or ``"ru_maxrss"`` (elsewhere; on
+    Linux it would start at the parent's peak).
     """
-    wrapper = (
-        "import resource, sys\n"
-        f"exec(compile({code!r}, '<bench>', 'exec'))\n"
-        "sys.stdout.write('\\n__PEAK_RSS__ %d\\n' % "
-        "resource.getrusage(resource.RUSAGE_SELF).ru_maxrss)\n"
-    )
+
+    baseline_mb: float
+    peak_mb: float
+    source: str
+
+    @property
+    def delta_mb(self) -> float:
+        return self.peak_mb - self.baseline_mb
+
+
+_RSS_CHILD = """
+import sys
+def _hwm():
+    try:
+        with open('/proc/self/status') as fh:
+            for line in fh:
+                if line.startswith('VmHWM:'):
+                    return int(line.split()[1]) * 1024, 'VmHWM'
+    except OSError:
+        pass
+    import resource
+    per = 1 if sys.platform == 'darwin' else 1024
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * per, 'ru_maxrss'
+exec(compile({setup!r}, '<bench setup>', 'exec'))
+_base, _src = _hwm()
+exec(compile({code!r}, '<bench>', 'exec'))
+_peak, _src = _hwm()
+sys.stdout.write('\\n__PEAK_RSS__ %d %d %s\\n' % (_base, _peak, _src))
+"""
+
+
+def fresh_process_rss(
+    code: str, *, setup: str = "import numpy as np, m360", timeout: float | None = None
+) -> ProcessRss:
+    """Peak RSS of a fresh interpreter (same ``sys.executable`` and environment) that runs
+    ``setup`` then ``code``; the baseline is read after ``setup`` in that same process.
+
+    The child is a new interpreter (exec), and on Linux it reads its own VmHWM, which does not
+    inherit this process's high-water mark (``ru_maxrss`` does, across fork + exec, so a bench
+    that has grown would report its own peak as the child's). ``code`` runs in the namespace of
+    ``setup``. Raises ``RuntimeError`` with the child's stderr if it fails.
+    """
+    wrapper = _RSS_CHILD.format(setup=setup, code=code)
     proc = subprocess.run(
         [sys.executable, "-c", wrapper], capture_output=True, text=True, timeout=timeout
     )
@@ -97,7 +150,9 @@ def run_in_subprocess_peak_rss(code: str, *, timeout: float | None = None) -> fl
         raise RuntimeError(f"snippet failed (exit {proc.returncode}):\n{proc.stderr}")
     for line in reversed(proc.stdout.splitlines()):
         if line.startswith("__PEAK_RSS__ "):
-            return int(line.split()[1]) / _RSS_PER_MB
+            _, base, peak, source = line.split()
+            mb = 1024.0 * 1024.0
+            return ProcessRss(baseline_mb=int(base) / mb, peak_mb=int(peak) / mb, source=source)
     raise RuntimeError("snippet did not report its peak RSS")
 
 
@@ -214,6 +269,8 @@ def write_json(path: str | os.PathLike[str], rows: Sequence[Any], meta: dict[str
     def default(obj: Any) -> Any:
         if isinstance(obj, Timing):
             return asdict(obj)
+        if isinstance(obj, ProcessRss):
+            return {**asdict(obj), "delta_mb": obj.delta_mb}
         if hasattr(obj, "tolist"):
             return obj.tolist()
         if isinstance(obj, Path):

@@ -1,14 +1,35 @@
 """Alignment speed and accuracy at 2K / 4K / 8K on synthetic rooms.
 
-For each size: the overlap sampling (once per plan), per-level problem build and solve, final
-energy and AbsRel (blend="mean") for
-- the default (normalized energy, perspective offsets, Newton to convergence, 4x3 → 8x7 → 16x14),
-- ``energy="paper"`` with 50 L-BFGS iterations per level (the paper's recipe),
-- the default energy with m360's L-BFGS run to convergence,
-- the paper energy solved to convergence by Newton;
-and, in the same run, the baseline: scipy ``L-BFGS-B`` on the same energy and gradient built
-with scipy.sparse (benches/align_scipy.py), 50 iterations on the 16x14 level, compared per
-iteration with m360's L-BFGS on the same level.
+Tables:
+1. whole alignment + mean blend per size: stitch and align seconds, iterations, final energy
+   (energies of different energies are not comparable) and AbsRel against the exact distance,
+   for
+   - no alignment (``align="none"``): the distorted tangents blended as they are,
+   - the default (normalized energy, perspective offsets, Newton to convergence, 4x3 → 8x7),
+   - the default with a third 16x14 level (the schedule the default stops short of),
+   - ``energy="paper"`` with 50 L-BFGS iterations per level (the paper's recipe, 4x3 → 8x7 →
+     16x14),
+   - the default energy with m360's L-BFGS run to convergence,
+   - the paper energy solved to convergence by Newton;
+   then the median AbsRel of each method over the sizes run (same scene per size for all rows).
+2. per level: samples, build and solve seconds, iterations, energy.
+3. time to the same energy, against a baseline in the same run. One problem per size: the paper
+   energy's 16x14 level, from identity, on the distorted tangents (8,960 unknowns), as m360
+   builds it; scipy gets it from ``plan.alignment_problem`` (energy and gradient with
+   scipy.sparse, benches/align_scipy.py; checked against m360's reported energies). Targets:
+   the energy m360's L-BFGS reaches after 50 iterations (the paper's cap), and a fraction f of
+   the way from the initial energy E0 to the optimum E* (Newton to convergence), E0 - f (E0 -
+   E*) for f in ``--fractions``. Per target, the median over repeats of the time each solver
+   takes to first reach it:
+   - scipy ``L-BFGS-B`` (bounds s ≥ 1e-6, gtol = ftol = 0): wall time from the call to the
+     callback of the first iteration at or below the target (stopped once all are reached);
+   - m360 L-BFGS and m360 Newton: the solver's own ``solve_seconds`` in a run capped at the
+     fewest iterations that reach the target (found by bisection on the cap; the solvers are
+     deterministic, so a capped run is the start of a longer one).
+   Problem build is not in these times (m360's build seconds and scipy's assembly are printed
+   apart). Ratio = scipy seconds / m360 seconds (> 1: m360 faster). Iterations are not units of
+   equal work (an L-BFGS-B iteration may evaluate the energy several times, a Newton iteration
+   factors the Hessian), which is why the table compares times to an energy, not per iteration.
 
 Tangents are ray-cast exactly, then distorted per tangent as a network errs: scale ×[0.5, 2],
 shift ±30 % of the median, a smooth ±10 % multiplicative field and 1 % noise.
@@ -18,9 +39,12 @@ Run: ``.venv/bin/python benches/bench_align.py [--sizes 2048 4096 8192] [--repea
 
 from __future__ import annotations
 
+import math
+import statistics
 import sys
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import scipy.optimize
@@ -29,16 +53,32 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as h
 import align_scipy
 import m360
+import m360._core
 import m360._sphere as sph
 import m360.synthetic as syn
 from m360.geometry import clear_plan_cache, plan_for
 
 METHODS = {
+    "no alignment": {"align": "none"},
     "default (newton)": {},
+    "default + 16x14 level": {"align": [(4, 3), (8, 7), (16, 14)]},
     "paper, L-BFGS 50/level": {"energy": "paper", "solver": "lbfgs"},
     "default energy, L-BFGS conv.": {"solver": "lbfgs", "iterations": 5000},
     "paper, Newton conv.": {"energy": "paper", "solver": "newton"},
 }
+#: The level of the solver comparison and the paper energy's options (stitch's defaults).
+GRID = (16, 14)
+PAPER = {
+    "energy": "paper",
+    "smoothness": 40.0,
+    "scale_weight": 0.007,
+    "sample_fraction": 0.01,
+    "pole_cap_deg": 0.0,
+    "offsets": "spherical",
+}
+#: Largest iteration cap m360's L-BFGS is searched over for a target.
+LBFGS_CAP = 5000
+NEWTON_CAP = 100
 
 
 def scene_inputs(width: int, seed: int) -> tuple[m360.Layout, np.ndarray, np.ndarray]:
@@ -50,29 +90,174 @@ def scene_inputs(width: int, seed: int) -> tuple[m360.Layout, np.ndarray, np.nda
     return layout, tiles, depth
 
 
-def bench_size(width: int, repeats: int, seed: int) -> tuple[list, list, list, list]:
-    """All measurements at one ERP width: (rows, level rows, baseline rows, json rows)."""
+def _align_options(levels: list, options: dict, solver: str, iterations: int, tol: float) -> dict:
+    return {"levels": levels, "solver": solver, "iterations": iterations, "tolerance": tol,
+            **options}  # fmt: skip
+
+
+def plan_align(
+    plan: Any, maps: np.ndarray, levels: list, options: dict, solver: str, its: int, tol: float
+) -> tuple:
+    """``plan.align`` with the options as a dict (issue 17's core) or positional (before)."""
+    if hasattr(m360._core, "stitch_options"):
+        return plan.align(maps, _align_options(levels, options, solver, its, tol))
+    o = options
+    return plan.align(
+        maps, levels, o["energy"], o["smoothness"], o["scale_weight"], solver, its, tol,
+        o["sample_fraction"], o["pole_cap_deg"], o["offsets"],
+    )  # fmt: skip
+
+
+def alignment_problem(plan: Any, maps: np.ndarray, grid: tuple, options: dict) -> dict:
+    if hasattr(m360._core, "stitch_options"):
+        return plan.alignment_problem(maps, grid, _align_options([grid], options, "newton", 0, 0))
+    o = options
+    return plan.alignment_problem(
+        maps, grid, o["energy"], o["smoothness"], o["scale_weight"], o["sample_fraction"],
+        o["pole_cap_deg"], o["offsets"],
+    )  # fmt: skip
+
+
+class CappedSolver:
+    """m360's solver on one level, run with an iteration cap (tolerance 0); runs are memoised."""
+
+    def __init__(self, plan: Any, maps: np.ndarray, solver: str) -> None:
+        self.plan, self.maps, self.solver = plan, maps, solver
+        self.runs: dict[int, tuple[dict, np.ndarray]] = {}
+
+    def run(self, cap: int) -> tuple[dict, np.ndarray]:
+        """(level report, node values x in align_scipy's order) after at most ``cap`` steps."""
+        _, levels, grids = plan_align(self.plan, self.maps, [GRID], PAPER, self.solver, cap, 0.0)
+        return levels[0], np.asarray(grids[0], np.float64).reshape(-1)
+
+    def energy(self, cap: int) -> float:
+        if cap not in self.runs:
+            self.runs[cap] = self.run(cap)
+        return float(self.runs[cap][0]["energy"])
+
+    def first_reaching(self, target: float, limit: int) -> int | None:
+        """Fewest iterations whose iterate has energy ≤ target (None if not within ``limit``)."""
+        lo, hi = 0, 1  # energy(lo) > target
+        while self.energy(hi) > target:
+            if hi >= limit:
+                return None
+            lo, hi = hi, min(2 * hi, limit)
+        while hi - lo > 1:
+            mid = (lo + hi) // 2
+            lo, hi = (lo, mid) if self.energy(mid) <= target else (mid, hi)
+        return int(self.runs[hi][0]["iterations"])
+
+    def solve_timing(self, cap: int, repeats: int) -> h.Timing:
+        return h.timing_of([float(self.run(cap)[0]["solve_seconds"]) for _ in range(repeats)])
+
+
+def _first_hits(targets: list[float], hits: dict[int, tuple[float, int]], t0: float) -> Any:
+    """An L-BFGS-B callback recording, per target index, (seconds since t0, iteration) of the
+    first iterate at or below it; stops the solver once every target is reached."""
+    count = [0]
+
+    def callback(intermediate_result: scipy.optimize.OptimizeResult) -> None:
+        t = time.perf_counter() - t0
+        count[0] += 1
+        for i, target in enumerate(targets):
+            if i not in hits and intermediate_result.fun <= target:
+                hits[i] = (t, count[0])
+        if len(hits) == len(targets):
+            raise StopIteration
+
+    return callback
+
+
+def scipy_race(
+    f: Any, x0: np.ndarray, targets: list[float], maxiter: int, repeats: int
+) -> tuple[list[h.Timing | None], list[int | None]]:
+    """Per target: scipy L-BFGS-B's time to its first iterate with energy ≤ target (None if not
+    reached in ``maxiter`` iterations), and that iteration's number. One warm-up run."""
+    bounds = [(1e-6, None) if i % 2 == 0 else (None, None) for i in range(len(x0))]
+    times: list[list[float]] = [[] for _ in targets]
+    its: list[int | None] = [None] * len(targets)
+    for rep in range(repeats + 1):
+        hits: dict[int, tuple[float, int]] = {}
+        callback = _first_hits(targets, hits, time.perf_counter())
+        scipy.optimize.minimize(
+            f, x0, jac=True, method="L-BFGS-B", bounds=bounds, callback=callback,
+            options={"maxiter": maxiter, "gtol": 0.0, "ftol": 0.0},
+        )  # fmt: skip
+        if rep == 0:
+            continue  # warm-up
+        for i, (t, n) in hits.items():
+            times[i].append(t)
+            its[i] = n
+    return [h.timing_of(t) if len(t) == repeats else None for t in times], its
+
+
+def solver_race(
+    plan: Any, tiles: np.ndarray, width: int, repeats: int, fractions: list[float], maxiter: int
+) -> tuple[list, list, list]:
+    """The time-to-energy comparison at one size: (problem rows, race rows, json rows)."""
+    maps = plan.spherical_disparity(tiles)
+    t0 = time.perf_counter()
+    problem = alignment_problem(plan, maps, GRID, PAPER)
+    t1 = time.perf_counter()
+    f = align_scipy.energy_function(problem)
+    assembly = time.perf_counter() - t1
+    x0 = align_scipy.identity(problem)
+    lbfgs = CappedSolver(plan, maps, "lbfgs")
+    newton = CappedSolver(plan, maps, "newton")
+    # E*: Newton to convergence (tolerance 1e-9).
+    _, levels, grids = plan_align(plan, maps, [GRID], PAPER, "newton", NEWTON_CAP, 1e-9)
+    e_star, e_star_converged = float(levels[0]["energy"]), bool(levels[0]["converged"])
+    e0 = lbfgs.energy(0)
+    targets = [("m360 L-BFGS after 50 its", lbfgs.energy(50))]
+    targets += [(f"{100 * fr:g} % of E0 -> E*", e0 - fr * (e0 - e_star)) for fr in fractions]
+    # m360's reported energy against scipy's evaluation of the same node values.
+    check = max(
+        abs(f(x)[0] - float(rep["energy"])) / abs(float(rep["energy"]))
+        for rep, x in (lbfgs.runs[0], lbfgs.runs[50], (levels[0], np.ravel(grids[0])))
+    )
+    scipy_t, scipy_its = scipy_race(f, x0, [e for _, e in targets], maxiter, repeats)
+    build = statistics.median(float(r["build_seconds"]) for r, _ in lbfgs.runs.values())
+    problem_rows = [[width, problem["unknowns"], len(problem["nodes"]), e0, e_star,
+                     e_star_converged, build, t1 - t0, assembly, check]]  # fmt: skip
+    rows, json_rows = [], []
+    for (name, target), ts, its in zip(targets, scipy_t, scipy_its, strict=True):
+        row: list = [width, name, target, its if ts else f"not in {maxiter}"]
+        row += [ts.median, ts.iqr] if ts else [math.nan, math.nan]
+        entry: dict = {"erp_width": width, "target": name, "target_energy": target,
+                       "scipy": {"iterations": its, "timing": ts}}  # fmt: skip
+        medians = []
+        for solver, limit in ((lbfgs, LBFGS_CAP), (newton, NEWTON_CAP)):
+            k = solver.first_reaching(target, limit)
+            if k is None:
+                row += [f"not in {limit}", math.nan, math.nan]
+                medians.append(math.nan)
+                entry[f"m360_{solver.solver}"] = {"iterations": None, "timing": None}
+                continue
+            t = solver.solve_timing(k, repeats)
+            row += [k, t.median, t.iqr]
+            medians.append(t.median)
+            entry[f"m360_{solver.solver}"] = {"iterations": k, "timing": t}
+        scipy_med = ts.median if ts else math.nan
+        row += [scipy_med / m for m in medians]
+        rows.append(row)
+        json_rows.append(entry)
+    return problem_rows, rows, json_rows
+
+
+def bench_size(
+    width: int, repeats: int, seed: int, fractions: list[float], maxiter: int, race: bool
+) -> tuple[list, ...]:
+    """All measurements at one ERP width: (rows, level rows, problem rows, race rows, json)."""
     rows: list = []
     level_rows: list = []
-    base_rows: list = []
     json_rows: list = []
     layout, tiles, depth = scene_inputs(width, seed)
     clear_plan_cache()
     plan = plan_for(layout)
     t0 = time.perf_counter()
-    plan.align(
-        plan.spherical_disparity(tiles),
-        [(2, 2)],
-        "normalized",
-        1.0,
-        0.01,
-        "newton",
-        0,
-        1e-6,
-        0.01,
-        0.0,
-        "perspective",
-    )
+    normalized = {**PAPER, "energy": "normalized", "smoothness": 1.0, "scale_weight": 0.01,
+                  "offsets": "perspective"}  # fmt: skip
+    plan_align(plan, plan.spherical_disparity(tiles), [(2, 2)], normalized, "newton", 0, 1e-6)
     sampling = time.perf_counter() - t0  # overlap sampling dominates a 0-iteration 2x2 run
     for name, kwargs in METHODS.items():
         result: list[m360.StitchResult] = []
@@ -84,17 +269,18 @@ def bench_size(width: int, repeats: int, seed: int) -> tuple[list, list, list, l
 
         t = h.measure(run, repeats=repeats)
         res = result[0]
-        levels = res.report["align"]
+        levels = res.report.get("align", [])
         metrics = m360.eval.depth_metrics(res.disparity, depth)
         rows.append(
             [
                 width,
                 name,
                 t.median,
+                t.iqr,
                 res.timings["align"],
-                sum(lvl["iterations"] for lvl in levels),
-                all(lvl["converged"] for lvl in levels),
-                levels[-1]["energy"],
+                sum(lvl["iterations"] for lvl in levels) if levels else "-",
+                all(lvl["converged"] for lvl in levels) if levels else "-",
+                levels[-1]["energy"] if levels else "-",
                 metrics["abs_rel"],
             ]
         )
@@ -116,96 +302,65 @@ def bench_size(width: int, repeats: int, seed: int) -> tuple[list, list, list, l
             {
                 "erp_width": width,
                 "method": name,
+                "kwargs": kwargs,
                 "timing": t,
                 "levels": levels,
                 "abs_rel": metrics["abs_rel"],
             }
         )
 
-    # Baseline: scipy L-BFGS-B, same energy and gradient (scipy.sparse), 16x14 level, 50 its.
-    spherical = plan.spherical_disparity(tiles)
-    problem = plan.alignment_problem(
-        spherical, (16, 14), "paper", 40.0, 0.007, 0.01, 0.0, "spherical"
-    )
-    f = align_scipy.energy_function(problem)
-    x0 = align_scipy.identity(problem)
-    bounds = [(1e-6, None) if i % 2 == 0 else (None, None) for i in range(len(x0))]
-    its: list[int] = []
-
-    def scipy_run() -> None:
-        out = scipy.optimize.minimize(
-            f,
-            x0,
-            jac=True,
-            method="L-BFGS-B",
-            bounds=bounds,
-            options={"maxiter": 50, "gtol": 0.0, "ftol": 0.0},
+    problem_rows, race_rows = [], []
+    if race:
+        problem_rows, race_rows, race_json = solver_race(
+            plan, tiles, width, repeats, fractions, maxiter
         )
-        its[:] = [out.nit]
-
-    t_scipy = h.measure(scipy_run, repeats=repeats)
-    m360_runs: list[dict] = []
-
-    def m360_run() -> None:
-        res = m360.stitch(
-            tiles,
-            layout,
-            (16, 14),
-            "mean",
-            energy="paper",
-            solver="lbfgs",
-            iterations=50,
-            tolerance=0.0,
-            return_details=True,
-        )
-        assert isinstance(res, m360.StitchResult)
-        m360_runs[:] = [res.report["align"][0]]
-
-    h.measure(m360_run, repeats=repeats)
-    lvl = m360_runs[0]
-    per_scipy = t_scipy.median / max(its[0], 1)
-    per_m360 = lvl["solve_seconds"] / max(lvl["iterations"], 1)
-    base_rows.append(
-        [
-            width,
-            problem["unknowns"],
-            len(problem["nodes"]),
-            its[0],
-            per_scipy,
-            lvl["iterations"],
-            per_m360,
-            per_scipy / per_m360,
-        ]
-    )
+        json_rows += race_json
     print(f"  done {width} (sampling {sampling:.3f} s)", flush=True)
-
-    return rows, level_rows, base_rows, json_rows
+    return rows, level_rows, problem_rows, race_rows, json_rows
 
 
 def main() -> None:
     parser = h.bench_argparser(__doc__.splitlines()[0])
     parser.set_defaults(repeats=3)
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument(
+        "--fractions",
+        type=float,
+        nargs="*",
+        default=[0.9, 0.99, 0.999],
+        help="targets E0 - f (E0 - E*) of the solver comparison (default 0.9 0.99 0.999)",
+    )
+    parser.add_argument(
+        "--scipy-maxiter", type=int, default=1000, help="scipy L-BFGS-B iteration cap (1000)"
+    )
+    parser.add_argument(
+        "--no-race", action="store_true", help="skip the time-to-energy solver comparison"
+    )
     args = parser.parse_args()
     meta = h.metadata()
     print(
         f"m360 {m360.__version__} @ {meta.get('git_commit')}, {meta.get('cpu_model')}, "
         f"threads {m360.get_num_threads()}; median of {args.repeats} runs"
     )
-    rows, level_rows, base_rows, json_rows = [], [], [], []
+    rows, level_rows, problem_rows, race_rows, json_rows = [], [], [], [], []
     for width in args.sizes:
-        r, lr, br, jr = bench_size(width, args.repeats, args.seed)
+        r, lr, pr, rr, jr = bench_size(
+            width, args.repeats, args.seed, args.fractions, args.scipy_maxiter, not args.no_race
+        )
         rows += r
         level_rows += lr
-        base_rows += br
+        problem_rows += pr
+        race_rows += rr
         json_rows += jr
 
     h.print_table(
-        "whole alignment (align='multiscale') + mean blend, distorted tangents",
+        f"whole alignment (align='multiscale' unless 'none') + mean blend, distorted tangents, "
+        f"seed {args.seed}; median of {args.repeats}",
         [
             "ERP",
             "method",
             "stitch s",
+            "IQR s",
             "align s",
             "iterations",
             "converged",
@@ -213,6 +368,11 @@ def main() -> None:
             "AbsRel",
         ],
         rows,
+    )
+    h.print_table(
+        f"median AbsRel over the {len(args.sizes)} size(s) run ({', '.join(map(str, args.sizes))})",
+        ["method", "AbsRel"],
+        [[m, statistics.median(r[8] for r in rows if r[1] == m)] for m in METHODS],
     )
     h.print_table(
         "per level",
@@ -229,20 +389,28 @@ def main() -> None:
         ],
         level_rows,
     )
+    if args.no_race:
+        if args.json:
+            h.write_json(args.json, json_rows, meta)
+        return
     h.print_table(
-        "L-BFGS per iteration on the 16x14 paper energy: scipy L-BFGS-B (scipy.sparse) vs m360",
-        [
-            "ERP",
-            "unknowns",
-            "samples",
-            "scipy its",
-            "scipy s/it",
-            "m360 its",
-            "m360 s/it",
-            "speed-up",
-        ],
-        base_rows,
-    )
+        f"solver comparison problem: paper energy, {GRID[0]}x{GRID[1]} level from identity; "
+        "E* = Newton to convergence; build s = m360's problem build (median of the runs), "
+        "export s = plan.alignment_problem, assembly s = scipy.sparse matrices; "
+        "energy check = max relative |scipy f(x) - m360's reported energy|",
+        ["ERP", "unknowns", "samples", "E0", "E*", "E* converged", "build s", "export s",
+         "assembly s", "energy check"],
+        problem_rows,
+    )  # fmt: skip
+    h.print_table(
+        f"time to first reach the same energy on that problem (solve only, build excluded), "
+        f"median of {args.repeats}: scipy L-BFGS-B (scipy.sparse, wall time to the callback) "
+        "vs m360 L-BFGS and m360 Newton (solve_seconds of a run capped at the iterations "
+        "shown); ratio = scipy s / m360 s",
+        ["ERP", "target", "energy", "scipy its", "scipy s", "IQR", "L-BFGS its", "L-BFGS s",
+         "IQR", "Newton its", "Newton s", "IQR", "scipy/L-BFGS", "scipy/Newton"],
+        race_rows,
+    )  # fmt: skip
     if args.json:
         h.write_json(args.json, json_rows, meta)
 

@@ -2,8 +2,10 @@
 
 Per mode and size: time per image (``stitch(align="none")`` on 20 tangents, median of repeats),
 one-time plan cost (first call after clearing the plan cache minus the steady median: taps and
-weight maps), Poisson iterations and residual, and peak RSS of a fresh process running one whole
-stitch. Baselines, measured in the same run on the same inputs:
+weight maps), Poisson iterations and residual, and peak RSS of a fresh interpreter running one
+whole stitch: its own high-water mark (VmHWM on Linux, not inherited from this process), absolute
+and above its baseline after importing numpy and m360. Baselines, measured in the same run on
+the same inputs:
 
 - frustum: per-face ``cv2.remap`` of values and weights at precomputed footprint positions, then
   ``np.bincount`` weighted sums (the numpy way to do the same blend);
@@ -161,7 +163,6 @@ def bench_size(size: int, repeats: int, scipy_max: int) -> list[list]:
 
 
 RSS_CODE = """
-import numpy as np, m360
 lay = m360.Layout.icosahedron({w})
 hh, ww = lay.tangent_shape
 offsets = 1.0 + 0.01 * np.arange(20, dtype=np.float32)
@@ -171,13 +172,16 @@ m360.stitch(tiles, lay, align='none', blend={mode!r})
 
 
 def peak_rss(sizes: list[int], modes: list[str]) -> list[list]:
-    floor = h.run_in_subprocess_peak_rss("import numpy as np, m360")
+    """Per size and mode, a fresh interpreter imports numpy and m360 (its baseline), then runs
+    one whole stitch (plan build included): [size, mode, peak MB, peak - baseline MB, baseline
+    MB, counter, wall s]."""
     rows = []
     for size in sizes:
         for mode in modes:
             t0 = time.perf_counter()
-            peak = h.run_in_subprocess_peak_rss(RSS_CODE.format(w=size, mode=mode))
-            rows.append([size, mode, peak, peak - floor, time.perf_counter() - t0])
+            rss = h.fresh_process_rss(RSS_CODE.format(w=size, mode=mode))
+            wall = time.perf_counter() - t0
+            rows.append([size, mode, rss.peak_mb, rss.delta_mb, rss.baseline_mb, rss.source, wall])
     return rows
 
 
@@ -196,8 +200,8 @@ def main() -> None:
         f"{meta.get('cpu_count')} cpus, m360 threads {meta['m360_threads']}, load {load}; "
         f"median of {args.repeats} runs"
     )
-    # Peak RSS first: a child started by a process that has grown may report the parent's
-    # high-water mark as its own (Linux copies it at fork).
+    # Each RSS figure is the child's own VmHWM (not ru_maxrss, which a child inherits from this
+    # process across fork + exec), with the baseline after imports read in the same child.
     rss = peak_rss(args.sizes, args.rss_modes) if args.rss_modes else []
     rows = []
     for size in args.sizes:
@@ -209,8 +213,9 @@ def main() -> None:
     )
     if rss:
         h.print_table(
-            "peak RSS of a fresh process running one whole stitch",
-            ["ERP", "mode", "peak RSS MB", "minus import MB", "wall s"],
+            "peak RSS of a fresh interpreter running one whole stitch (plan build included); "
+            "baseline = its peak after `import numpy, m360`, read in the same process",
+            ["ERP", "mode", "peak MB", "peak - baseline MB", "baseline MB", "counter", "wall s"],
             rss,
         )
     if args.json:
@@ -234,7 +239,11 @@ def main() -> None:
             )
             for r in rows
         ]
-        json_rows += [{"erp": r[0], "mode": r[1], "peak_rss_mb": r[2]} for r in rss]
+        json_rows += [
+            {"erp": r[0], "mode": r[1], "peak_rss_mb": r[2], "peak_minus_baseline_mb": r[3],
+             "baseline_rss_mb": r[4], "rss_counter": r[5]}
+            for r in rss
+        ]  # fmt: skip
         h.write_json(args.json, json_rows, meta)
 
 
