@@ -68,14 +68,7 @@ METHODS = {
 }
 #: The level of the solver comparison and the paper energy's options (stitch's defaults).
 GRID = (16, 14)
-PAPER = {
-    "energy": "paper",
-    "smoothness": 40.0,
-    "scale_weight": 0.007,
-    "sample_fraction": 0.01,
-    "pole_cap_deg": 0.0,
-    "offsets": "spherical",
-}
+PAPER = {"energy": "paper"}  # every other option: the core's default for this energy
 #: Largest iteration cap m360's L-BFGS is searched over for a target.
 LBFGS_CAP = 5000
 NEWTON_CAP = 100
@@ -98,24 +91,13 @@ def _align_options(levels: list, options: dict, solver: str, iterations: int, to
 def plan_align(
     plan: Any, maps: np.ndarray, levels: list, options: dict, solver: str, its: int, tol: float
 ) -> tuple:
-    """``plan.align`` with the options as a dict (issue 17's core) or positional (before)."""
-    if hasattr(m360._core, "stitch_options"):
-        return plan.align(maps, _align_options(levels, options, solver, its, tol))
-    o = options
-    return plan.align(
-        maps, levels, o["energy"], o["smoothness"], o["scale_weight"], solver, its, tol,
-        o["sample_fraction"], o["pole_cap_deg"], o["offsets"],
-    )  # fmt: skip
+    """``plan.align`` with these levels, options, solver, iteration cap and tolerance."""
+    return plan.align(maps, _align_options(levels, options, solver, its, tol))
 
 
 def alignment_problem(plan: Any, maps: np.ndarray, grid: tuple, options: dict) -> dict:
-    if hasattr(m360._core, "stitch_options"):
-        return plan.alignment_problem(maps, grid, _align_options([grid], options, "newton", 0, 0))
-    o = options
-    return plan.alignment_problem(
-        maps, grid, o["energy"], o["smoothness"], o["scale_weight"], o["sample_fraction"],
-        o["pole_cap_deg"], o["offsets"],
-    )  # fmt: skip
+    """The first-level problem of ``maps`` on ``grid`` with ``options`` (see ``_core.Plan``)."""
+    return plan.alignment_problem(maps, grid, _align_options([grid], options, "newton", 0, 0))
 
 
 class CappedSolver:
@@ -255,8 +237,7 @@ def bench_size(
     clear_plan_cache()
     plan = plan_for(layout)
     t0 = time.perf_counter()
-    normalized = {**PAPER, "energy": "normalized", "smoothness": 1.0, "scale_weight": 0.01,
-                  "offsets": "perspective"}  # fmt: skip
+    normalized = {"energy": "normalized"}
     plan_align(plan, plan.spherical_disparity(tiles), [(2, 2)], normalized, "newton", 0, 1e-6)
     sampling = time.perf_counter() - t0  # overlap sampling dominates a 0-iteration 2x2 run
     for name, kwargs in METHODS.items():
