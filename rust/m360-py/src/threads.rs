@@ -3,6 +3,10 @@
 //! Maps a call needs are built before its work enters the pool (`Plan::prepare` from the
 //! calling thread), never by a job inside it: see `rust/m360-core/src/plan.rs` for the deadlock
 //! this avoids.
+//!
+//! A forked child inherits the pool's handle but none of its threads: work sent there would wait
+//! forever. The pool therefore remembers the process that started it, and a child starts its
+//! own on first use (the parent's is leaked, never dropped: its threads are not there to stop).
 
 use crate::errors::{input_error, internal_error};
 use m360_core::options::MAX_THREADS;
@@ -11,7 +15,8 @@ use pyo3::prelude::*;
 use std::panic::{catch_unwind, AssertUnwindSafe};
 use std::sync::{Arc, PoisonError, RwLock};
 
-static POOL: RwLock<Option<Arc<rayon::ThreadPool>>> = RwLock::new(None);
+/// m360's pool and the id of the process that started it.
+static POOL: RwLock<Option<(u32, Arc<rayon::ThreadPool>)>> = RwLock::new(None);
 
 fn default_threads() -> usize {
     std::env::var("M360_NUM_THREADS")
@@ -30,16 +35,28 @@ fn build_pool(threads: usize) -> PyResult<Arc<rayon::ThreadPool>> {
         .map_err(|e| internal_error(format!("cannot start {threads} threads: {e}")))
 }
 
+/// The pool of this process, started on first use (or first use after a fork).
 fn pool() -> PyResult<Arc<rayon::ThreadPool>> {
-    if let Some(pool) = POOL.read().unwrap_or_else(PoisonError::into_inner).clone() {
+    let pid = std::process::id();
+    let ours = |slot: &Option<(u32, Arc<rayon::ThreadPool>)>| match slot {
+        Some((owner, pool)) if *owner == pid => Some(pool.clone()),
+        _ => None,
+    };
+    if let Some(pool) = ours(&POOL.read().unwrap_or_else(PoisonError::into_inner)) {
         return Ok(pool);
     }
     let mut guard = POOL.write().unwrap_or_else(PoisonError::into_inner);
-    if let Some(pool) = guard.as_ref() {
-        return Ok(pool.clone());
+    if let Some(pool) = ours(&guard) {
+        return Ok(pool);
     }
-    let pool = build_pool(default_threads())?;
-    *guard = Some(pool.clone());
+    // After a fork, the same number of threads as the parent's pool had.
+    let threads = guard
+        .as_ref()
+        .map_or_else(default_threads, |(_, p)| p.current_num_threads());
+    let pool = build_pool(threads)?;
+    if let Some(inherited) = guard.replace((pid, pool.clone())) {
+        std::mem::forget(inherited);
+    }
     Ok(pool)
 }
 
@@ -95,7 +112,13 @@ pub(crate) fn set_num_threads(threads: Option<&Bound<'_, PyAny>>) -> PyResult<()
         }
     };
     let pool = build_pool(threads)?;
-    *POOL.write().unwrap_or_else(PoisonError::into_inner) = Some(pool);
+    let pid = std::process::id();
+    let mut guard = POOL.write().unwrap_or_else(PoisonError::into_inner);
+    if let Some((owner, inherited)) = guard.replace((pid, pool)) {
+        if owner != pid {
+            std::mem::forget(inherited);
+        }
+    }
     Ok(())
 }
 
