@@ -106,7 +106,8 @@ def test_a_batch_with_bad_files_records_them_and_goes_on(
     assert (
         meta["input"]["sha256"] == hashlib.sha256((photos / "pano_03.jpg").read_bytes()).hexdigest()
     )
-    assert meta["options"]["blend"] == "frustum" and meta["model"]["name"] == "tiny.onnx"
+    assert meta["options"]["blend"] == {"method": "frustum"}
+    assert meta["model"]["name"] == "tiny.onnx"
 
     # A rerun skips everything done (nothing is rewritten) and retries the failures.
     before = _sidecar_mtimes(out)

@@ -67,7 +67,7 @@ def test_run_writes_arrays_preview_and_sidecar(
     assert meta["model"]["output_kind"] == "affine_disparity"
     # 43x50 tangents fit inside 64x96 keeping their aspect: scale 64/43 -> 64 x 74.4 -> 64 x 74.
     assert meta["model"]["threads"] == 1 and meta["model"]["network_size"] == [64, 74]
-    assert meta["options"]["align"] == "none" and meta["options"]["blend"] == "mean"
+    assert meta["options"]["align"] is None and meta["options"]["blend"] == {"method": "mean"}
     assert meta["quantities"]["depth"]["units"] == "relative"
     assert meta["quantities"]["disparity"]["invalid"].startswith("NaN")
     assert "latitude" in meta["erp_convention"] and meta["input"]["path"] == str(panorama)

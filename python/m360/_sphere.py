@@ -1,4 +1,4 @@
-"""Numpy oracle of m360's sphere and camera conventions (DESIGN.md §1).
+"""Numpy oracle of m360's sphere and camera conventions (docs/conventions.md).
 
 Plain, vectorised numpy: used by the tests (as an independent reference for the Rust core) and by
 :mod:`m360.synthetic`. World frame: x right, y down, z forward (OpenCV style, right-handed).

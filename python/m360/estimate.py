@@ -10,7 +10,6 @@ from __future__ import annotations
 
 import os
 import time
-import warnings
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
@@ -19,6 +18,7 @@ import numpy as np
 
 from . import estimators as _estimators
 from . import models as _models
+from ._compat import moved
 from ._validate import as_array, check_erp_shape
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
@@ -30,31 +30,25 @@ from .stitch import StitchResult, stitch
 
 __all__ = ["EstimateResult", "estimate"]
 
-#: Names that moved to :mod:`m360.estimators`.
-_MOVED = (
-    "OUTPUT_KINDS",
-    "RESIZE_MODES",
-    "MAX_NETWORK_SIZE",
-    "Estimator",
-    "OnnxEstimator",
-    "SimulatedEstimator",
-    "load_estimator",
-    "network_size",
-    "ray_norms",
-    "to_perspective_disparity",
-)
-
-
-def __getattr__(name: str) -> Any:
-    """The estimators' old home, with a DeprecationWarning naming the new one."""
-    if name in _MOVED:
-        warnings.warn(
-            f"m360.estimate.{name} is deprecated; use m360.estimators.{name}",
-            DeprecationWarning,
-            stacklevel=2,
+#: Names that moved to :mod:`m360.estimators`; importing them from here warns.
+__getattr__ = moved(
+    __name__,
+    {
+        name: (_estimators, name)
+        for name in (
+            "OUTPUT_KINDS",
+            "RESIZE_MODES",
+            "MAX_NETWORK_SIZE",
+            "Estimator",
+            "OnnxEstimator",
+            "SimulatedEstimator",
+            "load_estimator",
+            "network_size",
+            "ray_norms",
+            "to_perspective_disparity",
         )
-        return getattr(_estimators, name)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+    },
+)
 
 
 @dataclass

@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
+from ._compat import renamed
 from ._validate import (
     MAX_ERP_WIDTH,
     as_array,
@@ -291,6 +292,7 @@ def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray
     return out[..., 0] if planar else out
 
 
+@renamed(tiles="tangents")
 def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
     """Map each tangent image onto the ERP grid.
 

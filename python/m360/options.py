@@ -12,7 +12,7 @@ from __future__ import annotations
 import copy
 import warnings
 from collections.abc import Mapping, Sequence
-from typing import Any, TypedDict, Union
+from typing import Any, TypedDict
 
 import numpy as np
 
@@ -25,7 +25,7 @@ from .errors import InputError
 __all__ = ["AlignOptions", "AlignSpec", "BlendOptions", "StitchOptions"]
 
 #: What ``align`` may be: ``"multiscale"``, ``"none"``, a (cols, rows) grid or a list of grids.
-AlignSpec = Union[str, tuple[int, int], Sequence[tuple[int, int]]]
+AlignSpec = str | tuple[int, int] | Sequence[tuple[int, int]]
 
 _LIMIT_ITERATIONS = int(_core.LIMITS["max_iterations"])
 #: The Poisson keys of ``blend_options``, named by the core.

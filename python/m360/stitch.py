@@ -8,7 +8,6 @@ docs/method.md.
 from __future__ import annotations
 
 import time
-import warnings
 from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any, Literal, TypedDict, overload
@@ -17,6 +16,7 @@ import numpy as np
 
 from . import align as _align
 from . import blend as _blend
+from ._compat import moved, renamed
 from ._validate import as_array, check_shape, flag
 from .align import AlignLevelReport, AlignSolver, Energy, Offsets
 from .blend import BlendMethod, BlendReport
@@ -44,17 +44,7 @@ _MOVED = {
 }
 
 
-def __getattr__(name: str) -> Any:
-    """Old module constants, with a DeprecationWarning naming their new home."""
-    if name in _MOVED:
-        module, new = _MOVED[name]
-        warnings.warn(
-            f"m360.stitch.{name} is deprecated; use {module.__name__}.{new}",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        return getattr(module, new)
-    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
+__getattr__ = moved(__name__, _MOVED)
 
 
 class _StitchReportBase(TypedDict):
@@ -151,9 +141,10 @@ def stitch(
 ) -> StitchResult: ...
 
 
+@renamed(tangent_disparity="tangents")
 def stitch(
-    tangents: Any = None,
-    layout: Any = None,
+    tangents: np.ndarray,
+    layout: Layout,
     align: AlignSpec = "multiscale",
     blend: BlendMethod | None = None,
     *,
@@ -170,7 +161,6 @@ def stitch(
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     return_details: bool = False,
-    **deprecated: Any,
 ) -> np.ndarray | StitchResult:
     """Stitch per-tangent perspective disparity into one ERP spherical disparity map.
 
@@ -224,19 +214,6 @@ def stitch(
         For a Poisson solve that does not converge.
     """
     t0 = time.perf_counter()
-    if "tangent_disparity" in deprecated:
-        warnings.warn(
-            "stitch(tangent_disparity=...) is deprecated; use stitch(tangents=...)",
-            DeprecationWarning,
-            stacklevel=2,
-        )
-        if tangents is not None:
-            raise InputError("give tangents or tangent_disparity (deprecated), not both")
-        tangents = deprecated.pop("tangent_disparity")
-    if deprecated:
-        raise TypeError(f"stitch() got unexpected keyword arguments {sorted(deprecated)}")
-    if tangents is None or layout is None:
-        raise InputError("stitch needs tangents and a layout")
     data = check_tangents(tangents, layout, "tangents")
     opts = build(
         options,

@@ -48,7 +48,7 @@ class SimulatedEstimator:
         shift: float = 0.3,
         noise: float = 0.0,
     ) -> None:
-        from . import synthetic
+        from .. import synthetic
 
         if not isinstance(layout, Layout):
             raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
