@@ -10,8 +10,8 @@ import m360.synthetic as syn
 import numpy as np
 import pytest
 from conftest import erp_depth, layout, tangent_disparity
-from m360.errors import InputError
 from m360.align import MULTISCALE
+from m360.errors import InputError
 
 WIDTH = 1024
 SEEDS = (0, 1, 2)
@@ -58,7 +58,9 @@ def test_constant_affine_distortion_is_undone_exactly() -> None:
     exact = syn.tangent_perspective_disparity(scene, lay.cameras)
     tangents = syn.distort(exact, 7, scale=(0.5, 2.0), shift=0.3)
     depth = scene.distance(sph.erp_directions(*lay.erp_shape))
-    assert m360.eval.depth_metrics(m360.stitch(tangents, lay, "none", "mean"), depth)["abs_rel"] > 0.05
+    assert (
+        m360.eval.depth_metrics(m360.stitch(tangents, lay, "none", "mean"), depth)["abs_rel"] > 0.05
+    )
     for solver in ("newton", "lbfgs"):
         out = m360.stitch(tangents, lay, blend="mean", solver=solver, iterations=2000)
         assert m360.eval.depth_metrics(out, depth)["abs_rel"] < 1e-3, solver

@@ -70,8 +70,9 @@ def test_frustum_weights_centre_border_and_ramp_start() -> None:
 
 
 def test_radial_weights_axis_15_degrees_and_inscribed_edge() -> None:
-    """Reference pitfall B9 (docs/reference-pitfalls.md) centred these at pixel (200, 200) for every face: the icosahedron's
-    principal point is at row ~230 or ~115, so the centre must follow each face."""
+    """Reference pitfall B9 (docs/reference-pitfalls.md) centred these at pixel (200, 200) for
+    every face: the icosahedron's principal point is at row ~230 or ~115, so the centre must
+    follow each face."""
     lay = layout(2048)
     maps = plan_for(lay).blend_weights("radial")
     dirs = tangent_directions(lay)
@@ -225,7 +226,9 @@ def test_poisson_satisfies_an_independent_scipy_system() -> None:
     assert np.abs(tight.ravel() - ref).max() <= 1e-6 * scale
     assert np.abs(x.ravel() - ref).max() <= 1e-4 * scale
     # The tangent path (taps sampled on the fly) solves the same system.
-    out = m360.stitch(tangents, lay, align="none", blend="poisson", blend_options={"tolerance": 1e-11})
+    out = m360.stitch(
+        tangents, lay, align="none", blend="poisson", blend_options={"tolerance": 1e-11}
+    )
     assert np.abs(out.ravel() - ref).max() <= 1e-6 * scale
 
 
@@ -242,8 +245,9 @@ def test_multigrid_fused_and_faer_solvers_agree() -> None:
 
 
 def test_b7_no_dirichlet_row_at_either_pole() -> None:
-    """Reference pitfall B7 (docs/reference-pitfalls.md) had an implicit Dirichlet 0 below the bottom row only: a constant field
-    sagged there. With no edge across either pole a constant is reproduced exactly."""
+    """Reference pitfall B7 (docs/reference-pitfalls.md) had an implicit Dirichlet 0 below the
+    bottom row only: a constant field sagged there. With no edge across either pole a constant is
+    reproduced exactly."""
     rng = np.random.default_rng(0)
     values = np.full((3, 32, 64), 5.0, np.float32)
     weights = rng.uniform(0.1, 1.0, values.shape).astype(np.float32)

@@ -39,9 +39,9 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from m360 import M360Error, eval, models
+from m360.blend import BLEND_METHODS
 from m360.estimators import OnnxEstimator, SimulatedEstimator, to_perspective_disparity
 from m360.geometry import Layout
-from m360.blend import BLEND_METHODS
 
 pytestmark = pytest.mark.fuzz
 
@@ -356,7 +356,9 @@ def test_fuzz_tangents_to_erp(
         return
     assert out.shape == (20, *lay.erp_shape) and out.dtype == np.float32
     assert not np.isinf(out).any()
-    if np.all(tangents == tangents.flat[0]):  # a constant face maps to that constant (or NaN: unseen)
+    if np.all(
+        tangents == tangents.flat[0]
+    ):  # a constant face maps to that constant (or NaN: unseen)
         seen = np.isfinite(out)
         np.testing.assert_allclose(out[seen], np.float32(tangents.flat[0]), rtol=1e-6)
 

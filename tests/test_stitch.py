@@ -47,8 +47,9 @@ def test_round_trip_4k() -> None:
 
 
 def test_spherical_factor_is_per_pixel_and_per_face() -> None:
-    """Reference pitfall B1 (docs/reference-pitfalls.md) used one face's factor for all faces: a constant perspective disparity
-    of 1 must become exactly cos(angle to that face's own axis) on every face."""
+    """Reference pitfall B1 (docs/reference-pitfalls.md) used one face's factor for all faces: a
+    constant perspective disparity of 1 must become exactly cos(angle to that face's own axis)
+    on every face."""
     lay = layout(512)
     from m360.geometry import plan_for
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import functools
+import inspect
 import warnings
 from collections.abc import Callable
 from typing import Any, ParamSpec, TypeVar
@@ -20,6 +21,10 @@ def renamed(**old_to_new: str) -> Callable[[Callable[P, R]], Callable[P, R]]:
     """
 
     def decorate(function: Callable[P, R]) -> Callable[P, R]:
+        names = list(inspect.signature(function).parameters)
+        # How many positional arguments it takes to reach each new name.
+        position = {new: names.index(new) for new in old_to_new.values()}
+
         @functools.wraps(function)
         def wrapper(*args: P.args, **kwargs: P.kwargs) -> R:
             for old, new in old_to_new.items():
@@ -29,7 +34,7 @@ def renamed(**old_to_new: str) -> Callable[[Callable[P, R]], Callable[P, R]]:
                         DeprecationWarning,
                         stacklevel=2,
                     )
-                    if new in kwargs:
+                    if new in kwargs or len(args) > position[new]:
                         raise InputError(f"give {new} or {old} (deprecated), not both")
                     kwargs[new] = kwargs.pop(old)
             return function(*args, **kwargs)

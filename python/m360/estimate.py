@@ -23,7 +23,6 @@ from ._validate import as_array, check_erp_shape
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
-from .estimators import Estimator, OnnxEstimator, load_estimator, to_perspective_disparity
 from .geometry import Layout, erp_to_tangents
 from .options import AlignSpec, StitchOptions, build
 from .stitch import StitchResult, stitch
@@ -115,7 +114,7 @@ def _check_erp_rgb(erp: Any) -> np.ndarray:
 
 def estimate(
     erp: np.ndarray,
-    model: str | os.PathLike[str] | Estimator = _models.DEFAULT_MODEL,
+    model: str | os.PathLike[str] | _estimators.Estimator = _models.DEFAULT_MODEL,
     *,
     align: AlignSpec = "multiscale",
     blend: BlendMethod | None = None,
@@ -194,7 +193,7 @@ def estimate(
         layout = Layout.icosahedron(width)
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
-    estimator = load_estimator(
+    estimator = _estimators.load_estimator(
         model,
         providers=providers,
         threads=threads,
@@ -223,7 +222,7 @@ def estimate(
             f"{raw_array.dtype} of shape {raw_array.shape}; expected float (N, h, w) = "
             f"{(len(layout), h, w)}"
         )
-    perspective = to_perspective_disparity(raw_array, kind, layout)
+    perspective = _estimators.to_perspective_disparity(raw_array, kind, layout)
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
     disparity = details.disparity
@@ -259,7 +258,7 @@ def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
         "name": getattr(estimator, "name", type(estimator).__name__),
         "output_kind": estimator.output_kind,
     }
-    if isinstance(estimator, OnnxEstimator):
+    if isinstance(estimator, _estimators.OnnxEstimator):
         info.update(
             sha256=estimator.sha256,
             path=str(estimator.path),
