@@ -274,3 +274,36 @@ def test_compiled_core_checks_shapes_itself() -> None:
         _core.Plan((256, 512), np.ones((1, 3, 3)), np.ones((1, 4)), (10, 10))
     with pytest.raises(InputError, match="threads"):
         m360.set_num_threads(0)
+
+
+def test_plan_cache_is_safe_under_many_threads() -> None:
+    """Threads asking for plans of several layouts at once while the cache is cleared: every
+    call gets a working plan of its own layout, and a cached layout has one plan."""
+    import threading
+
+    from m360.geometry import plan_for
+
+    layouts = [m360.Layout.icosahedron(w) for w in (64, 96, 128, 160, 192, 224)]
+    errors: list[BaseException] = []
+    start = threading.Barrier(8)
+
+    def work(k: int) -> None:
+        try:
+            start.wait()
+            for i in range(40):
+                lay = layouts[(k + i) % len(layouts)]
+                plan = plan_for(lay)
+                assert plan.coverage().shape == lay.erp_shape
+                if k == 0 and i % 10 == 0:
+                    m360.clear_plan_cache()
+        except BaseException as exc:  # reported below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    lay = layouts[0]
+    assert plan_for(lay) is plan_for(lay)
