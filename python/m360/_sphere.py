@@ -227,4 +227,4 @@ def camera_pixel_directions(
     dirs = (q / norm[..., None]) @ r  # row-vector form of Rᵀ q
     if return_ray_norm:
         return dirs, norm
-    return dirs
+    return dirs  # type: ignore[no-any-return]  # numpy stubs: Any

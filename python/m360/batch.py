@@ -79,9 +79,12 @@ class Job:
 
 @dataclass
 class ImageOutcome:
-    """What happened to one image: ``done``, ``skipped`` (already done), ``busy`` (claimed by
-    another run), ``failed`` (with ``error`` type name and ``message``) or ``interrupted``
-    (Ctrl-C; nothing written)."""
+    """What happened to one image.
+
+    ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
+    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
+    written).
+    """
 
     input: str
     stem: str
@@ -152,7 +155,7 @@ class BatchReport:
         return totals
 
     def summary(self) -> str:
-        """A few lines for the end of a run: counts, rate and time per stage."""
+        """Describe the run in a few lines: counts, rate and time per stage."""
         counts = (
             f"{len(self.done)} done, {len(self.skipped)} already done, "
             f"{len(self.failed)} failed"
@@ -360,8 +363,11 @@ class _Worker:
 
 
 def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
-    """True if ``job``'s sidecar exists, its files exist, and it was made from the same input
-    file (path, size, mtime) with the same options."""
+    """Tell whether ``job`` is already done with these options.
+
+    True if its sidecar exists, its files exist, and it was made from the same input file (path,
+    size, mtime) with the same ``fingerprint`` (see :func:`fingerprint`).
+    """
     try:
         meta = read_sidecar(job.stem)
         stat = job.input.stat()
@@ -390,10 +396,13 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
 
 @contextlib.contextmanager
 def _claim(stem: Path) -> Iterator[bool]:
-    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (False if another process
-    holds it). The OS releases the lock when its process dies, so a killed run blocks nothing.
-    The lock file is removed while still held, after the work; a claimer that locked a file
-    which was removed meanwhile retries on the new one, so two claimers never both hold it."""
+    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem``.
+
+    Yields False if another process holds it. The OS releases the lock when its process dies,
+    so a killed run blocks nothing. The lock file is removed while still held, after the work;
+    a claimer that locked a file which was removed meanwhile retries on the new one, so two
+    claimers never both hold it.
+    """
     stem.parent.mkdir(parents=True, exist_ok=True)
     path = stem.with_name(f".{stem.name}.lock")
     while True:
@@ -679,8 +688,10 @@ def _check_picklable(settings: _Settings) -> None:
 
 
 def _append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
-    """One JSON line per failure, appended with a single write (O_APPEND keeps lines whole
-    even when two runs share the folder)."""
+    """Append one JSON line for a failure, in a single write.
+
+    O_APPEND keeps lines whole even when two runs share the folder.
+    """
     record = {
         "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "run": run_id,
@@ -799,8 +810,10 @@ def _run_pool(
 def _record_finished(
     inflight: Mapping[Future[ImageOutcome], Job], record: Callable[[Job, ImageOutcome], None]
 ) -> list[Job]:
-    """Wait for ``inflight``; record every outcome but "interrupted"; return the jobs whose
-    future failed (their worker died) or was cancelled."""
+    """Wait for ``inflight`` and record every outcome but "interrupted".
+
+    Returns the jobs whose future failed (their worker died) or was cancelled.
+    """
     wait(inflight)
     lost = []
     for future, job in inflight.items():

@@ -87,8 +87,10 @@ class _BlendReportBase(TypedDict):
 
 
 class BlendReport(_BlendReportBase, total=False):
-    """The blend's report (``StitchResult.report["blend"]``): ``method`` and ``seconds``
-    always; the rest for ``"poisson"`` only."""
+    """The blend's report, ``StitchResult.report["blend"]``.
+
+    ``method`` and ``seconds`` always; the rest for ``"poisson"`` only.
+    """
 
     solver: PoissonSolver
     iterations: int

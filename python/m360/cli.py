@@ -215,8 +215,10 @@ def _align(text: str) -> AlignSpec:
 
 
 def _stitch_options(parser: argparse.ArgumentParser) -> None:
-    """The stitching flags, one per :class:`m360.StitchOptions` keyword; the help texts show
-    the core's defaults."""
+    """Add the stitching flags, one per :class:`m360.StitchOptions` keyword.
+
+    The help texts show the core's defaults.
+    """
     align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["blend"]
     choices = _core.CHOICES
     schedules = "; ".join(
@@ -303,7 +305,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
 
 
 def _options(args: argparse.Namespace) -> StitchOptions:
-    """The :class:`m360.StitchOptions` the stitching flags describe (InputError: exit 2)."""
+    """Build the :class:`m360.StitchOptions` the stitching flags describe (InputError: exit 2)."""
     poisson = {
         "fidelity": args.poisson_fidelity,
         "lam": args.poisson_lam,
@@ -383,7 +385,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _log(line: str) -> None:
-    """A line on stderr that does not tear the progress bar."""
+    """Write a line on stderr without tearing the progress bar."""
     from tqdm import tqdm
 
     tqdm.write(line, file=sys.stderr)
@@ -415,7 +417,7 @@ def _inverse(values: np.ndarray) -> np.ndarray:
 
 
 def _read_map(path: Path, kind: str, *, allow_output: bool) -> np.ndarray:
-    """An m360 output's ``kind`` map (when ``path`` names one with a sidecar) or an array file."""
+    """Read an m360 output's ``kind`` map (when ``path`` names one with a sidecar) or an array."""
     stem = output_stem(path)
     if allow_output and stem.with_name(stem.name + ".json").is_file():
         values: np.ndarray = getattr(load(stem), kind)

@@ -34,7 +34,7 @@ IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
 
 
 def read_exr(path: Path) -> np.ndarray:
-    """The EXR's channels as (H, W) or (H, W, C) float, colour channels in RGB order."""
+    """Read an EXR's channels as (H, W) or (H, W, C) float, colour channels in RGB order."""
     import OpenEXR
 
     with OpenEXR.File(str(path)) as exr:
@@ -51,8 +51,10 @@ def read_exr(path: Path) -> np.ndarray:
 
 
 def read_bytes(path: Path, what: str) -> bytes:
-    """The bytes of a file opened read-only, or :class:`m360.ReadError` naming it as ``what``
-    (missing, unreadable or empty)."""
+    """Read the bytes of a file, opened read-only.
+
+    Raises :class:`m360.ReadError` naming it as ``what`` if it is missing, unreadable or empty.
+    """
     if not path.is_file():
         raise ReadError(f"{what} {path} does not exist (or is not a file)")
     try:
@@ -66,8 +68,10 @@ def read_bytes(path: Path, what: str) -> bytes:
 
 
 def read_input_bytes(path: str | os.PathLike[str]) -> bytes:
-    """The bytes of an input image (opened read-only), or :class:`m360.ReadError` if it is
-    missing, unreadable or empty."""
+    """Read the bytes of an input image, opened read-only.
+
+    Raises :class:`m360.ReadError` if it is missing, unreadable or empty.
+    """
     return read_bytes(Path(path), "input image")
 
 
@@ -131,8 +135,11 @@ def fix_aspect_ratio(image: np.ndarray, path: str | os.PathLike[str], *, fix: bo
 
 
 def to_rgb8(image: np.ndarray, path: Path, *, order: str) -> np.ndarray:
-    """A decoded image as (H, W, 3) uint8 RGB: 16 bits rounded, floats tone-mapped, grey
-    repeated, alpha dropped; ``order`` is its colour order (``"RGB"`` or ``"BGR"``)."""
+    """Convert a decoded image to (H, W, 3) uint8 RGB.
+
+    16 bits are rounded, floats tone-mapped, grey repeated, alpha dropped; ``order`` is the
+    image's colour order (``"RGB"`` or ``"BGR"``).
+    """
     if image.dtype == np.uint16:
         image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
     elif image.dtype.kind == "f":
@@ -156,7 +163,7 @@ def tonemap(image: np.ndarray) -> np.ndarray:
     np.maximum(linear, 0.0, out=linear)
     white = float(np.percentile(linear, 99.0)) or float(linear.max()) or 1.0
     encoded = np.clip(linear / white, 0.0, 1.0) ** (1.0 / 2.2)
-    return np.rint(encoded * 255.0).astype(np.uint8)
+    return np.rint(encoded * 255.0).astype(np.uint8)  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def check_jpeg_complete(data: bytes, path: Path) -> None:

@@ -273,19 +273,21 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     for dy in range(1, radius + 1):
         grown[dy:] |= out[:-dy]
         grown[:-dy] |= out[dy:]
-    return grown
+    return grown  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _edges(labels: np.ndarray) -> np.ndarray:
-    """Pixels whose right or lower neighbour (right wraps) has another label, and those
-    neighbours."""
+    """Mark the pixels whose right or lower neighbour (right wraps) has another label.
+
+    The neighbours are marked too.
+    """
     right = labels != np.roll(labels, -1, axis=1)
     down = np.zeros_like(right)
     down[:-1] = labels[:-1] != labels[1:]
     edge = right | down
     edge |= np.roll(right, 1, axis=1)
     edge[1:] |= down[:-1]
-    return edge
+    return edge  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:

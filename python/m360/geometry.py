@@ -65,7 +65,7 @@ class TangentCamera:
     @property
     def axis(self) -> np.ndarray:
         """(3,) world direction of the optical axis."""
-        return self.rotation[2].copy()
+        return self.rotation[2].copy()  # type: ignore[no-any-return]  # numpy stubs: Any
 
     def project(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel positions ``(x, y)`` of world directions (..., 3), and whether each is in front."""
@@ -105,7 +105,7 @@ class Layout:
     def icosahedron(
         cls, erp_width: int, padding: float = 0.3, tangent_width: int | None = None
     ) -> Layout:
-        """The paper's layout: 20 cameras, one per icosahedron face.
+        """Make the paper's layout: 20 cameras, one per icosahedron face.
 
         Each camera looks at its face centroid with no roll (image x = local east, y = local
         south); its image is the bounding box of the face triangle with every edge pushed out by
@@ -149,8 +149,10 @@ class Layout:
 
     @classmethod
     def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
-        """A layout of user-given cameras (all the same image size) for ERP images of
-        ``erp_shape`` = (H, W)."""
+        """Make a layout of user-given cameras, all of one image size.
+
+        For ERP images of ``erp_shape`` = (H, W).
+        """
         if isinstance(cameras, (str, bytes)) or not isinstance(cameras, Sequence) or not cameras:
             raise InputError("a layout needs a non-empty sequence of TangentCamera")
         if not (isinstance(erp_shape, (tuple, list)) and len(erp_shape) == 2):
@@ -220,7 +222,7 @@ _plans_lock = threading.Lock()
 
 
 def plan_for(layout: Layout) -> _core.Plan:
-    """The cached compiled plan of ``layout`` (maps are built lazily on first use).
+    """Get the cached compiled plan of ``layout`` (maps are built lazily on first use).
 
     Safe to call from many threads at once (docs/architecture.md, plan cache): the lock guards
     only the cache's bookkeeping, never the core's work, so threads wanting other layouts do
@@ -317,7 +319,7 @@ def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
 
 
 def check_tangents(tangents: np.ndarray, layout: Layout, name: str) -> np.ndarray:
-    """Validated (N, h, w) float32 C-contiguous tangents for ``layout``."""
+    """Check ``tangents`` for ``layout``: (N, h, w) float32, C-contiguous."""
     if not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
     array = as_array(tangents, name)

@@ -230,7 +230,7 @@ def read_array(
         return _png16_values(values, png16)
     if values.dtype.kind != "f":
         raise ReadError(f"{p} holds {values.dtype} values; expected a float map")
-    return values.astype(np.float32, copy=False)
+    return values.astype(np.float32, copy=False)  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _png16_codes(values: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -267,7 +267,7 @@ def _write_exr(path: str | os.PathLike[str], values: np.ndarray) -> Path:
 
 
 def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A colour preview (H, W, 3) uint8 BGR of a disparity map: near warm, far cool, NaN black.
+    """Colour a disparity map as a (H, W, 3) uint8 BGR preview: near warm, far cool, NaN black.
 
     Values are scaled between the given percentiles of the finite values (robust to outliers).
     """
@@ -284,7 +284,7 @@ def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.
 
 
 def output_stem(path: str | os.PathLike[str]) -> Path:
-    """The stem of an output set given the stem itself or any of its files."""
+    """Find the stem of an output set given the stem itself or any of its files."""
     p = Path(path)
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
@@ -298,7 +298,7 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
 
 
 def check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
-    """The array formats ``formats`` names (one name or a list), checked and de-duplicated."""
+    """Check the array formats ``formats`` names (one name or a list); drop repeats."""
     if isinstance(formats, str):
         chosen: tuple[Any, ...] = (formats,)
     elif isinstance(formats, (list, tuple)):
@@ -482,7 +482,7 @@ class SavedResult:
 
 
 def read_sidecar(stem: str | os.PathLike[str]) -> dict[str, Any]:
-    """The sidecar of an output set, or :class:`m360.ReadError` if it is missing or corrupt."""
+    """Read the sidecar of an output set (:class:`m360.ReadError` if missing or corrupt)."""
     base = output_stem(stem)
     path = base.with_name(base.name + ".json")
     if not path.is_file():

@@ -267,12 +267,12 @@ _lock = threading.Lock()
 
 
 def names() -> list[str]:
-    """Registered model names."""
+    """List the registered model names."""
     return list(REGISTRY)
 
 
 def get(name: str) -> ModelEntry:
-    """The registry entry called ``name``, or ModelError listing the known names."""
+    """Look up the registry entry ``name`` (ModelError listing the known names if unknown)."""
     entry = REGISTRY.get(name) if isinstance(name, str) else None
     if entry is None:
         known = ", ".join(REGISTRY)
@@ -311,7 +311,7 @@ def _candidates(entry: ModelEntry) -> Iterator[Path]:
 
 
 def local_path(entry: ModelEntry) -> Path | None:
-    """The existing local copy of ``entry`` (not verified), or None."""
+    """Find an existing local copy of ``entry`` (not verified), or None."""
     for path in _candidates(entry):
         if path.is_file():
             return path
@@ -426,7 +426,7 @@ def verify(entry: ModelEntry, path: str | os.PathLike[str]) -> Path:
 
 
 def ensure(name: str, *, progress: bool = True) -> Path:
-    """A verified local path of model ``name``, downloading it if needed (unless offline)."""
+    """Get a verified local path of model ``name``, downloading it if needed (unless offline)."""
     entry = get(name)
     path = local_path(entry)
     if path is not None:

@@ -54,8 +54,10 @@ class _BlendMethodOnly(TypedDict):
 
 
 class BlendOptions(_BlendMethodOnly, total=False):
-    """The blend options as the core resolved them: ``method``, and for ``"poisson"`` every
-    Poisson option."""
+    """The blend options as the core resolved them.
+
+    ``method``, and for ``"poisson"`` every Poisson option.
+    """
 
     fidelity: Fidelity
     lam: float
@@ -190,7 +192,8 @@ class StitchOptions:
         m360.InputError
             If a grid has more nodes than the tangent has pixels.
         """
-        _core.stitch_options(self._align, self._blend, tangent_shape)
+        align = None if self._align is None else dict(self._align)
+        _core.stitch_options(align, dict(self._blend), tangent_shape)
         return self
 
     @property
@@ -209,7 +212,7 @@ class StitchOptions:
         return self._blend["method"]
 
     def as_dict(self) -> dict[str, Any]:
-        """The canonical JSON-able form: ``{"align": {...} or None, "blend": {...}}``.
+        """Give the canonical JSON-able form: ``{"align": {...} or None, "blend": {...}}``.
 
         Every default is filled in and grids are ``[cols, rows]`` lists, so equal options give
         equal dicts (the batch resume fingerprint hashes this).
@@ -265,8 +268,10 @@ def build(
 
 
 def _levels(align: Any) -> list[tuple[int, int]] | bool | None:
-    """The levels of ``align``: a list of grids, None (the energy's schedule) or False (no
-    alignment)."""
+    """Read the levels of ``align``.
+
+    A list of grids, None (the energy's schedule) or False (no alignment).
+    """
     if isinstance(align, str):
         if align == "none":
             return False

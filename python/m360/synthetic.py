@@ -64,7 +64,7 @@ def _vec3(name: str, value: Any) -> np.ndarray:
 
 
 def _length(value: Any, name: str, low: float = 0.0) -> float:
-    """A finite positive length (metres) up to SCENE_LIMIT."""
+    """Check a finite positive length (metres) up to SCENE_LIMIT."""
     result = number(value, name, low=low, high=SCENE_LIMIT)
     if result <= 0:
         raise InputError(f"{name}={value!r} must be > 0")
@@ -91,7 +91,7 @@ def rotation_matrix(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> 
     ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
     rz = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])
-    return rz @ rx @ ry
+    return rz @ rx @ ry  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 @dataclass(frozen=True)
@@ -500,7 +500,7 @@ class Scene:
             light += lt.intensity * lam / (1.0 + 0.1 * r * r)
         rgb = albedo * (self._texture(point, obj) * light)[:, None]
         rgb = np.clip(rgb, 0.0, 1.0) ** (1 / 2.2)
-        return np.round(rgb * 255).astype(np.uint8)
+        return np.round(rgb * 255).astype(np.uint8)  # type: ignore[no-any-return]  # numpy stubs: Any
 
     def shade(self, directions: np.ndarray) -> np.ndarray:
         """Colour seen along each direction: textured albedo, Lambert point lights, ambient.
@@ -538,7 +538,7 @@ def _random_material(rng: np.random.Generator, texture: str | None = None) -> Ma
 
 
 def room(seed: int = 0) -> Scene:
-    """A random furnished room around the camera, deterministic for a seed.
+    """Make a random furnished room around the camera, deterministic for a seed.
 
     The room is 3-9 m wide (x) and deep (z), 2.4-4 m high; the camera (origin) is off-centre
     horizontally and 1-1.8 m above the floor. Inside are 2-4 axis-aligned boxes standing on the

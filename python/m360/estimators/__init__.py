@@ -48,7 +48,10 @@ class Estimator(Protocol):
         One of :data:`OUTPUT_KINDS`.
     """
 
-    output_kind: str
+    @property
+    def output_kind(self) -> str:
+        """One of :data:`OUTPUT_KINDS`."""
+        ...
 
     def predict(self, tangents: np.ndarray) -> np.ndarray:
         """(N, h, w, 3) uint8 RGB tangents → (N, h, w) float32 of ``output_kind``; NaN = none."""

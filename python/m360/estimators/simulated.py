@@ -58,11 +58,11 @@ class SimulatedEstimator:
         self.name = f"simulated (exact disparity, per-tangent affine, noise {noise:g})"
 
     def predict(self, tangents: np.ndarray) -> np.ndarray:
-        """The distorted exact disparities (N, h, w) float32 of the layout's tangents."""
+        """Return the distorted exact disparities (N, h, w) float32 of the layout's tangents."""
         shape = (len(self.layout), *self.layout.tangent_shape)
         if tuple(np.shape(tangents)[:3]) != shape:
             raise InputError(
                 f"SimulatedEstimator was built for tangents of shape {shape}, "
                 f"got {np.shape(tangents)}"
             )
-        return self._tangents.copy()
+        return self._tangents.copy()  # type: ignore[no-any-return]  # numpy stubs: Any
