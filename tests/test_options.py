@@ -193,6 +193,14 @@ def test_old_keywords_and_names_warn_and_still_work() -> None:
     np.testing.assert_array_equal(erp, m360.tangents_to_erp(tangents, lay))
     with pytest.warns(DeprecationWarning, match="tangents"):
         syn.distort(tiles=tangents, seed=1)  # type: ignore[call-arg]
+    with pytest.warns(DeprecationWarning, match="tangent_shape"):
+        size = m360.estimators.network_size(tile_shape=(346, 400), input_size=(256, 256))  # type: ignore[call-arg]
+    assert size == m360.estimators.network_size((346, 400), (256, 256))
+    simulated = SimulatedEstimator(scene(0), lay)
+    rgb = np.zeros((20, *lay.tangent_shape, 3), np.uint8)
+    with pytest.warns(DeprecationWarning, match="tangents"):
+        old_predict = simulated.predict(tiles=rgb)  # type: ignore[call-arg]
+    np.testing.assert_array_equal(old_predict, simulated.predict(rgb))
 
 
 def test_old_report_keys_are_gone() -> None:

@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from .. import models as _models
+from .._compat import renamed
 from .._validate import as_array, integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError, ModelError
@@ -98,6 +99,7 @@ def _round_to(value: float, multiple: int, mode: str) -> int:
     return max(multiple, int(n) * multiple)
 
 
+@renamed(tile_shape="tangent_shape")
 def network_size(
     tangent_shape: tuple[int, int],
     input_size: tuple[int, int],
@@ -266,6 +268,7 @@ class OnnxEstimator:
             self._sha256 = _file_sha256(str(self.path.resolve()), *_stat_key(self.path))
         return self._sha256
 
+    @renamed(tile_shape="tangent_shape")
     def network_size(self, tangent_shape: tuple[int, int]) -> tuple[int, int]:
         """Network input (height, width) used for tangents of ``tangent_shape``."""
         if self._input.size is not None:
@@ -273,6 +276,7 @@ class OnnxEstimator:
         target = self.input_size or (384, 384)
         return network_size(tangent_shape, target, multiple_of=self.multiple_of, resize=self.resize)
 
+    @renamed(tiles="tangents")
     def preprocess(self, tangents: np.ndarray) -> np.ndarray:
         """(B, h, w, 3) uint8/float RGB → network input (B, 3, H, W) or (B, H, W, 3) float32."""
         b, h, w = tangents.shape[:3]
@@ -305,6 +309,7 @@ class OnnxEstimator:
             )
         return pred.astype(np.float32, copy=False)
 
+    @renamed(tiles="tangents")
     def predict(self, tangents: np.ndarray) -> np.ndarray:
         """Run the network on each tangent.
 

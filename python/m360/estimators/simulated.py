@@ -6,6 +6,7 @@ from typing import Any
 
 import numpy as np
 
+from .._compat import renamed
 from ..errors import InputError
 from ..geometry import Layout
 
@@ -57,6 +58,7 @@ class SimulatedEstimator:
         self._tangents = synthetic.distort(self.exact, seed, scale=scale, shift=shift, noise=noise)
         self.name = f"simulated (exact disparity, per-tangent affine, noise {noise:g})"
 
+    @renamed(tiles="tangents")
     def predict(self, tangents: np.ndarray) -> np.ndarray:
         """Return the distorted exact disparities (N, h, w) float32 of the layout's tangents."""
         shape = (len(self.layout), *self.layout.tangent_shape)
