@@ -46,7 +46,7 @@ offsets
 
 from __future__ import annotations
 
-from typing import Literal, TypedDict
+from typing import Any, Literal, TypedDict
 
 from . import _core
 
@@ -91,15 +91,14 @@ MULTISCALE: tuple[tuple[int, int], ...] = SCHEDULES["paper"]
 DEFAULT_ITERATIONS: dict[str, int] = {k: int(v) for k, v in _core.DEFAULTS["iterations"].items()}
 
 
-def _energy_defaults(energy: str) -> dict[str, object]:
+def _energy_defaults(energy: str) -> dict[str, Any]:
     align, _ = _core.stitch_options({"energy": energy}, {"method": _core.CHOICES["blend"][0]})
-    assert align is not None  # a dict in, a dict out
-    return align
+    return dict(align or {})  # a dict in gives a dict out
 
 
 #: Term weights (smoothness, scale_weight) of each energy.
 ENERGY_WEIGHTS: dict[str, tuple[float, float]] = {
-    e: (float(d["smoothness"]), float(d["scale_weight"]))  # type: ignore[arg-type]
+    e: (float(d["smoothness"]), float(d["scale_weight"]))
     for e, d in ((e, _energy_defaults(e)) for e in ENERGIES)
 }
 #: Where the offset acts by default for each energy.
