@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from . import __version__, _core, batch, models, synthetic
-from .align import ALIGN_MODES
+from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
@@ -266,14 +266,25 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         type=float,
         help=f"leave out samples this close to the poles (default {align['pole_cap_deg']:g})",
     )
-    group.add_argument("--smoothness", type=float, help="smoothness weight (default: the energy's)")
+    per_energy = {
+        "smoothness": ", ".join(f"{e} {w[0]:g}" for e, w in ENERGY_WEIGHTS.items()),
+        "scale_weight": ", ".join(f"{e} {w[1]:g}" for e, w in ENERGY_WEIGHTS.items()),
+        "offsets": ", ".join(f"{e} {o}" for e, o in DEFAULT_OFFSETS.items()),
+    }
     group.add_argument(
-        "--scale-weight", type=float, help="scale term weight (default: the energy's)"
+        "--smoothness",
+        type=float,
+        help=f"smoothness weight (default per energy: {per_energy['smoothness']})",
+    )
+    group.add_argument(
+        "--scale-weight",
+        type=float,
+        help=f"scale term weight (default per energy: {per_energy['scale_weight']})",
     )
     group.add_argument(
         "--offsets",
         choices=choices["offsets"],
-        help="where the offset acts (default: the energy's)",
+        help=f"where the offset acts (default per energy: {per_energy['offsets']})",
     )
     group.add_argument(
         "--poisson-fidelity",
