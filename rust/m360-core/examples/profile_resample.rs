@@ -1,6 +1,6 @@
 //! Times the resampling kernels without Python in the way: `cargo run --release --example profile_resample`.
+use m360_core::blend::Method;
 use m360_core::resample::{erp_to_tangents, tangents_to_erp};
-use m360_core::stitch::{blend_to_vec, Blend};
 use m360_core::{Layout, Plan};
 use std::time::Instant;
 
@@ -64,6 +64,10 @@ fn main() {
         std::hint::black_box(out);
     });
     time("blend mean", || {
-        std::hint::black_box(blend_to_vec(plan.erp_taps(), layout, &tiles, Blend::Mean));
+        let n = layout.erp_height * layout.erp_width;
+        let mut out = vec![0.0f32; n];
+        plan.blend(&tiles, &Method::Mean, &mut out, None)
+            .expect("mean blend");
+        std::hint::black_box(out);
     });
 }

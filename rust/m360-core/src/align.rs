@@ -1,4 +1,4 @@
-//! Global deformable alignment of per-tangent disparity (paper §3.3, `DESIGN.md` §6).
+//! Global deformable alignment of per-tangent disparity (paper §3.3; docs/method.md, "Alignment").
 //!
 //! Each tangent a gets grids of scale s and offset o (nodes on the image corners, bilinear in
 //! between) so that D̃_a = s·D_a + o agrees with its neighbours where they overlap. The energy is
@@ -12,6 +12,7 @@
 
 use crate::error::{CoreError, Result};
 use crate::layout::Layout;
+use crate::options::{check_iterations, check_positive, check_range, choice, MAX_POLE_CAP_DEG};
 use crate::sphere::direction_to_pixel;
 use faer::linalg::solvers::Solve;
 use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
@@ -22,24 +23,72 @@ use rayon::prelude::*;
 /// Which energy to minimise.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Energy {
+    /// Resolution-independent (the default): the data term averaged over samples, the
+    /// smoothness a discrete Dirichlet energy ∫|∇s|² + |∇o|² per tangent (edges weighted by
+    /// their aspect), the scale term a mean of 1/s over the nodes. Refining the grid does not
+    /// change the balance.
+    Normalized,
     /// The paper literally: (1/z_a) Σ r² + λ_s/(N·m·n) Σ_edges (Δs² + Δo²) + λ_c Σ 1/s.
     Paper,
-    /// Resolution-independent: the data term averaged over samples, the smoothness a discrete
-    /// Dirichlet energy ∫|∇s|² + |∇o|² per tangent (edges weighted by their aspect), the scale
-    /// term a mean of 1/s over the nodes. Refining the grid does not change the balance.
-    Normalized,
+}
+
+choice!(
+    Energy,
+    "energy",
+    [(Energy::Normalized, "normalized"), (Energy::Paper, "paper")]
+);
+
+impl Energy {
+    /// Default (smoothness, scale_weight) term weights. The paper's are λ_s = 40, λ_c = 0.007;
+    /// the normalized energy's were chosen by measurement on synthetic rooms
+    /// (benches/bench_align.py).
+    pub fn default_weights(self) -> (f64, f64) {
+        match self {
+            Self::Normalized => (1.0, 0.01),
+            Self::Paper => (40.0, 0.007),
+        }
+    }
+
+    /// Default offset space: perspective for the normalized energy, the paper's spherical.
+    pub fn default_offsets(self) -> Offsets {
+        match self {
+            Self::Normalized => Offsets::Perspective,
+            Self::Paper => Offsets::Spherical,
+        }
+    }
+
+    /// The (cols, rows) grids of `align="multiscale"`, coarse to fine. The paper's energy gets
+    /// the paper's 4x3 → 8x7 → 16x14. With the normalized energy a third 16x14 level measured no
+    /// more accurate on synthetic rooms (median AbsRel 0.0173 with and without it,
+    /// benches/bench_align.py) while its Newton system (8,960 unknowns, heavy fill from
+    /// overlapping tangents) costs several times the first two levels, so it stops at 8x7.
+    pub fn default_schedule(self) -> &'static [(usize, usize)] {
+        match self {
+            Self::Normalized => &[(4, 3), (8, 7)],
+            Self::Paper => &[(4, 3), (8, 7), (16, 14)],
+        }
+    }
 }
 
 /// In which disparity the per-tangent offset o acts.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Offsets {
-    /// D̃ = s·D + o on spherical disparity, as the paper writes it.
-    Spherical,
     /// D̃ = s·D + o/|q| — the offset acts on perspective disparity, where a network's affine
     /// ambiguity lives (spherical = perspective/|q|), so a per-tangent affine error of the
     /// network is exactly a constant (s, o) field.
     Perspective,
+    /// D̃ = s·D + o on spherical disparity, as the paper writes it.
+    Spherical,
 }
+
+choice!(
+    Offsets,
+    "offsets",
+    [
+        (Offsets::Perspective, "perspective"),
+        (Offsets::Spherical, "spherical"),
+    ]
+);
 
 /// Weights and shape of one alignment level.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -53,7 +102,7 @@ pub struct LevelParams {
     /// Weight of the smoothness term (paper: 40).
     pub smoothness: f64,
     /// Weight of the 1/s term (paper: 0.007).
-    pub scale: f64,
+    pub scale_weight: f64,
     /// Where the offset acts.
     pub offsets: Offsets,
 }
@@ -61,10 +110,28 @@ pub struct LevelParams {
 /// Which solver.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Solver {
+    /// Newton's method with the exact Hessian, factorised by faer's sparse Cholesky (the
+    /// default: converges in a few steps).
+    Newton,
     /// Limited-memory BFGS with a backtracking Armijo line search (the paper's choice).
     Lbfgs,
-    /// Newton's method with the exact Hessian, factorised by faer's sparse Cholesky.
-    Newton,
+}
+
+choice!(
+    Solver,
+    "solver",
+    [(Solver::Newton, "newton"), (Solver::Lbfgs, "lbfgs")]
+);
+
+impl Solver {
+    /// Iteration cap per level when none is given: Newton converges long before its cap;
+    /// L-BFGS stops after the paper's 50.
+    pub fn default_iterations(self) -> usize {
+        match self {
+            Self::Newton => 100,
+            Self::Lbfgs => 50,
+        }
+    }
 }
 
 /// How a level's solve ended.
@@ -454,12 +521,12 @@ impl Problem {
         let (w_h, w_v, scale_weight) = match params.energy {
             Energy::Paper => {
                 let per_edge = params.smoothness / (n * per) as f64;
-                (per_edge, per_edge, params.scale)
+                (per_edge, per_edge, params.scale_weight)
             }
             Energy::Normalized => (
                 params.smoothness / n as f64 * hy / hx,
                 params.smoothness / n as f64 * hx / hy,
-                params.scale / (n * per) as f64,
+                params.scale_weight / (n * per) as f64,
             ),
         };
         let mut edges = Vec::with_capacity(n * per * 2);
@@ -800,7 +867,9 @@ pub fn solve(
     let mut g = vec![0.0; n];
     let mut e = problem.energy(&x, Some(&mut g));
     if !e.is_finite() {
-        return Err(CoreError::NonFinite("alignment energy at the start".into()));
+        return Err(CoreError::NonFinite {
+            what: "alignment energy at the start",
+        });
     }
     let initial_energy = e;
     let mut iterations = 0;
@@ -922,8 +991,12 @@ impl NewtonSystem {
             }
         }
         let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
-        let analysis = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower)
-            .map_err(|e| CoreError::NonFinite(format!("Cholesky analysis failed: {e:?}")))?;
+        let analysis = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower).map_err(|e| {
+            CoreError::NotPositiveDefinite {
+                what: "the alignment Hessian",
+                detail: format!("Cholesky analysis failed: {e:?}"),
+            }
+        })?;
         Ok(Self {
             symbolic,
             analysis,
@@ -941,13 +1014,18 @@ impl NewtonSystem {
         }
         let matrix = SparseColMatRef::new(self.symbolic.as_ref(), &values);
         let llt = Llt::try_new_with_symbolic(self.analysis.clone(), matrix, Side::Lower).map_err(
-            |e| CoreError::NonFinite(format!("alignment Hessian is not positive definite: {e:?}")),
+            |e| CoreError::NotPositiveDefinite {
+                what: "the alignment Hessian",
+                detail: format!("{e:?}"),
+            },
         )?;
         let mut rhs = Mat::<f64>::from_fn(g.len(), 1, |i, _| -g[i]);
         llt.solve_in_place(rhs.as_mut());
         let dir: Vec<f64> = (0..g.len()).map(|i| rhs[(i, 0)]).collect();
         if dir.iter().any(|v| !v.is_finite()) {
-            return Err(CoreError::NonFinite("Newton step".into()));
+            return Err(CoreError::NonFinite {
+                what: "Newton step",
+            });
         }
         Ok(dir)
     }
@@ -1050,38 +1128,137 @@ pub struct Level {
     pub solve_seconds: f64,
 }
 
-/// Options of a whole alignment.
-#[derive(Debug, Clone)]
-pub struct AlignOptions {
-    /// The levels, coarse to fine.
-    pub levels: Vec<LevelParams>,
+/// Options of a whole alignment, every default resolved.
+#[derive(Debug, Clone, PartialEq)]
+pub struct Options {
+    /// (cols, rows) grid nodes per tangent of each level, coarse to fine.
+    pub levels: Vec<(usize, usize)>,
+    /// Which energy.
+    pub energy: Energy,
     /// Which solver.
     pub solver: Solver,
     /// Iteration cap per level.
-    pub max_iterations: usize,
-    /// Gradient tolerance (relative to max(1, |E|)).
+    pub iterations: usize,
+    /// Converged when the gradient's max-norm ≤ tolerance · max(1, |E|).
     pub tolerance: f64,
+    /// Fraction of overlap pixels the data term uses, chosen deterministically.
+    pub sample_fraction: f64,
+    /// Overlap samples within this many degrees of either pole are left out.
+    pub pole_cap_deg: f64,
+    /// Weight of the smoothness term.
+    pub smoothness: f64,
+    /// Weight of the 1/s term.
+    pub scale_weight: f64,
+    /// Where the offset acts.
+    pub offsets: Offsets,
+}
+
+impl Options {
+    /// Default relative gradient tolerance.
+    pub const DEFAULT_TOLERANCE: f64 = 1e-6;
+    /// The paper's share of overlap pixels in the data term.
+    pub const DEFAULT_SAMPLE_FRACTION: f64 = 0.01;
+
+    /// The defaults of `energy` with `solver`: its schedule, weights and offsets.
+    pub fn new(energy: Energy, solver: Solver) -> Self {
+        let (smoothness, scale_weight) = energy.default_weights();
+        Self {
+            levels: energy.default_schedule().to_vec(),
+            energy,
+            solver,
+            iterations: solver.default_iterations(),
+            tolerance: Self::DEFAULT_TOLERANCE,
+            sample_fraction: Self::DEFAULT_SAMPLE_FRACTION,
+            pole_cap_deg: 0.0,
+            smoothness,
+            scale_weight,
+            offsets: energy.default_offsets(),
+        }
+    }
+
+    /// `self` if every value is usable (and every grid fits a tangent of `tangent_shape`
+    /// = (h, w) when given), else the first problem, naming the option.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidOption`] naming the option at fault.
+    pub fn validate(self, tangent_shape: Option<(usize, usize)>) -> Result<Self> {
+        if self.levels.is_empty() {
+            return Err(CoreError::option(
+                "align",
+                "an alignment schedule needs at least one (cols, rows) grid",
+            ));
+        }
+        for &(cols, rows) in &self.levels {
+            if cols < 2 || rows < 2 {
+                return Err(CoreError::option(
+                    "align",
+                    format!(
+                        "alignment grid ({cols}, {rows}) needs at least 2 x 2 nodes (cols, rows)"
+                    ),
+                ));
+            }
+            if let Some((h, w)) = tangent_shape {
+                if cols > w || rows > h {
+                    return Err(CoreError::option(
+                        "align",
+                        format!(
+                            "alignment grid ({cols}, {rows}) has more nodes than the tangent has \
+                             pixels ({w}x{h})"
+                        ),
+                    ));
+                }
+            }
+        }
+        check_iterations("iterations", self.iterations, 0)?;
+        check_range("tolerance", self.tolerance, 0.0, f64::MAX)?;
+        check_range("sample_fraction", self.sample_fraction, 0.0, 1.0)?;
+        check_range("pole_cap_deg", self.pole_cap_deg, 0.0, MAX_POLE_CAP_DEG)?;
+        check_range("smoothness", self.smoothness, 0.0, f64::MAX)?;
+        check_positive(
+            "scale_weight",
+            self.scale_weight,
+            "it keeps the scales from 0",
+        )?;
+        Ok(self)
+    }
+
+    /// The parameters of each level.
+    pub fn level_params(&self) -> Vec<LevelParams> {
+        self.levels
+            .iter()
+            .map(|&(cols, rows)| LevelParams {
+                cols,
+                rows,
+                energy: self.energy,
+                smoothness: self.smoothness,
+                scale_weight: self.scale_weight,
+                offsets: self.offsets,
+            })
+            .collect()
+    }
+}
+
+impl Default for Options {
+    fn default() -> Self {
+        Self::new(Energy::default(), Solver::default())
+    }
 }
 
 /// Align spherical disparity maps (N·h·w, NaN = invalid) in place.
 ///
 /// Each tangent is standardised, then every level is solved from identity fields on the maps
 /// as the previous level left them, and its fields are applied before the next level (so no
-/// deformation is ever applied twice: reference bug B3). Finally the common standardisation is
+/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md). Finally the common standardisation is
 /// undone with the mean median and spread of the inputs, so the result is in the inputs' range.
 pub fn align(
     layout: &Layout,
     maps: &mut [f32],
     overlaps: &Overlaps,
-    options: &AlignOptions,
+    options: &Options,
 ) -> Result<Vec<Level>> {
-    let offsets = options
-        .levels
-        .first()
-        .map_or(Offsets::Spherical, |p| p.offsets);
-    let stats = standardize(layout, maps, offsets)?;
+    let stats = standardize(layout, maps, options.offsets)?;
     let mut levels = Vec::with_capacity(options.levels.len());
-    for params in &options.levels {
+    for params in &options.level_params() {
         let t0 = std::time::Instant::now();
         let problem = Problem::new(layout, maps, overlaps, *params);
         if problem.samples() == 0 {
@@ -1094,7 +1271,7 @@ pub fn align(
             &problem,
             &problem.identity(),
             options.solver,
-            options.max_iterations,
+            options.iterations,
             options.tolerance,
         )?;
         // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
@@ -1150,7 +1327,7 @@ mod tests {
             rows,
             energy,
             smoothness: 40.0,
-            scale: 0.007,
+            scale_weight: 0.007,
             offsets: Offsets::Perspective,
         };
         let problem = Problem::new(&layout, &maps, &overlaps, params);
@@ -1298,50 +1475,5 @@ mod tests {
             .map(|(x, y)| (x - y).abs())
             .fold(0.0f32, f32::max);
         assert!(worst < 1e-4, "{worst}");
-    }
-
-    /// Timing breakdown of one Newton level at 2K: `cargo test --release -p m360-core
-    /// newton_timing -- --ignored --nocapture`.
-    #[test]
-    #[ignore]
-    fn newton_timing() {
-        let layout = Layout::icosahedron(2048, 0.3, None).expect("layout");
-        let (h, w) = layout.tangent_shape();
-        let mut maps = Vec::with_capacity(20 * h * w);
-        for (t, cam) in layout.cameras.iter().enumerate() {
-            for r in 0..h {
-                for c in 0..w {
-                    let d = cam.pixel_direction(c as f64, r as f64);
-                    maps.push(((0.5 + random(1, t)) * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z)) as f32);
-                }
-            }
-        }
-        standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
-        let overlaps = Overlaps::build(&layout, 0.01, 0.0);
-        for (cols, rows) in [(4, 3), (8, 7), (16, 14)] {
-            let params = LevelParams {
-                cols,
-                rows,
-                energy: Energy::Normalized,
-                smoothness: 1.0,
-                scale: 0.01,
-                offsets: Offsets::Perspective,
-            };
-            let t = std::time::Instant::now();
-            let problem = Problem::new(&layout, &maps, &overlaps, params);
-            let t_problem = t.elapsed();
-            let t = std::time::Instant::now();
-            let mut system = NewtonSystem::new(&problem).expect("system");
-            let t_system = t.elapsed();
-            let x = problem.identity();
-            let mut g = vec![0.0; x.len()];
-            let t = std::time::Instant::now();
-            problem.energy(&x, Some(&mut g));
-            let t_energy = t.elapsed();
-            let t = std::time::Instant::now();
-            system.step(&problem, &x, &g).expect("step");
-            let t_step = t.elapsed();
-            println!("{cols}x{rows}: samples {} problem {t_problem:?} system {t_system:?} energy+grad {t_energy:?} step {t_step:?} nnz(A) {} unknowns {}", problem.samples(), system.constant.len(), problem.len());
-        }
     }
 }

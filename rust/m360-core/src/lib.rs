@@ -22,6 +22,7 @@ pub mod blend;
 pub mod camera;
 pub mod error;
 pub mod layout;
+pub mod options;
 pub mod plan;
 pub mod resample;
 pub mod sphere;

@@ -1,18 +1,46 @@
-//! Per-(layout, ERP size) sampling maps, built on first use and shared by every later image.
+//! Per-(layout, ERP size) sampling maps, built once and shared by every later image.
+//!
+//! # Building without deadlocks
+//!
+//! The maps are built with rayon, and a plan is shared by threads that each run work on the
+//! same pool. A lazily initialised value whose initialiser runs parallel work must never be
+//! waited for from *inside* the pool: while a worker builds, it steals other queued jobs, and a
+//! stolen job that waits for the same value blocks the very thread that is building it (all
+//! threads then sleep in a futex). So:
+//!
+//! - [`Plan::prepare`] builds what an operation needs. It is meant to be called from outside the
+//!   pool (the bindings call it before entering the pool); it holds the plan's build lock on
+//!   the calling thread only while the pool runs the build, and no job inside the pool ever
+//!   takes that lock.
+//! - The getters ([`Plan::erp_taps`] …) never wait: they return the built map, or, if called
+//!   before `prepare` (core tests, or from inside a pool), build it right there without any
+//!   lock; if two threads race, both build and the first stored copy wins.
 
 use crate::align::Overlaps;
-use crate::blend::{weight_maps, Weighting};
+use crate::blend::{self, BlendReport, Method, Weighting};
+use crate::error::Result;
 use crate::layout::Layout;
+use crate::options::Choice;
 use crate::resample::{ErpTaps, TangentTaps, TapWeights};
-use std::sync::{Arc, Mutex, OnceLock};
+use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// (sample fraction, pole cap) as bit patterns: the options overlap samples depend on.
 type OverlapKey = (u64, u64);
 
+/// A map of a plan that an operation needs built.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Need {
+    /// Where each tangent pixel samples the ERP image.
+    TangentTaps,
+    /// Which tangents, and where, each ERP pixel sees.
+    ErpTaps,
+    /// Blending weights of a kind at every ERP tap (implies the ERP taps).
+    TapWeights(Weighting),
+    /// Overlap samples for alignment with (sample fraction, pole cap in degrees).
+    Overlaps(f64, f64),
+}
+
 /// Everything that depends only on the layout (and so on the ERP size), not on the image.
-///
-/// Each map is built the first time an operation needs it (in parallel, on the calling thread
-/// pool) and then reused, so a batch of same-size panoramas pays for it once.
 #[derive(Debug)]
 pub struct Plan {
     layout: Layout,
@@ -23,6 +51,8 @@ pub struct Plan {
     /// Weights at every ERP tap, per [`Weighting`] (the weight maps themselves are not kept:
     /// the blends only ever read them at the taps).
     tap_weights: [OnceLock<TapWeights>; 4],
+    /// Held by [`Plan::prepare`] while it builds, so concurrent callers build each map once.
+    building: Mutex<()>,
 }
 
 impl Plan {
@@ -34,6 +64,7 @@ impl Plan {
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
             tap_weights: Default::default(),
+            building: Mutex::new(()),
         }
     }
 
@@ -42,40 +73,138 @@ impl Plan {
         &self.layout
     }
 
-    /// Where each tangent pixel samples the ERP image (built on first call).
+    /// Build the maps in `needs` that are not built yet, each once however many threads ask.
+    ///
+    /// `run` runs a build (typically `|build| pool.install(build)`). Call this from outside the
+    /// pool that `run` uses (see the module documentation); from inside a rayon pool it builds
+    /// without taking the lock.
+    pub fn prepare(&self, needs: &[Need], run: impl Fn(&(dyn Fn() + Sync))) {
+        let missing = |need: &Need| !self.is_built(*need);
+        if !needs.iter().any(missing) {
+            return;
+        }
+        if rayon::current_thread_index().is_some() {
+            needs.iter().for_each(|&need| self.build(need));
+            return;
+        }
+        // Poisoning only means another thread panicked mid-build: the maps stay valid.
+        let _guard = self.building.lock().unwrap_or_else(PoisonError::into_inner);
+        for need in needs.iter().filter(|n| missing(n)) {
+            run(&|| self.build(*need));
+        }
+    }
+
+    fn is_built(&self, need: Need) -> bool {
+        match need {
+            Need::TangentTaps => self.tangent_taps.get().is_some(),
+            Need::ErpTaps => self.erp_taps.get().is_some(),
+            Need::TapWeights(kind) => self.tap_weights[weight_slot(kind)].get().is_some(),
+            Need::Overlaps(fraction, cap) => self.cached_overlaps(fraction, cap).is_some(),
+        }
+    }
+
+    fn build(&self, need: Need) {
+        match need {
+            Need::TangentTaps => drop(self.tangent_taps()),
+            Need::ErpTaps => drop(self.erp_taps()),
+            Need::TapWeights(kind) => drop(self.tap_weights(kind)),
+            Need::Overlaps(fraction, cap) => drop(self.overlaps(fraction, cap)),
+        }
+    }
+
+    /// Where each tangent pixel samples the ERP image.
     pub fn tangent_taps(&self) -> &TangentTaps {
-        self.tangent_taps
-            .get_or_init(|| TangentTaps::build(&self.layout))
+        get_or_build(&self.tangent_taps, || TangentTaps::build(&self.layout))
     }
 
-    /// Which tangents, and where, each ERP pixel sees (built on first call).
+    /// Which tangents, and where, each ERP pixel sees.
     pub fn erp_taps(&self) -> &ErpTaps {
-        self.erp_taps.get_or_init(|| ErpTaps::build(&self.layout))
+        get_or_build(&self.erp_taps, || ErpTaps::build(&self.layout))
     }
 
-    /// Overlap samples for alignment with these options (built on first call).
-    pub fn overlaps(&self, fraction: f64, pole_cap_deg: f64) -> Arc<Overlaps> {
+    /// Blending weights of `kind` at every ERP tap.
+    pub fn tap_weights(&self, kind: Weighting) -> &TapWeights {
+        get_or_build(&self.tap_weights[weight_slot(kind)], || {
+            let maps = blend::weight_maps(&self.layout, kind);
+            self.erp_taps().weights_of(&maps)
+        })
+    }
+
+    fn cached_overlaps(&self, fraction: f64, pole_cap_deg: f64) -> Option<Arc<Overlaps>> {
         let key = (fraction.to_bits(), pole_cap_deg.to_bits());
-        // A poisoned lock only means another thread panicked mid-build; the cache stays valid.
-        let mut cache = self.overlaps.lock().unwrap_or_else(|e| e.into_inner());
+        let cache = self.overlaps.lock().unwrap_or_else(PoisonError::into_inner);
+        cache
+            .iter()
+            .find(|(k, _)| *k == key)
+            .map(|(_, o)| o.clone())
+    }
+
+    /// Overlap samples for alignment with these options.
+    pub fn overlaps(&self, fraction: f64, pole_cap_deg: f64) -> Arc<Overlaps> {
+        if let Some(found) = self.cached_overlaps(fraction, pole_cap_deg) {
+            return found;
+        }
+        // Built with the cache unlocked (the build runs parallel work); a racing copy is dropped.
+        let built = Arc::new(Overlaps::build(&self.layout, fraction, pole_cap_deg));
+        let key = (fraction.to_bits(), pole_cap_deg.to_bits());
+        let mut cache = self.overlaps.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, found)) = cache.iter().find(|(k, _)| *k == key) {
             return found.clone();
         }
-        let built = Arc::new(Overlaps::build(&self.layout, fraction, pole_cap_deg));
         cache.push((key, built.clone()));
         built
     }
 
-    /// Blending weights of `kind` at every ERP tap (built on first call, with the ERP taps).
-    pub fn tap_weights(&self, kind: Weighting) -> &TapWeights {
-        let slot = match kind {
-            Weighting::Nearest => 0,
-            Weighting::Mean => 1,
-            Weighting::Radial => 2,
-            Weighting::Frustum => 3,
+    /// The maps [`Plan::blend`] reads for `method`.
+    pub fn blend_needs(method: &Method) -> Vec<Need> {
+        let mut needs = vec![Need::ErpTaps];
+        needs.extend(method.weighting().map(Need::TapWeights));
+        needs
+    }
+
+    /// Blend per-tangent maps (N·h·w, NaN = invalid) onto the ERP grid with `method`:
+    /// `disparity` (H·W) gets the blend, NaN where no face has a valid sample; `confidence`
+    /// (H·W, if given) the population standard deviation of the valid samples at each pixel.
+    ///
+    /// # Errors
+    /// The Poisson blend's options or solve failures (see [`blend::poisson_blend`]).
+    ///
+    /// # Panics
+    /// If the slices do not have the plan's sizes.
+    pub fn blend(
+        &self,
+        tangents: &[f32],
+        method: &Method,
+        disparity: &mut [f32],
+        confidence: Option<&mut [f32]>,
+    ) -> Result<BlendReport> {
+        let (taps, layout) = (self.erp_taps(), &self.layout);
+        let poisson = match method {
+            Method::Mean => {
+                blend::mean_blend(taps, layout, tangents, disparity, confidence);
+                None
+            }
+            Method::Nearest => {
+                blend::nearest_blend(taps, layout, tangents, disparity, confidence);
+                None
+            }
+            Method::Frustum | Method::Radial => {
+                let weights = self.tap_weights(method.weighting().unwrap_or(Weighting::Mean));
+                blend::weighted_blend(taps, layout, tangents, weights, disparity, confidence);
+                None
+            }
+            Method::Poisson(params) => {
+                let weights = self.tap_weights(Weighting::Frustum);
+                let report = blend::poisson_blend(
+                    taps, layout, tangents, weights, params, disparity, confidence,
+                )?;
+                Some(report)
+            }
         };
-        self.tap_weights[slot]
-            .get_or_init(|| self.erp_taps().weights_of(&weight_maps(&self.layout, kind)))
+        Ok(BlendReport {
+            method: *method,
+            poisson,
+        })
     }
 
     /// Bytes held by the maps built so far.
@@ -88,5 +217,96 @@ impl Plan {
                 .filter_map(OnceLock::get)
                 .map(TapWeights::memory_bytes)
                 .sum::<usize>()
+    }
+}
+
+fn weight_slot(kind: Weighting) -> usize {
+    Weighting::ALL
+        .iter()
+        .position(|(k, _)| *k == kind)
+        .unwrap_or_default()
+}
+
+/// The value in `cell`, built by `build` first if there is none, without holding any lock while
+/// `build` runs (see the module documentation).
+fn get_or_build<T>(cell: &OnceLock<T>, build: impl FnOnce() -> T) -> &T {
+    if let Some(value) = cell.get() {
+        return value;
+    }
+    let built = build();
+    // Another thread may have stored its copy meanwhile: keep the first.
+    drop(cell.set(built));
+    cell.get().unwrap_or_else(|| unreachable!("set above"))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::mpsc;
+    use std::time::Duration;
+
+    /// Regression test of the deadlock found under concurrent first calls: several threads,
+    /// each entering the same pool with work that needs maps of a fresh plan, the maps built
+    /// with parallel work. With the maps built inside the pool behind a lock the threads ended
+    /// in a futex wait; with `prepare` outside the pool they finish. A watchdog fails the test
+    /// instead of hanging.
+    #[test]
+    fn concurrent_first_calls_on_fresh_plans_finish() {
+        let pool = Arc::new(
+            rayon::ThreadPoolBuilder::new()
+                .num_threads(2)
+                .build()
+                .expect("pool"),
+        );
+        let (done, finished) = mpsc::channel();
+        let worker = std::thread::spawn(move || {
+            for trial in 0..6 {
+                let plan = Arc::new(Plan::new(
+                    Layout::icosahedron(128 + 32 * trial, 0.3, None).expect("layout"),
+                ));
+                let threads: Vec<_> = [
+                    vec![Need::TangentTaps],
+                    vec![Need::ErpTaps, Need::TapWeights(Weighting::Frustum)],
+                    vec![Need::ErpTaps, Need::TapWeights(Weighting::Frustum)],
+                    vec![Need::Overlaps(0.01, 0.0), Need::ErpTaps],
+                ]
+                .into_iter()
+                .map(|needs| {
+                    let (plan, pool) = (plan.clone(), pool.clone());
+                    std::thread::spawn(move || {
+                        plan.prepare(&needs, |build| pool.install(build));
+                        pool.install(|| {
+                            rayon::join(
+                                || plan.erp_taps().len(),
+                                || plan.tangent_taps().memory_bytes(),
+                            )
+                        })
+                    })
+                })
+                .collect();
+                let sizes: Vec<_> = threads
+                    .into_iter()
+                    .map(|t| t.join().expect("thread"))
+                    .collect();
+                assert!(sizes.windows(2).all(|w| w[0] == w[1]));
+            }
+            done.send(()).expect("send");
+        });
+        finished
+            .recv_timeout(Duration::from_secs(300))
+            .expect("concurrent first calls deadlocked");
+        worker.join().expect("worker");
+    }
+
+    #[test]
+    fn prepare_builds_what_is_needed_and_only_that() {
+        let plan = Plan::new(Layout::icosahedron(128, 0.3, None).expect("layout"));
+        assert_eq!(plan.memory_bytes(), 0);
+        plan.prepare(&Plan::blend_needs(&Method::Mean), |build| build());
+        assert!(plan.is_built(Need::ErpTaps));
+        assert!(!plan.is_built(Need::TangentTaps));
+        assert!(!plan.is_built(Need::TapWeights(Weighting::Frustum)));
+        plan.prepare(&Plan::blend_needs(&Method::default()), |build| build());
+        assert!(plan.is_built(Need::TapWeights(Weighting::Frustum)));
     }
 }

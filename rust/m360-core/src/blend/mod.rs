@@ -1,0 +1,118 @@
+//! Blending (paper §3.4; docs/method.md, "Blending"): how the tangents that see an ERP pixel are
+//! combined into one value.
+//!
+//! - [`weights`]: per-face weight maps on each tangent's own pixel grid, from that face's own
+//!   intrinsics (reference pitfall B9, docs/reference-pitfalls.md).
+//! - [`rows`]: the mean, nearest-face and weighted blends, one ERP row at a time.
+//! - [`poisson`]: the gradient-domain blend, assembled from the taps and solved by conjugate
+//!   gradients preconditioned with the [`multigrid`] V-cycle.
+//!
+//! [`Method`] names them all; [`crate::Plan::blend`] dispatches on it.
+
+pub(crate) mod multigrid;
+pub mod poisson;
+pub mod rows;
+pub mod weights;
+
+#[cfg(test)]
+mod tests;
+
+pub use poisson::{
+    poisson_blend, poisson_blend_layers, Fidelity, PoissonParams, PoissonReport, PoissonSolver,
+};
+pub use rows::{mean_blend, nearest_blend, weighted_blend};
+pub use weights::{weight_maps, Weighting};
+
+use crate::error::{CoreError, Result};
+use std::str::FromStr;
+
+/// How the tangents that see an ERP pixel are combined.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub enum Method {
+    /// Gradient-domain blend (the default): frustum-weighted gradients of the tangents, held to a
+    /// fidelity target with weight λ.
+    Poisson(PoissonParams),
+    /// Frustum-weighted mean: the fast seam-free choice.
+    Frustum,
+    /// Radially weighted mean.
+    Radial,
+    /// Unweighted mean of every valid sample.
+    Mean,
+    /// The face whose axis is nearest the pixel (falling back to the next nearest where that
+    /// face has no valid value).
+    Nearest,
+}
+
+impl Method {
+    /// The names of the methods, the default first.
+    pub const NAMES: &'static [&'static str] = &["poisson", "frustum", "radial", "mean", "nn"];
+
+    /// The method's name.
+    pub fn name(&self) -> &'static str {
+        match self {
+            Self::Poisson(_) => "poisson",
+            Self::Frustum => "frustum",
+            Self::Radial => "radial",
+            Self::Mean => "mean",
+            Self::Nearest => "nn",
+        }
+    }
+
+    /// The per-face weights the method reads at the taps, if any (Poisson weighs its gradients
+    /// with the frustum weights).
+    pub fn weighting(&self) -> Option<Weighting> {
+        match self {
+            Self::Poisson(_) | Self::Frustum => Some(Weighting::Frustum),
+            Self::Radial => Some(Weighting::Radial),
+            Self::Mean | Self::Nearest => None,
+        }
+    }
+
+    /// `self` if its parameters are usable.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidOption`] naming the Poisson option at fault.
+    pub fn validate(self) -> Result<Self> {
+        if let Self::Poisson(params) = self {
+            params.validate()?;
+        }
+        Ok(self)
+    }
+}
+
+impl Default for Method {
+    fn default() -> Self {
+        Self::Poisson(PoissonParams::default())
+    }
+}
+
+impl FromStr for Method {
+    type Err = CoreError;
+
+    /// The method called `name`, Poisson with its default parameters.
+    fn from_str(name: &str) -> Result<Self> {
+        Ok(match name {
+            "poisson" => Self::default(),
+            "frustum" => Self::Frustum,
+            "radial" => Self::Radial,
+            "mean" => Self::Mean,
+            "nn" => Self::Nearest,
+            _ => {
+                return Err(CoreError::UnknownChoice {
+                    option: "blend",
+                    given: name.to_owned(),
+                    choices: Self::NAMES,
+                })
+            }
+        })
+    }
+}
+
+/// What a blend reports: the Poisson solve's figures, if it was one.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct BlendReport {
+    /// The method that ran.
+    pub method: Method,
+    /// The Poisson solve's report.
+    pub poisson: Option<PoissonReport>,
+}

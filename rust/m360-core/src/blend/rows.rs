@@ -1,0 +1,386 @@
+//! Row-by-row blends of per-tangent maps on the ERP grid: mean, nearest face, weighted.
+//!
+//! Each ERP row's runs are sampled into a buffer the size of the run (it stays in L1) and
+//! accumulated face by face into per-pixel sums, without branches; the spread (the
+//! `confidence` output) comes from the same single pass.
+
+use crate::layout::Layout;
+use crate::resample::{ErpTaps, Run, TapWeights};
+use rayon::prelude::*;
+
+/// One ERP row's samples, face by face: the row's runs and, per tap (in run order), the face's
+/// value there (NaN = invalid), its blending weight (none stored: all 1) and its nearness rank
+/// at its pixel (0 = nearest axis).
+#[derive(Debug, Default)]
+pub(crate) struct RowSamples {
+    pub runs: Vec<Run>,
+    pub values: Vec<f32>,
+    pub weights: Vec<f32>,
+    pub ranks: Vec<u8>,
+}
+
+impl RowSamples {
+    /// The samples of ERP row `i` of tangent images through `taps`, with per-tap `weights`,
+    /// and with ranks if `ranks` (only the nearest-face statistics need them).
+    ///
+    /// # Panics
+    /// If `tangents` or `weights` do not belong to `taps`.
+    pub(crate) fn fill_from_taps(
+        &mut self,
+        taps: &ErpTaps,
+        tangents: &[f32],
+        weights: Option<&TapWeights>,
+        ranks: bool,
+        i: usize,
+    ) {
+        self.runs.clear();
+        self.runs.extend_from_slice(taps.runs(i));
+        taps.sample(tangents, i, &mut self.values);
+        self.ranks.clear();
+        if ranks {
+            taps.ranks(i, &mut self.ranks);
+        }
+        self.weights.clear();
+        if let Some(w) = weights {
+            assert_eq!(
+                w.row(i).len(),
+                self.values.len(),
+                "tap weights of other taps"
+            );
+            self.weights.extend_from_slice(w.row(i));
+        }
+    }
+
+    #[inline(always)]
+    pub(crate) fn weight(&self, t: usize) -> f32 {
+        if self.weights.is_empty() {
+            1.0
+        } else {
+            self.weights[t]
+        }
+    }
+}
+
+/// Per-pixel statistics of the valid (finite) samples of one ERP row, accumulated run by run;
+/// NaN where a pixel has none.
+///
+/// Sums are kept relative to each pixel's first valid sample (a shift close to the mean), so the
+/// spread comes from the same single pass without the cancellation of Σv² − n·mean²; f32 is
+/// exact enough for a handful of samples per pixel.
+#[derive(Debug, Default)]
+pub(crate) struct RowStats {
+    extras: Extras,
+    count: Vec<f32>,
+    shift: Vec<f32>,
+    shifted_sum: Vec<f32>,
+    shifted_squares: Vec<f32>,
+    weight_sum: Vec<f32>,
+    weighted_sum: Vec<f32>,
+    rank: Vec<u8>,
+    /// The sample of the nearest valid face (with [`Extras::nearest`]).
+    pub nearest: Vec<f32>,
+    /// Unweighted mean.
+    pub mean: Vec<f32>,
+    /// Σ w·v / Σ w; the plain mean where every valid sample has weight 0 (radial weights vanish
+    /// near the icosahedron's vertices, which lie 37.4° from the nearest axes, beyond the 34°
+    /// inscribed half field of view).
+    pub weighted: Vec<f32>,
+    /// Population standard deviation, 0 with one sample (with [`Extras::spread`]).
+    pub spread: Vec<f32>,
+}
+
+/// What [`RowStats`] computes beyond the mean and the weighted mean.
+#[derive(Debug, Default, Clone, Copy)]
+pub(crate) struct Extras {
+    /// The nearest valid face's sample (needs ranks).
+    pub nearest: bool,
+    /// The spread.
+    pub spread: bool,
+}
+
+impl RowStats {
+    /// Start a row `width` pixels wide.
+    pub(crate) fn start(&mut self, width: usize, extras: Extras) {
+        let reset = |v: &mut Vec<f32>, x: f32| {
+            v.clear();
+            v.resize(width, x);
+        };
+        self.extras = extras;
+        reset(&mut self.count, 0.0);
+        reset(&mut self.shifted_sum, 0.0);
+        reset(&mut self.weight_sum, 0.0);
+        reset(&mut self.weighted_sum, 0.0);
+        // Set by each pixel's first valid sample before it is read.
+        self.shift.resize(width, 0.0);
+        if extras.spread {
+            reset(&mut self.shifted_squares, 0.0);
+        }
+        if extras.nearest {
+            reset(&mut self.nearest, f32::NAN);
+            self.rank.clear();
+            self.rank.resize(width, u8::MAX);
+        }
+    }
+
+    /// Add the samples `values` of one run over `columns`, with their blending `weights` (none:
+    /// all 1) and nearness `ranks` (read only for [`Extras::nearest`]).
+    #[inline(always)]
+    pub(crate) fn add_run(
+        &mut self,
+        columns: std::ops::Range<usize>,
+        values: &[f32],
+        weights: Option<&[f32]>,
+        ranks: impl Iterator<Item = u8>,
+    ) {
+        match (weights, self.extras.spread) {
+            (Some(w), true) => self.add::<true>(columns.clone(), values, w.iter().copied()),
+            (Some(w), false) => self.add::<false>(columns.clone(), values, w.iter().copied()),
+            (None, true) => self.add::<true>(columns.clone(), values, std::iter::repeat(1.0)),
+            (None, false) => self.add::<false>(columns.clone(), values, std::iter::repeat(1.0)),
+        }
+        if self.extras.nearest {
+            let best = self.rank[columns.clone()]
+                .iter_mut()
+                .zip(&mut self.nearest[columns]);
+            for ((rank, nearest), (&v, r)) in best.zip(values.iter().zip(ranks)) {
+                // Branch-free: which face is nearest varies from pixel to pixel.
+                let nearer = v.is_finite() & (r < *rank);
+                *rank = if nearer { r } else { *rank };
+                *nearest = if nearer { v } else { *nearest };
+            }
+        }
+    }
+
+    #[inline(always)]
+    fn add<const SPREAD: bool>(
+        &mut self,
+        columns: std::ops::Range<usize>,
+        values: &[f32],
+        weights: impl Iterator<Item = f32>,
+    ) {
+        let sums = self.count[columns.clone()]
+            .iter_mut()
+            .zip(&mut self.shift[columns.clone()])
+            .zip(&mut self.shifted_sum[columns.clone()])
+            .zip(&mut self.weight_sum[columns.clone()])
+            .zip(&mut self.weighted_sum[columns.clone()]);
+        let mut squares = if SPREAD {
+            self.shifted_squares[columns].iter_mut()
+        } else {
+            [].iter_mut()
+        };
+        // Branch-free, so it vectorises: an invalid sample adds zeros.
+        for (((((n, shift), sum), wsum), wv), (&v, w)) in sums.zip(values.iter().zip(weights)) {
+            let ok = v.is_finite();
+            *shift = if ok & (*n == 0.0) { v } else { *shift };
+            let d = if ok { v - *shift } else { 0.0 };
+            let (v, w) = if ok { (v, w) } else { (0.0, 0.0) };
+            *n += f32::from(u8::from(ok));
+            *sum += d;
+            *wsum += w;
+            *wv += w * v;
+            if SPREAD {
+                if let Some(sq) = squares.next() {
+                    *sq += d * d;
+                }
+            }
+        }
+    }
+
+    /// The per-pixel results, once every run is added.
+    pub(crate) fn finish(&mut self) {
+        let width = self.count.len();
+        for v in [&mut self.mean, &mut self.weighted] {
+            v.clear();
+            v.resize(width, f32::NAN);
+        }
+        let sums = self.count.iter().zip(&self.shift).zip(&self.shifted_sum);
+        let weighted = self.weight_sum.iter().zip(&self.weighted_sum);
+        let outs = self.mean.iter_mut().zip(self.weighted.iter_mut());
+        for ((((&n, &shift), &sum), (&wsum, &wv)), (mean, weighted)) in sums.zip(weighted).zip(outs)
+        {
+            if n > 0.0 {
+                *mean = shift + sum / n;
+                *weighted = if wsum > 0.0 { wv / wsum } else { *mean };
+            }
+        }
+        if self.extras.spread {
+            self.spread.clear();
+            let parts = self
+                .count
+                .iter()
+                .zip(&self.shifted_sum)
+                .zip(&self.shifted_squares);
+            self.spread.extend(parts.map(|((&n, &sum), &squares)| {
+                let mean = sum / n; // NaN where no sample
+                (squares / n - mean * mean).max(0.0).sqrt()
+            }));
+        }
+    }
+
+    /// The statistics of a whole row of samples.
+    pub(crate) fn compute(&mut self, row: &RowSamples, width: usize, spread: bool) {
+        let nearest = !row.ranks.is_empty();
+        self.start(width, Extras { nearest, spread });
+        let weights = (!row.weights.is_empty()).then_some(&row.weights[..]);
+        for run in &row.runs {
+            let ranks = row.ranks.get(run.taps()).unwrap_or_default();
+            self.add_run(
+                run.columns(),
+                &row.values[run.taps()],
+                weights.map(|w| &w[run.taps()]),
+                ranks.iter().copied(),
+            );
+        }
+        self.finish();
+    }
+}
+
+/// Which statistic of the valid samples a blend outputs.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub(crate) enum Statistic {
+    Nearest,
+    Mean,
+    Weighted,
+}
+
+impl RowStats {
+    fn get(&self, which: Statistic) -> &[f32] {
+        match which {
+            Statistic::Nearest => &self.nearest,
+            Statistic::Mean => &self.mean,
+            Statistic::Weighted => &self.weighted,
+        }
+    }
+}
+
+/// Blend every ERP row of per-tangent maps (N·h·w, NaN = invalid) into `disparity` (H·W) with
+/// the statistic `which` of the valid samples, and their spread into `spread` (H·W) if given.
+///
+/// # Panics
+/// If the outputs are not H·W long, or `tangents` or `weights` do not belong to `taps`.
+pub(crate) fn blend_rows(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: Option<&TapWeights>,
+    which: Statistic,
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    let ew = layout.erp_width;
+    assert!(disparity.len() == layout.erp_height * ew);
+    assert!(spread.as_ref().is_none_or(|s| s.len() == disparity.len()));
+    disparity
+        .par_chunks_mut(ew)
+        .zip(optional_chunks(spread, ew, layout.erp_height))
+        .enumerate()
+        .for_each_init(
+            || (Vec::new(), RowStats::default()),
+            |(buffer, stats), (i, (out, out_spread))| {
+                let nearest = which == Statistic::Nearest;
+                let spread = out_spread.is_some();
+                stats.start(ew, Extras { nearest, spread });
+                let row_weights = weights.map(|w| w.row(i));
+                taps.sample_runs(tangents, i, buffer, |run, values, ranks| {
+                    let run_weights = row_weights.map(|w| &w[run.taps()]);
+                    stats.add_run(run.columns(), values, run_weights, ranks);
+                });
+                stats.finish();
+                out.copy_from_slice(stats.get(which));
+                if let Some(out_spread) = out_spread {
+                    out_spread.copy_from_slice(&stats.spread);
+                }
+            },
+        );
+}
+
+/// `count` chunks of `size` of `data`, or `count` Nones: an output that may be skipped, to zip
+/// with the chunks of one that may not.
+pub(crate) fn optional_chunks(
+    data: Option<&mut [f32]>,
+    size: usize,
+    count: usize,
+) -> rayon::vec::IntoIter<Option<&mut [f32]>> {
+    let chunks: Vec<Option<&mut [f32]>> = match data {
+        Some(d) => d.chunks_mut(size).map(Some).collect(),
+        None => (0..count).map(|_| None).collect(),
+    };
+    chunks.into_par_iter()
+}
+
+/// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (at the
+/// taps, from [`ErpTaps::weights_of`]): `disparity` (H·W) gets Σ w·v / Σ w over the valid
+/// samples (see [`RowStats::weighted`] for the fall-back), `spread` (H·W, if given) the
+/// population standard deviation of the valid samples.
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn weighted_blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: &TapWeights,
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    let which = Statistic::Weighted;
+    blend_rows(
+        taps,
+        layout,
+        tangents,
+        Some(weights),
+        which,
+        disparity,
+        spread,
+    );
+}
+
+/// Unweighted mean of per-tangent maps (N·h·w, NaN = invalid): `disparity` (H·W) gets the mean
+/// of the valid samples, NaN where there is none; `spread` (H·W, if given) their population
+/// standard deviation (0 with one sample, NaN with none).
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn mean_blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    blend_rows(
+        taps,
+        layout,
+        tangents,
+        None,
+        Statistic::Mean,
+        disparity,
+        spread,
+    );
+}
+
+/// Nearest-face blend of per-tangent maps (N·h·w, NaN = invalid): `disparity` (H·W) gets the
+/// valid sample of the face whose axis is nearest the pixel (for the icosahedron: the face whose
+/// un-padded triangle contains it, falling back to the next nearest where that face has no valid
+/// sample); `spread` as in [`mean_blend`].
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn nearest_blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    blend_rows(
+        taps,
+        layout,
+        tangents,
+        None,
+        Statistic::Nearest,
+        disparity,
+        spread,
+    );
+}

@@ -1,0 +1,560 @@
+//! Tests of the blends: weights against their definitions, the row blends against a smooth
+//! field, Poisson against a dense solve.
+
+use super::multigrid::Multigrid;
+use super::poisson::cg::{solve_fused, solve_multigrid};
+use super::poisson::system::{assemble, LayerSource, System, Target};
+use super::rows::RowSamples;
+use super::weights::{frustum_weight, inscribed_half_fov, radial_weight, FRUSTUM_RAMP};
+use super::*;
+use crate::layout::Layout;
+use crate::plan::Plan;
+use crate::resample::{erp_to_tangents, tangents_to_erp};
+use crate::sphere::ErpGrid;
+
+/// The blend of `tangents` with `method` through a plan, and its spread.
+fn blend_to_vec(plan: &Plan, tangents: &[f32], method: Method) -> (Vec<f32>, Vec<f32>) {
+    let n = plan.layout().erp_height * plan.layout().erp_width;
+    let (mut disparity, mut spread) = (vec![0.0; n], vec![0.0; n]);
+    plan.blend(tangents, &method, &mut disparity, Some(&mut spread))
+        .expect("blend");
+    (disparity, spread)
+}
+
+fn layout(erp_width: usize) -> Layout {
+    Layout::icosahedron(erp_width, 0.3, None).expect("layout")
+}
+
+#[test]
+fn frustum_values_at_centre_border_and_ramp_start() {
+    let cam = &layout(2048).cameras[0];
+    let (w, h) = (cam.width as f64, cam.height as f64);
+    let centre = ((w - 1.0) / 2.0, (h - 1.0) / 2.0);
+    assert_eq!(frustum_weight(cam, centre.0, centre.1), 1.0);
+    for (x, y) in [
+        (-0.5, centre.1),
+        (w - 0.5, centre.1),
+        (centre.0, -0.5),
+        (-0.5, -0.5),
+    ] {
+        assert_eq!(frustum_weight(cam, x, y), 0.0);
+    }
+    // Along the diagonal from the corner (−½, −½): t/0.3 up to t = 0.3, then 1.
+    for t in [0.05, 0.15, 0.29, 0.3, 0.31, 0.5] {
+        let (x, y) = (-0.5 + t * w, -0.5 + t * h);
+        let want = (t / FRUSTUM_RAMP).min(1.0);
+        assert!((frustum_weight(cam, x, y) - want).abs() < 1e-12, "t = {t}");
+    }
+}
+
+#[test]
+fn radial_values_on_the_axis_at_15_degrees_and_at_the_inscribed_edge() {
+    let cam = &layout(2048).cameras[3];
+    let edge = inscribed_half_fov(cam);
+    // The icosahedron tangent point is 115.5 px from the nearer border of 346 rows:
+    // atan(115.5 / f) with f = 400 / 2.362.
+    assert!(
+        (edge.to_degrees() - 34.3).abs() < 0.3,
+        "{}",
+        edge.to_degrees()
+    );
+    let at_angle = |deg: f64| {
+        // A point at `deg` from the axis, straight to the right of the principal point.
+        let x = cam.cx + cam.fx * deg.to_radians().tan();
+        radial_weight(cam, x, cam.cy)
+    };
+    assert_eq!(radial_weight(cam, cam.cx, cam.cy), 1.0);
+    assert_eq!(at_angle(14.9), 1.0);
+    assert!((at_angle(15.0) - 1.0).abs() < 1e-9);
+    let mid = (15.0 + edge.to_degrees()) / 2.0;
+    assert!((at_angle(mid) - 0.5).abs() < 1e-9);
+    assert!(at_angle(edge.to_degrees()).abs() < 1e-9);
+    assert_eq!(at_angle(edge.to_degrees() + 1.0), 0.0);
+}
+
+#[test]
+fn nearest_maps_partition_the_sphere() {
+    // Every ERP direction is claimed by exactly one face: the nn weights of the faces that
+    // see a pixel sum to 1 (up to bilinear mixing at triangle edges).
+    // Edge bands are ±1 tangent pixel wide: at 1024 about 5 % of the sphere.
+    let plan = Plan::new(layout(1024));
+    let maps = weight_maps(plan.layout(), Weighting::Nearest);
+    let ones = vec![1.0f32; maps.len()];
+    let tap_weights = plan.erp_taps().weights_of(&maps);
+    let (mut total, mut exact) = (0usize, 0usize);
+    let (mut row, mut sums) = (RowSamples::default(), Vec::new());
+    for i in 0..plan.layout().erp_height {
+        row.fill_from_taps(plan.erp_taps(), &ones, Some(&tap_weights), false, i);
+        sums.clear();
+        sums.resize(plan.layout().erp_width, 0.0f32);
+        for run in &row.runs {
+            for (j, t) in run.columns().zip(run.taps()) {
+                sums[j] += row.weights[t];
+            }
+        }
+        for &sum in &sums {
+            total += 1;
+            exact += usize::from((sum - 1.0).abs() < 1e-4);
+            // Near the 12 vertices up to five faces mix: bounded, not exact.
+            assert!((0.0..2.0).contains(&sum), "{sum}");
+        }
+    }
+    assert!(exact as f64 > 0.93 * total as f64, "{exact} of {total}");
+}
+
+/// A dense reference: assemble the same normal equations explicitly and solve by Gaussian
+/// elimination (small grids only).
+fn dense_solve(values: &[f32], weights: &[f32], target: &[f32], h: usize, w: usize) -> Vec<f64> {
+    let n = h * w;
+    let k = values.len() / n;
+    let mut a = vec![0.0f64; n * n];
+    let mut b = vec![0.0f64; n];
+    let mut add_edge = |p: usize, q: usize| {
+        for l in 0..k {
+            let (vp, vq) = (values[l * n + p], values[l * n + q]);
+            if !(vp.is_finite() && vq.is_finite()) {
+                continue;
+            }
+            let wgt = 0.5 * (weights[l * n + p] as f64 + weights[l * n + q] as f64);
+            let g = vq as f64 - vp as f64;
+            a[p * n + p] += wgt;
+            a[q * n + q] += wgt;
+            a[p * n + q] -= wgt;
+            a[q * n + p] -= wgt;
+            b[p] -= wgt * g;
+            b[q] += wgt * g;
+        }
+    };
+    for i in 0..h {
+        for j in 0..w {
+            add_edge(i * w + j, i * w + (j + 1) % w);
+            if i + 1 < h {
+                add_edge(i * w + j, (i + 1) * w + j);
+            }
+        }
+    }
+    for p in 0..n {
+        a[p * n + p] += PoissonParams::DEFAULT_LAM;
+        b[p] += PoissonParams::DEFAULT_LAM * target[p] as f64;
+    }
+    // Gaussian elimination without pivoting: the matrix is SPD.
+    for c in 0..n {
+        for r in c + 1..n {
+            let f = a[r * n + c] / a[c * n + c];
+            if f != 0.0 {
+                for cc in c..n {
+                    a[r * n + cc] -= f * a[c * n + cc];
+                }
+                b[r] -= f * b[c];
+            }
+        }
+    }
+    let mut x = vec![0.0; n];
+    for r in (0..n).rev() {
+        let s: f64 = (r + 1..n).map(|c| a[r * n + c] * x[c]).sum();
+        x[r] = (b[r] - s) / a[r * n + r];
+    }
+    x
+}
+
+/// Seeded pseudo-random numbers in [0, 1) (SplitMix64).
+fn rng(seed: u64) -> impl FnMut() -> f64 {
+    let mut s = seed;
+    move || {
+        s = s.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = s;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
+#[test]
+fn layered_poisson_matches_a_dense_solve() {
+    let (h, w, k) = (6, 12, 3);
+    let n = h * w;
+    let mut r = rng(7);
+    let mut values: Vec<f32> = (0..k * n).map(|_| (1.0 + r()) as f32).collect();
+    let weights: Vec<f32> = (0..k * n).map(|_| r() as f32).collect();
+    for v in values.iter_mut().step_by(5) {
+        *v = f32::NAN;
+    }
+    let target: Vec<f32> = (0..n).map(|_| (1.0 + r()) as f32).collect();
+    let params = PoissonParams {
+        tolerance: 1e-12,
+        ..Default::default()
+    };
+    let mut out = vec![0.0f64; n];
+    let report =
+        poisson_blend_layers(&values, &weights, &target, h, w, &params, &mut out).expect("solve");
+    let want = dense_solve(&values, &weights, &target, h, w);
+    // Edge weights are stored as f32 (half the memory at 8K): agreement to ~1e-7.
+    for (a, b) in out.iter().zip(&want) {
+        assert!((a - b).abs() < 1e-6 * b.abs(), "{a} vs {b}");
+    }
+    assert!(report.relative_residual <= 1e-12);
+}
+
+#[test]
+fn fused_faer_and_multigrid_conjugate_gradients_agree() {
+    let (h, w, k) = (16, 32, 4);
+    let n = h * w;
+    let mut r = rng(11);
+    let values: Vec<f32> = (0..k * n).map(|_| (1.0 + r()) as f32).collect();
+    let weights: Vec<f32> = (0..k * n).map(|_| r() as f32).collect();
+    let target: Vec<f32> = (0..n).map(|_| (1.0 + r()) as f32).collect();
+    let mut sols = Vec::new();
+    for solver in [
+        PoissonSolver::Fused,
+        PoissonSolver::Faer,
+        PoissonSolver::Multigrid,
+    ] {
+        let params = PoissonParams {
+            tolerance: 1e-11,
+            solver,
+            ..Default::default()
+        };
+        let mut out = vec![0.0f64; n];
+        let rep = poisson_blend_layers(&values, &weights, &target, h, w, &params, &mut out)
+            .expect("solve");
+        assert!(rep.relative_residual <= 1e-11 && rep.iterations > 0);
+        sols.push(out);
+    }
+    for other in &sols[1..] {
+        for (a, b) in sols[0].iter().zip(other) {
+            assert!((a - b).abs() < 1e-8, "{a} vs {b}");
+        }
+    }
+}
+
+/// A layered problem with a few invalid samples and uncovered pixels (K·H·W values,
+/// weights, H·W target).
+fn layered_problem(h: usize, w: usize, k: usize, seed: u64) -> (Vec<f32>, Vec<f32>, Vec<f32>) {
+    let n = h * w;
+    let mut r = rng(seed);
+    let mut values: Vec<f32> = (0..k * n).map(|_| (1.0 + r()) as f32).collect();
+    let weights: Vec<f32> = (0..k * n).map(|_| 2.0 * r() as f32).collect();
+    let mut target: Vec<f32> = (0..n).map(|_| (1.0 + r()) as f32).collect();
+    for v in values.iter_mut().step_by(7) {
+        *v = f32::NAN;
+    }
+    // A few pixels no layer sees: decoupled unknowns with no fidelity.
+    for p in [3 * w + 5, n / 2, n - 1] {
+        for l in 0..k {
+            values[l * n + p] = f32::NAN;
+        }
+        target[p] = f32::NAN;
+    }
+    (values, weights, target)
+}
+
+/// The normal equations of `k` layers on an h x w grid with a given target.
+fn assemble_layers(
+    values: &[f32],
+    weights: &[f32],
+    target: &[f32],
+    k: usize,
+    h: usize,
+    w: usize,
+) -> System {
+    let source = LayerSource {
+        values,
+        weights,
+        layers: k,
+        height: h,
+        width: w,
+    };
+    assemble(
+        &source,
+        h,
+        w,
+        PoissonParams::DEFAULT_LAM,
+        Target::Given(target),
+        None,
+    )
+}
+
+#[test]
+fn multigrid_cg_matches_a_dense_solve_over_several_levels() {
+    let (h, w, k) = (32, 64, 3);
+    let (values, weights, target) = layered_problem(h, w, k, 13);
+    let system = assemble_layers(&values, &weights, &target, k, h, w);
+    let mg = Multigrid::build(h, w, &system.right, &system.down, &system.diag);
+    assert!(mg.levels() >= 3, "{} levels", mg.levels());
+    let params = PoissonParams {
+        tolerance: 1e-12,
+        ..Default::default()
+    };
+    let mut out = vec![0.0f64; h * w];
+    let report =
+        poisson_blend_layers(&values, &weights, &target, h, w, &params, &mut out).expect("solve");
+    assert!(report.relative_residual <= 1e-12);
+    // The dense reference has x = 0 at the unseen pixels (no edges, no fidelity).
+    let t0: Vec<f32> = target
+        .iter()
+        .map(|t| if t.is_finite() { *t } else { 0.0 })
+        .collect();
+    let want = dense_solve(&values, &weights, &t0, h, w);
+    for (p, (a, b)) in out.iter().zip(&want).enumerate() {
+        if target[p].is_finite() {
+            assert!((a - b).abs() < 1e-6 * b.abs(), "pixel {p}: {a} vs {b}");
+        } else {
+            assert!(a.is_nan());
+        }
+    }
+}
+
+#[test]
+fn the_v_cycle_is_symmetric_positive_definite_and_cuts_iterations() {
+    let (h, w, k) = (64, 128, 3);
+    let (values, weights, target) = layered_problem(h, w, k, 17);
+    let system = assemble_layers(&values, &weights, &target, k, h, w);
+    let mut mg = Multigrid::build(h, w, &system.right, &system.down, &system.diag);
+    let n = h * w;
+    let mut r = rng(19);
+    let (u, v): (Vec<f64>, Vec<f64>) = (0..n).map(|_| (r() - 0.5, r() - 0.5)).unzip();
+    let (mut mu, mut mv) = (vec![0.0f32; n], vec![0.0f32; n]);
+    let umu = mg.apply(&system.right, &system.down, &u, &mut mu);
+    let vmv = mg.apply(&system.right, &system.down, &v, &mut mv);
+    let dot = |a: &[f64], b: &[f32]| a.iter().zip(b).map(|(a, b)| a * *b as f64).sum::<f64>();
+    let (vmu, umv) = (dot(&v, &mu), dot(&u, &mv));
+    assert!(umu > 0.0 && vmv > 0.0);
+    assert!(
+        (vmu - umv).abs() <= 1e-5 * (umu * vmv).sqrt(),
+        "{vmu} vs {umv}"
+    );
+    // The returned b·z is the dot product of the input with the output.
+    assert!((umu - dot(&u, &mu)).abs() <= 1e-9 * umu.abs());
+    // An order of magnitude fewer iterations than the Jacobi preconditioner.
+    let start: Vec<f64> = target
+        .iter()
+        .map(|&t| if t.is_finite() { t as f64 } else { 0.0 })
+        .collect();
+    let params = PoissonParams {
+        tolerance: 1e-8,
+        ..Default::default()
+    };
+    let (mut x1, mut x2) = (start.clone(), start);
+    let (its_mg, res_mg, _) = solve_multigrid(&system, &mut x1, &params).expect("mg");
+    let (its_j, res_j, _) = solve_fused(&system, &mut x2, &params).expect("jacobi");
+    assert!(res_mg <= 1e-8 && res_j <= 1e-8);
+    assert!(
+        its_mg * 4 <= its_j,
+        "multigrid {its_mg} vs Jacobi {its_j} iterations"
+    );
+}
+
+#[test]
+fn an_odd_width_falls_back_to_jacobi_and_still_matches_the_dense_solve() {
+    let (h, w, k) = (6, 13, 2);
+    assert!(!Multigrid::supports(h, w));
+    let (values, weights, target) = layered_problem(h, w, k, 23);
+    let t0: Vec<f32> = target
+        .iter()
+        .map(|t| if t.is_finite() { *t } else { 0.0 })
+        .collect();
+    let params = PoissonParams {
+        tolerance: 1e-12,
+        ..Default::default()
+    };
+    let mut out = vec![0.0f64; h * w];
+    poisson_blend_layers(&values, &weights, &target, h, w, &params, &mut out).expect("solve");
+    let want = dense_solve(&values, &weights, &t0, h, w);
+    for (p, (a, b)) in out.iter().zip(&want).enumerate() {
+        assert!(
+            !target[p].is_finite() || (a - b).abs() < 1e-6 * b.abs(),
+            "{a} vs {b}"
+        );
+    }
+}
+
+#[test]
+fn exact_tangents_come_back_exactly() {
+    // Consistent gradients and target: the solution is the target itself (to the tolerance).
+    let plan = Plan::new(layout(256));
+    let l = plan.layout();
+    let (h, w) = l.tangent_shape();
+    let tangents: Vec<f32> = l
+        .cameras
+        .iter()
+        .flat_map(|cam| {
+            (0..h * w).map(move |p| {
+                let d = cam.pixel_direction((p % w) as f64, (p / w) as f64);
+                (2.0 + 0.5 * d.x + 0.3 * d.y * d.z) as f32
+            })
+        })
+        .collect();
+    let weights = plan.tap_weights(Weighting::Frustum);
+    let n = l.erp_height * l.erp_width;
+    let (mut mean, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
+    mean_blend(plan.erp_taps(), l, &tangents, &mut mean, Some(&mut spread));
+    let mut out = vec![0.0f32; n];
+    let report = poisson_blend(
+        plan.erp_taps(),
+        l,
+        &tangents,
+        weights,
+        &PoissonParams::default(),
+        &mut out,
+        Some(&mut spread),
+    )
+    .expect("solve");
+    assert!(report.relative_residual <= 1e-6);
+    let worst = out
+        .iter()
+        .zip(&mean)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 5e-3, "worst {worst}");
+}
+
+#[test]
+fn poisson_is_the_same_with_one_thread() {
+    let plan = Plan::new(layout(256));
+    let l = plan.layout();
+    let (h, w) = l.tangent_shape();
+    let mut r = rng(3);
+    let tangents: Vec<f32> = (0..20 * h * w).map(|_| (1.0 + 0.1 * r()) as f32).collect();
+    let n = l.erp_height * l.erp_width;
+    let run = || {
+        let (mut out, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
+        let p = Plan::new(layout(256));
+        poisson_blend(
+            p.erp_taps(),
+            p.layout(),
+            &tangents,
+            p.tap_weights(Weighting::Frustum),
+            &PoissonParams::default(),
+            &mut out,
+            Some(&mut spread),
+        )
+        .expect("solve");
+        out
+    };
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool")
+        .install(run);
+    let two = rayon::ThreadPoolBuilder::new()
+        .num_threads(2)
+        .build()
+        .expect("pool")
+        .install(run);
+    assert!(one
+        .iter()
+        .zip(&two)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+}
+
+// Resampling and the simple blends on a smooth field.
+
+/// A smooth function of direction, so bilinear resampling of it is nearly exact.
+fn field(d: &nalgebra::Vector3<f64>) -> f64 {
+    2.0 + 0.5 * d.x + 0.3 * d.y * d.z + 0.2 * d.z
+}
+
+fn plan(erp_width: usize) -> Plan {
+    Plan::new(Layout::icosahedron(erp_width, 0.3, None).expect("layout"))
+}
+
+fn tangent_field(plan: &Plan) -> Vec<f32> {
+    let layout = plan.layout();
+    let (h, w) = layout.tangent_shape();
+    let mut t = Vec::with_capacity(layout.cameras.len() * h * w);
+    for cam in &layout.cameras {
+        for r in 0..h {
+            for c in 0..w {
+                t.push(field(&cam.pixel_direction(c as f64, r as f64)) as f32);
+            }
+        }
+    }
+    t
+}
+
+#[test]
+fn erp_to_tangents_matches_direct_evaluation() {
+    let plan = plan(512);
+    let layout = plan.layout();
+    let grid = ErpGrid::new(layout.erp_height, layout.erp_width);
+    let erp: Vec<f32> = (0..layout.erp_height)
+        .flat_map(|i| (0..layout.erp_width).map(move |j| (i, j)))
+        .map(|(i, j)| field(&grid.direction(i, j)) as f32)
+        .collect();
+    let mut got = vec![0.0f32; 20 * layout.tangent_shape().0 * layout.tangent_shape().1];
+    erp_to_tangents(plan.tangent_taps(), layout, &erp, 1, &mut got);
+    let want = tangent_field(&plan);
+    let worst = got
+        .iter()
+        .zip(&want)
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst < 2e-3, "worst error {worst}");
+}
+
+#[test]
+fn every_direction_is_seen_by_two_to_five_faces() {
+    let plan = plan(256);
+    let counts = plan.erp_taps().counts();
+    assert!(
+        counts.iter().all(|&c| (2..=5).contains(&c)),
+        "{:?}",
+        counts.iter().max()
+    );
+}
+
+#[test]
+fn mean_and_nearest_reproduce_a_smooth_field() {
+    let plan = plan(512);
+    let layout = plan.layout();
+    let grid = ErpGrid::new(layout.erp_height, layout.erp_width);
+    let tangents = tangent_field(&plan);
+    for mode in [Method::Mean, Method::Nearest] {
+        let (disparity, _) = blend_to_vec(&plan, &tangents, mode);
+        for (p, &v) in disparity.iter().enumerate() {
+            let want = field(&grid.direction(p / layout.erp_width, p % layout.erp_width));
+            assert!(
+                (v as f64 - want).abs() < 2e-3,
+                "{mode:?} pixel {p}: {v} vs {want}"
+            );
+        }
+    }
+}
+
+#[test]
+fn a_nan_neighbour_invalidates_a_sample_and_per_face_maps_agree() {
+    let plan = plan(256);
+    let layout = plan.layout();
+    let mut tangents = tangent_field(&plan);
+    let (h, w) = layout.tangent_shape();
+    tangents[..h * w].fill(f32::NAN); // face 0 has no estimate at all
+    let plane = layout.erp_height * layout.erp_width;
+    let mut per_face = vec![0.0f32; 20 * plane];
+    tangents_to_erp(plan.erp_taps(), layout, &tangents, &mut per_face);
+    assert!(per_face[..plane].iter().all(|v| v.is_nan()));
+    assert!(per_face[plane..].iter().any(|v| v.is_finite()));
+    let (disparity, _) = blend_to_vec(&plan, &tangents, Method::Nearest);
+    assert!(
+        disparity.iter().all(|v| v.is_finite()),
+        "other faces cover face 0"
+    );
+}
+
+#[test]
+fn parallel_equals_sequential() {
+    let plan_a = plan(256);
+    let tangents = tangent_field(&plan_a);
+    let pool = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("pool");
+    let seq = pool.install(|| {
+        let p = self::plan(256);
+        blend_to_vec(&p, &tangents, Method::Mean).0
+    });
+    let par = blend_to_vec(&plan_a, &tangents, Method::Mean).0;
+    assert!(seq
+        .iter()
+        .zip(&par)
+        .all(|(a, b)| a.to_bits() == b.to_bits()));
+}

@@ -1,0 +1,104 @@
+//! Alignment through a plan: options from a dict in, aligned maps and reports out.
+
+use crate::arrays::{contiguous, output_array, to_numpy, writable};
+use crate::errors::core;
+use crate::options::align_options;
+use crate::threads::on_pool;
+use m360_core::align::{self, LevelParams, Problem};
+use m360_core::plan::{Need, Plan};
+use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArray3, PyUntypedArrayMethods};
+use pyo3::prelude::*;
+use pyo3::types::PyDict;
+
+#[allow(clippy::type_complexity)]
+pub(crate) fn align<'py>(
+    py: Python<'py>,
+    plan: &Plan,
+    maps: &PyReadonlyArray3<'py, f32>,
+    options: &Bound<'py, PyDict>,
+) -> PyResult<(
+    Bound<'py, PyArrayDyn<f32>>,
+    Vec<Bound<'py, PyDict>>,
+    Vec<Bound<'py, PyArrayDyn<f64>>>,
+)> {
+    let layout = plan.layout();
+    let options = align_options(options, Some(layout.tangent_shape()))?;
+    let data = contiguous(maps, "maps")?;
+    let out = output_array::<f32>(py, maps.shape())?;
+    let needs = [Need::Overlaps(
+        options.sample_fraction,
+        options.pole_cap_deg,
+    )];
+    let solved = {
+        let mut rw = out.readwrite();
+        let dst = writable(&mut rw)?;
+        dst.copy_from_slice(data);
+        core(on_pool(py, Some((plan, &needs)), || {
+            let overlaps = plan.overlaps(options.sample_fraction, options.pole_cap_deg);
+            align::align(layout, dst, &overlaps, &options)
+        })?)?
+    };
+    let n = layout.cameras.len();
+    let mut reports = Vec::with_capacity(solved.len());
+    let mut grids = Vec::with_capacity(solved.len());
+    for level in solved {
+        let r = &level.report;
+        let d = PyDict::new(py);
+        d.set_item("grid", (level.params.cols, level.params.rows))?;
+        d.set_item("iterations", r.iterations)?;
+        d.set_item("initial_energy", r.initial_energy)?;
+        d.set_item("energy", r.energy)?;
+        d.set_item("gradient_norm", r.gradient_norm)?;
+        d.set_item("converged", r.converged)?;
+        d.set_item("samples", r.samples)?;
+        d.set_item("build_seconds", level.build_seconds)?;
+        d.set_item("solve_seconds", level.solve_seconds)?;
+        reports.push(d);
+        let shape = [n, level.params.rows, level.params.cols, 2];
+        grids.push(to_numpy(py, level.fields, &shape)?);
+    }
+    Ok((out, reports, grids))
+}
+
+pub(crate) fn alignment_problem<'py>(
+    py: Python<'py>,
+    plan: &Plan,
+    maps: &PyReadonlyArray3<'py, f32>,
+    grid: (usize, usize),
+    options: &Bound<'py, PyDict>,
+) -> PyResult<Bound<'py, PyDict>> {
+    let layout = plan.layout();
+    let mut options = align_options(options, Some(layout.tangent_shape()))?;
+    options.levels = vec![grid];
+    let options = core(options.validate(Some(layout.tangent_shape())))?;
+    let params: LevelParams = options.level_params()[0];
+    let mut data = contiguous(maps, "maps")?.to_vec();
+    let needs = [Need::Overlaps(
+        options.sample_fraction,
+        options.pole_cap_deg,
+    )];
+    let problem = core(on_pool(py, Some((plan, &needs)), || {
+        align::standardize(layout, &mut data, options.offsets)?;
+        let overlaps = plan.overlaps(options.sample_fraction, options.pole_cap_deg);
+        Ok::<_, m360_core::CoreError>(Problem::new(layout, &data, &overlaps, params))
+    })?)?;
+    let (nodes, coef_s, coef_o, edges, scale_weight, gauge_weight) = problem.terms();
+    let k = nodes.len();
+    let d = PyDict::new(py);
+    let flat = |rows: Vec<[f64; 8]>| rows.into_iter().flatten().collect::<Vec<f64>>();
+    d.set_item(
+        "nodes",
+        to_numpy(py, nodes.into_iter().flatten().collect(), &[k, 8])?,
+    )?;
+    d.set_item("coef_s", to_numpy(py, flat(coef_s), &[k, 8])?)?;
+    d.set_item("coef_o", to_numpy(py, flat(coef_o), &[k, 8])?)?;
+    let flat_edges = edges
+        .iter()
+        .flat_map(|&(p, q, w)| [f64::from(p), f64::from(q), w])
+        .collect();
+    d.set_item("edges", to_numpy(py, flat_edges, &[edges.len(), 3])?)?;
+    d.set_item("scale_weight", scale_weight)?;
+    d.set_item("gauge_weight", gauge_weight)?;
+    d.set_item("unknowns", problem.len())?;
+    Ok(d)
+}
