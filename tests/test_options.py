@@ -78,7 +78,7 @@ def test_options_are_frozen_and_hand_out_copies() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"blend": "bogus"}, "choose one of 'poisson'"),
+        ({"blend": "bogus"}, r"choose one of [\"']poisson"),
         ({"blend_options": {"lam": 0}}, "lam"),
         ({"blend_options": {"lam": True}}, "lam"),
         ({"blend_options": {"tolerance": 1e-20}}, "tolerance"),

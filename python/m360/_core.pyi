@@ -22,7 +22,8 @@ __version__: str
 CHOICES: dict[str, tuple[str, ...]]
 # max_threads, max_iterations, min_poisson_tolerance, max_pole_cap_deg.
 LIMITS: dict[str, Any]
-# align, blend (stitch_options({}, {"method": "poisson"})), schedules, iterations.
+# align, blend (the resolved defaults), and per energy or solver: schedules, iterations,
+# weights (smoothness, scale_weight), offsets.
 DEFAULTS: dict[str, Any]
 
 def set_num_threads(threads: int | None = None) -> None: ...

@@ -46,7 +46,7 @@ offsets
 
 from __future__ import annotations
 
-from typing import Any, Literal, TypedDict
+from typing import Literal, TypedDict
 
 from . import _core
 
@@ -91,18 +91,15 @@ MULTISCALE: tuple[tuple[int, int], ...] = SCHEDULES["paper"]
 DEFAULT_ITERATIONS: dict[str, int] = {k: int(v) for k, v in _core.DEFAULTS["iterations"].items()}
 
 
-def _energy_defaults(energy: str) -> dict[str, Any]:
-    align, _ = _core.stitch_options({"energy": energy}, {"method": _core.CHOICES["blend"][0]})
-    return dict(align or {})  # a dict in gives a dict out
-
-
 #: Term weights (smoothness, scale_weight) of each energy.
 ENERGY_WEIGHTS: dict[str, tuple[float, float]] = {
-    e: (float(d["smoothness"]), float(d["scale_weight"]))
-    for e, d in ((e, _energy_defaults(e)) for e in ENERGIES)
+    energy: (float(weights[0]), float(weights[1]))
+    for energy, weights in _core.DEFAULTS["weights"].items()
 }
 #: Where the offset acts by default for each energy.
-DEFAULT_OFFSETS: dict[str, str] = {e: str(_energy_defaults(e)["offsets"]) for e in ENERGIES}
+DEFAULT_OFFSETS: dict[str, str] = {
+    energy: str(offsets) for energy, offsets in _core.DEFAULTS["offsets"].items()
+}
 
 
 class AlignLevelReport(TypedDict):
