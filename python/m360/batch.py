@@ -49,13 +49,13 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from . import models as _models
-from ._validate import MAX_THREADS, integer, size_pair
+from ._validate import MAX_THREADS, integer
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
-from .estimators import MAX_NETWORK_SIZE, OnnxEstimator, check_output_kind
+from .estimators import OnnxEstimator
 from .io import check_formats, listed_files, read_sidecar, remove_stale_temporaries, save
 from .options import AlignSpec, StitchOptions, build
 
@@ -545,10 +545,6 @@ def run(
         offsets=offsets,
         blend_options=blend_options,
     )
-    if input_size is not None:
-        input_size = size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
-    if output_kind is not None:
-        output_kind = check_output_kind(output_kind)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)

@@ -237,18 +237,22 @@ def plan_for(layout: Layout) -> _core.Plan:
     rotations = np.stack([np.asarray(c.rotation, dtype=np.float64) for c in layout.cameras])
     intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in layout.cameras], dtype=np.float64)
     built = _core.Plan(layout.erp_shape, rotations, intrinsics, layout.tangent_shape)
+    evicted = []
     with _plans_lock:
         plan = _plans.setdefault(layout.key, built)
         _plans.move_to_end(layout.key)
         while len(_plans) > _PLAN_CACHE_SIZE:
-            _plans.popitem(last=False)
+            evicted.append(_plans.popitem(last=False))
+    del evicted  # the evicted plans' maps are freed here, outside the lock
     return plan
 
 
 def clear_plan_cache() -> None:
     """Drop every cached plan (frees their sampling maps)."""
     with _plans_lock:
+        dropped = list(_plans.values())
         _plans.clear()
+    del dropped  # freed outside the lock
 
 
 # --------------------------------------------------------------------------------------------
