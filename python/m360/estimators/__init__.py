@@ -54,7 +54,18 @@ class Estimator(Protocol):
         ...
 
     def predict(self, tangents: np.ndarray) -> np.ndarray:
-        """(N, h, w, 3) uint8 RGB tangents → (N, h, w) float32 of ``output_kind``; NaN = none."""
+        """Predict one map per tangent image.
+
+        Parameters
+        ----------
+        tangents : (N, h, w, 3) uint8
+            RGB tangent images (float RGB in [0, 1] is possible too).
+
+        Returns
+        -------
+        numpy.ndarray
+            (N, h, w) float32 of ``output_kind``; NaN where there is no estimate.
+        """
         ...
 
 
@@ -70,10 +81,35 @@ def load_estimator(
 ) -> Estimator:
     """Resolve ``model`` to an estimator.
 
-    A registry name (``m360.models.names()``) is fetched/verified and loaded with its own
-    preprocessing (``input_size``/``output_kind``/``mean``/``std`` override it); a path to an
-    ``.onnx`` file is loaded with the given options (defaults: affine disparity, ImageNet
-    normalisation, 384 px); an object with ``predict`` and ``output_kind`` is returned as is.
+    Parameters
+    ----------
+    model : str, path or Estimator
+        A registry name (``m360.models.names()``: fetched, verified and loaded with its own
+        preprocessing), a path to an ``.onnx`` file (loaded with the options below; defaults:
+        affine disparity, ImageNet normalisation, 384 px) or an object with ``predict`` and
+        ``output_kind`` (returned as is; the options below are refused for it).
+    providers : list of str, optional
+        ONNX Runtime execution providers in order of preference.
+    threads : int, optional
+        ONNX Runtime intra-op threads.
+    input_size : (int, int), optional
+        Network (height, width) of a dynamic-size model.
+    output_kind : str, optional
+        What the model outputs (:data:`OUTPUT_KINDS`).
+    mean, std : 3 floats, optional
+        Input normalisation per RGB channel.
+
+    Returns
+    -------
+    Estimator
+        Ready to ``predict``.
+
+    Raises
+    ------
+    m360.ModelError
+        For an unknown, missing, corrupt or unverifiable model.
+    m360.InputError
+        For unusable options.
     """
     if isinstance(model, (str, os.PathLike)):
         text = os.fspath(model)
