@@ -289,8 +289,11 @@ class OnnxEstimator:
             out[k] = (
                 image if (nh, nw) == (h, w) else cv2.resize(image, (nw, nh), interpolation=flag)
             )
-        out -= self.mean.astype(np.float32)
-        out /= self.std.astype(np.float32)
+        # Float input far outside [0, 1] may overflow float32 here: it becomes inf, the network's
+        # output there is not finite, and predict() marks it NaN (no estimate).
+        with np.errstate(over="ignore", invalid="ignore"):
+            out -= self.mean.astype(np.float32)
+            out /= self.std.astype(np.float32)
         if self._input.layout == "NCHW":
             out = out.transpose(0, 3, 1, 2)
         return np.ascontiguousarray(out)
