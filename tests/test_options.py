@@ -203,6 +203,12 @@ def test_old_keywords_and_names_warn_and_still_work() -> None:
     np.testing.assert_array_equal(old_predict, simulated.predict(rgb))
 
 
+def test_input_decoding_moved_but_io_still_has_it() -> None:
+    assert m360.io.load_image is m360.decode.load_image
+    assert m360.io.read_image is m360.decode.read_image
+    assert m360.io.IMAGE_SUFFIXES == m360.decode.IMAGE_SUFFIXES
+
+
 def test_old_report_keys_are_gone() -> None:
     lay = layout(256)
     res = m360.stitch(tangent_disparity(0, 256), lay, align="none", return_details=True)

@@ -351,7 +351,9 @@ def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions
         "  network: SIMULATED, not a trained model: exact tangent disparity with a random "
         f"scale/shift per tangent and {noise:g} relative noise"
     )
-    print(f"  rendered in {time.perf_counter() - t0:.1f} s; {options}")
+    align = options.align
+    levels = "none" if align is None else ",".join(f"{c}x{r}" for c, r in align["levels"])
+    print(f"  rendered in {time.perf_counter() - t0:.1f} s; align={levels} blend={options.method}")
     result = estimate(rgb, network, options=options)
     metrics = depth_metrics(result.disparity, gt_depth)
     stages = ", ".join(f"{k} {v:.3f}" for k, v in result.timings.items())
