@@ -14,7 +14,7 @@ class CrashOnBlack:
     output_kind = "affine_disparity"
     name = "crash-on-black"
 
-    def predict(self, tiles: np.ndarray) -> np.ndarray:
-        if tiles.max() == 0:
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        if tangents.max() == 0:
             os._exit(3)
-        return tiles.astype(np.float32).mean(axis=-1) / 255.0 + 1.0
+        return tangents.astype(np.float32).mean(axis=-1) / 255.0 + 1.0

@@ -10,8 +10,8 @@ import m360.synthetic as syn
 import numpy as np
 import pytest
 from conftest import erp_depth, layout, tangent_disparity
+from m360.align import MULTISCALE
 from m360.errors import InputError
-from m360.stitch import MULTISCALE
 
 WIDTH = 1024
 SEEDS = (0, 1, 2)
@@ -56,11 +56,13 @@ def test_constant_affine_distortion_is_undone_exactly() -> None:
     scene = syn.Scene(room_min=(-3.0, -1.2, -2.5), room_max=(4.0, 1.6, 5.0))
     lay = layout(WIDTH)
     exact = syn.tangent_perspective_disparity(scene, lay.cameras)
-    tiles = syn.distort(exact, 7, scale=(0.5, 2.0), shift=0.3)
+    tangents = syn.distort(exact, 7, scale=(0.5, 2.0), shift=0.3)
     depth = scene.distance(sph.erp_directions(*lay.erp_shape))
-    assert m360.eval.depth_metrics(m360.stitch(tiles, lay, "none", "mean"), depth)["abs_rel"] > 0.05
+    assert (
+        m360.eval.depth_metrics(m360.stitch(tangents, lay, "none", "mean"), depth)["abs_rel"] > 0.05
+    )
     for solver in ("newton", "lbfgs"):
-        out = m360.stitch(tiles, lay, blend="mean", solver=solver, iterations=2000)
+        out = m360.stitch(tangents, lay, blend="mean", solver=solver, iterations=2000)
         assert m360.eval.depth_metrics(out, depth)["abs_rel"] < 1e-3, solver
 
 
@@ -106,8 +108,8 @@ def test_details_report_and_grids() -> None:
 
 def test_converged_only_when_the_gradient_criterion_holds() -> None:
     lay = layout(512)
-    tiles = syn.distort(tangent_disparity(1, 512), 3, field=0.1)
-    stopped = m360.stitch(tiles, lay, (8, 7), "mean", iterations=1, return_details=True)
+    tangents = syn.distort(tangent_disparity(1, 512), 3, field=0.1)
+    stopped = m360.stitch(tangents, lay, (8, 7), "mean", iterations=1, return_details=True)
     assert isinstance(stopped, m360.StitchResult)
     level = stopped.report["align"][0]
     assert level["iterations"] == 1
@@ -117,10 +119,10 @@ def test_converged_only_when_the_gradient_criterion_holds() -> None:
 
 def test_lbfgs_and_newton_reach_the_same_energy() -> None:
     lay = layout(512)
-    tiles = syn.distort(tangent_disparity(2, 512), 4, field=0.1)
-    newton = m360.stitch(tiles, lay, (4, 3), "mean", solver="newton", return_details=True)
+    tangents = syn.distort(tangent_disparity(2, 512), 4, field=0.1)
+    newton = m360.stitch(tangents, lay, (4, 3), "mean", solver="newton", return_details=True)
     lbfgs = m360.stitch(
-        tiles,
+        tangents,
         lay,
         (4, 3),
         "mean",
@@ -138,21 +140,24 @@ def test_lbfgs_and_newton_reach_the_same_energy() -> None:
 
 def test_same_result_with_one_and_two_threads() -> None:
     lay = layout(512)
-    tiles = syn.distort(tangent_disparity(0, 512), 5, field=0.1, noise=0.01)
+    tangents = syn.distort(tangent_disparity(0, 512), 5, field=0.1, noise=0.01)
     outs = []
-    for n in (1, 2):
-        m360.set_num_threads(n)
-        for solver in ("newton", "lbfgs"):
-            outs.append(m360.stitch(tiles, lay, blend="mean", solver=solver))
-    m360.set_num_threads(None)
+    before = m360.get_num_threads()
+    try:
+        for n in (1, 2):
+            m360.set_num_threads(n)
+            for solver in ("newton", "lbfgs"):
+                outs.append(m360.stitch(tangents, lay, blend="mean", solver=solver))
+    finally:
+        m360.set_num_threads(before)
     np.testing.assert_array_equal(outs[0], outs[2])
     np.testing.assert_array_equal(outs[1], outs[3])
 
 
 def test_masked_pixels_do_not_affect_the_alignment() -> None:
     lay = layout(512)
-    tiles = distorted_small = syn.distort(tangent_disparity(0, 512), 9, field=0.05)
-    mask = np.ones(tiles.shape, bool)
+    tangents = distorted_small = syn.distort(tangent_disparity(0, 512), 9, field=0.05)
+    mask = np.ones(tangents.shape, bool)
     mask[4, 20:60, 30:80] = False
     poisoned = distorted_small.copy()
     poisoned[~mask] = 1e4
@@ -191,11 +196,11 @@ def test_bad_alignment_options(kwargs: dict, match: str) -> None:
 
 def test_an_all_invalid_tangent_is_an_input_error() -> None:
     lay = layout(512)
-    tiles = tangent_disparity(0, 512).copy()
-    tiles[6] = np.nan
+    tangents = tangent_disparity(0, 512).copy()
+    tangents[6] = np.nan
     with pytest.raises(InputError, match="tangent 6 has no valid pixel"):
-        m360.stitch(tiles, lay, blend="mean")
-    mask = np.ones(tiles.shape, bool)
+        m360.stitch(tangents, lay, blend="mean")
+    mask = np.ones(tangents.shape, bool)
     mask[2] = False
     with pytest.raises(InputError, match="tangent 2"):
         m360.stitch(tangent_disparity(0, 512), lay, blend="mean", mask=mask)
@@ -212,14 +217,17 @@ def test_energy_matches_an_independent_scipy_assembly() -> None:
     from m360.geometry import plan_for
 
     lay = layout(512)
-    tiles = syn.distort(tangent_disparity(1, 512), 8, field=0.1)
+    tangents = syn.distort(tangent_disparity(1, 512), 8, field=0.1)
     plan = plan_for(lay)
-    spherical = plan.spherical_disparity(tiles)
+    spherical = plan.spherical_disparity(tangents)
     for energy, offsets in (("paper", "spherical"), ("normalized", "perspective")):
-        problem = plan.alignment_problem(spherical, (4, 3), energy, 40.0, 0.007, 0.01, 0.0, offsets)
+        weights = {"smoothness": 40.0, "scale_weight": 0.007, "sample_fraction": 0.01}
+        problem = plan.alignment_problem(
+            spherical, (4, 3), {"energy": energy, "offsets": offsets, **weights}
+        )
         f = align_scipy.energy_function(problem)
         res = m360.stitch(
-            tiles, lay, (4, 3), "mean", energy=energy, offsets=offsets, smoothness=40.0,
+            tangents, lay, (4, 3), "mean", energy=energy, offsets=offsets, smoothness=40.0,
             scale_weight=0.007, return_details=True,
         )  # fmt: skip
         assert isinstance(res, m360.StitchResult)

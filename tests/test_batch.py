@@ -106,7 +106,8 @@ def test_a_batch_with_bad_files_records_them_and_goes_on(
     assert (
         meta["input"]["sha256"] == hashlib.sha256((photos / "pano_03.jpg").read_bytes()).hexdigest()
     )
-    assert meta["options"]["blend"] == "frustum" and meta["model"]["name"] == "tiny.onnx"
+    assert meta["options"]["blend"] == {"method": "frustum"}
+    assert meta["model"]["name"] == "tiny.onnx"
 
     # A rerun skips everything done (nothing is rewritten) and retries the failures.
     before = _sidecar_mtimes(out)
@@ -326,3 +327,60 @@ def test_a_claim_is_exclusive_and_leaves_nothing_behind(tmp_path: Path) -> None:
     assert not list((tmp_path / "sub").iterdir())
     with m360.batch._claim(stem) as again:
         assert again
+
+
+def test_every_option_that_changes_an_output_byte_redoes_the_image(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    """A rerun into the same folder skips an image only when nothing that can change its outputs
+    changed: each such option, varied alone, redoes it (input_size included: a run at 32x48
+    must not be kept by a rerun at 48x64); threads, workers and progress do not."""
+    (image,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    other_model = g.affine_of_mean(tmp_path / "other.onnx", 1.0, 0.2)
+    out = tmp_path / "out"
+    base = {
+        "model": str(model),
+        "align": "multiscale",
+        "blend": "poisson",
+        "input_size": (32, 48),
+        "progress": False,
+    }
+    variants: list[dict[str, object]] = [
+        {"model": str(other_model)},
+        {"input_size": (48, 64)},
+        {"output_kind": "distance"},
+        {"formats": ("npy", "pfm")},
+        {"preview": False},
+        {"fix_aspect": True},
+        {"align": "none"},
+        {"align": [(3, 3)]},
+        {"energy": "paper"},
+        {"solver": "lbfgs"},
+        {"iterations": 7},
+        {"tolerance": 1e-5},
+        {"sample_fraction": 0.02},
+        {"pole_cap_deg": 5.0},
+        {"smoothness": 2.0},
+        {"scale_weight": 0.02},
+        {"offsets": "spherical"},
+        {"blend": "frustum"},
+        {"blend_options": {"fidelity": "nn"}},
+        {"blend_options": {"lam": 0.2}},
+        {"blend_options": {"tolerance": 1e-5}},
+        {"blend_options": {"iterations": 3000}},
+        {"blend_options": {"solver": "fused"}},
+    ]
+
+    def status(**changes: object) -> str:
+        report = m360.batch.run(image, out, **{**base, **changes})  # type: ignore[arg-type]
+        assert report.exit_code == 0, report.outcomes
+        (outcome,) = report.outcomes
+        return outcome.status
+
+    assert status() == "done"
+    assert status() == "skipped"
+    assert status(threads=1) == "skipped"  # results do not depend on the thread count
+    for change in variants:
+        assert status(**change) == "done", change
+        assert status(**change) == "skipped", change
+        assert status() == "done", change

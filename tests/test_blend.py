@@ -1,4 +1,4 @@
-"""Blending (paper §3.4, DESIGN §7): weight maps, weighted blends, the Poisson blend and seams.
+"""Blending (paper §3.4, docs/method.md): weight maps, weighted blends, the Poisson blend and seams.
 
 Oracles: analytic weight formulas evaluated in numpy from each camera's own intrinsics, ray-cast
 ground truth, and a Poisson system assembled independently with scipy.sparse and solved by
@@ -33,6 +33,11 @@ import blend_scipy
 WEIGHTED = ("frustum", "radial", "poisson")
 
 
+def poisson(**options: object) -> dict[str, object]:
+    """The blend dict of a Poisson solve with ``options``."""
+    return {"method": "poisson", **options}
+
+
 def pixel_grid(cam: m360.TangentCamera) -> tuple[np.ndarray, np.ndarray]:
     return np.meshgrid(np.arange(cam.width, dtype=np.float64), np.arange(cam.height))
 
@@ -65,8 +70,9 @@ def test_frustum_weights_centre_border_and_ramp_start() -> None:
 
 
 def test_radial_weights_axis_15_degrees_and_inscribed_edge() -> None:
-    """Reference bug B9 centred these at pixel (200, 200) for every face: the icosahedron's
-    principal point is at row ~230 or ~115, so the centre must follow each face."""
+    """Reference pitfall B9 (docs/reference-pitfalls.md) centred these at pixel (200, 200) for
+    every face: the icosahedron's principal point is at row ~230 or ~115, so the centre must
+    follow each face."""
     lay = layout(2048)
     maps = plan_for(lay).blend_weights("radial")
     dirs = tangent_directions(lay)
@@ -82,7 +88,7 @@ def test_radial_weights_axis_15_degrees_and_inscribed_edge() -> None:
         np.testing.assert_allclose(maps[k], want, atol=2e-5)
         assert (maps[k][angle <= 15.0 - 1e-6] == 1.0).all()
         assert (maps[k][angle >= edge + 1e-6] == 0.0).all()
-        # The axis pixel is 1 and lies off the image centre row (the B9 bug's centre is 0.x).
+        # The axis pixel is 1 and lies off the image centre row (pitfall B9's centre is 0.x).
         r, c = round(cam.cy), round(cam.cx)
         assert maps[k, r, c] == 1.0 and abs(r - h // 2) > 50
         assert maps[k, h // 2 - 30 if k < 5 else h // 2 + 30, 0] == 0.0
@@ -131,7 +137,7 @@ def test_clean_tangents_stay_at_the_resampling_floor(blend: str) -> None:
     print(f"{blend}: {m360.eval.format_metrics(metrics)}")
     assert metrics["abs_rel"] <= 0.001
     report = res.report["blend"]
-    assert report["mode"] == blend and report["seconds"] > 0
+    assert report["method"] == blend and report["seconds"] > 0
     if blend == "poisson":
         assert report["converged"] and report["relative_residual"] <= 1e-6
         assert report["iterations"] >= 1 and report["fidelity"] == "frustum"
@@ -161,9 +167,9 @@ def _distorted(width: int) -> np.ndarray:
 def test_seam_scores_on_aligned_tangents_with_residual_distortion() -> None:
     lay = layout(2048)
     gt = 1.0 / erp_depth(0, 2048)
-    tiles = _distorted(2048)
+    tangents = _distorted(2048)
     scores = {
-        blend: m360.eval.seam_score(m360.stitch(tiles, lay, align="none", blend=blend), gt, lay)
+        blend: m360.eval.seam_score(m360.stitch(tangents, lay, align="none", blend=blend), gt, lay)
         for blend in ("nn", "mean", "frustum", "poisson")
     }
     print(scores)
@@ -177,9 +183,9 @@ def test_seam_score_sees_a_step_on_a_border() -> None:
     lay = layout(512)
     gt = 1.0 / erp_depth(0, 512)
     clean = m360.stitch(tangent_disparity(0, 512), lay, align="none", blend="nn")
-    tiles = tangent_disparity(0, 512).copy()
-    tiles[::2] *= 1.1  # every other face off by 10 %: nn shows steps on the triangles
-    stepped = m360.stitch(tiles, lay, align="none", blend="nn")
+    tangents = tangent_disparity(0, 512).copy()
+    tangents[::2] *= 1.1  # every other face off by 10 %: nn shows steps on the triangles
+    stepped = m360.stitch(tangents, lay, align="none", blend="nn")
     a, b = (m360.eval.seam_score(d, gt, lay) for d in (clean, stepped))
     assert b["triangles"] > 2 * a["triangles"]
     assert set(a) == {"borders", "triangles", "elsewhere"}
@@ -195,18 +201,18 @@ def test_seam_score_sees_a_step_on_a_border() -> None:
 def _small_problem() -> tuple[m360.Layout, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     lay = layout(128)
     plan = plan_for(lay)
-    tiles = m360.synthetic.distort(
+    tangents = m360.synthetic.distort(
         tangent_disparity(0, 128), 2, scale=(0.9, 1.1), shift=0.05, field=0.05
     )
-    spherical = plan.spherical_disparity(tiles)
+    spherical = plan.spherical_disparity(tangents)
     values = plan.tangents_to_erp(spherical)
     weights = plan.tangents_to_erp(plan.blend_weights("frustum"))
-    target = plan.blend(spherical, "frustum")[0]
-    return lay, tiles, values, weights, target
+    target = plan.blend(spherical, {"method": "frustum"})[0]
+    return lay, tangents, values, weights, target
 
 
 def test_poisson_satisfies_an_independent_scipy_system() -> None:
-    lay, tiles, values, weights, target = _small_problem()
+    lay, tangents, values, weights, target = _small_problem()
     assert lay.erp_shape == (64, 128) and np.isfinite(target).all()
     a_mat, b = blend_scipy.scipy_system(values, weights, target)
     ref = spla.spsolve(a_mat.tocsc(), b)
@@ -215,20 +221,22 @@ def test_poisson_satisfies_an_independent_scipy_system() -> None:
     assert rel <= 1e-6 and report["relative_residual"] <= 1e-6
     assert report["relative_residual"] == pytest.approx(rel, rel=0.05, abs=1e-9)
     # The default tolerance already agrees with spsolve to ~1e-6; a tight one to far better.
-    tight, _ = _core.poisson_blend(values, weights, target, tol=1e-11)
+    tight, _ = _core.poisson_blend(values, weights, target, poisson(tolerance=1e-11))
     scale = np.abs(ref).max()
     assert np.abs(tight.ravel() - ref).max() <= 1e-6 * scale
     assert np.abs(x.ravel() - ref).max() <= 1e-4 * scale
     # The tangent path (taps sampled on the fly) solves the same system.
-    out = m360.stitch(tiles, lay, align="none", blend="poisson", blend_options={"tol": 1e-11})
+    out = m360.stitch(
+        tangents, lay, align="none", blend="poisson", blend_options={"tolerance": 1e-11}
+    )
     assert np.abs(out.ravel() - ref).max() <= 1e-6 * scale
 
 
 def test_multigrid_fused_and_faer_solvers_agree() -> None:
     _, _, values, weights, target = _small_problem()
-    x0, r0 = _core.poisson_blend(values, weights, target, tol=1e-10)
-    x1, r1 = _core.poisson_blend(values, weights, target, tol=1e-10, solver="fused")
-    x2, r2 = _core.poisson_blend(values, weights, target, tol=1e-10, solver="faer")
+    x0, r0 = _core.poisson_blend(values, weights, target, poisson(tolerance=1e-10))
+    x1, r1 = _core.poisson_blend(values, weights, target, poisson(tolerance=1e-10, solver="fused"))
+    x2, r2 = _core.poisson_blend(values, weights, target, poisson(tolerance=1e-10, solver="faer"))
     assert (r0["solver"], r1["solver"], r2["solver"]) == ("multigrid", "fused", "faer")
     np.testing.assert_allclose(x0, x1, rtol=1e-8)
     np.testing.assert_allclose(x1, x2, rtol=1e-8)
@@ -237,8 +245,9 @@ def test_multigrid_fused_and_faer_solvers_agree() -> None:
 
 
 def test_b7_no_dirichlet_row_at_either_pole() -> None:
-    """Reference bug B7 had an implicit Dirichlet 0 below the bottom row only: a constant field
-    sagged there. With no edge across either pole a constant is reproduced exactly."""
+    """Reference pitfall B7 (docs/reference-pitfalls.md) had an implicit Dirichlet 0 below the
+    bottom row only: a constant field sagged there. With no edge across either pole a constant is
+    reproduced exactly."""
     rng = np.random.default_rng(0)
     values = np.full((3, 32, 64), 5.0, np.float32)
     weights = rng.uniform(0.1, 1.0, values.shape).astype(np.float32)
@@ -257,12 +266,12 @@ def test_pole_symmetry_at_solver_level() -> None:
     values[0] = 1.5  # every pixel keeps at least one valid layer
     weights = rng.uniform(0.0, 1.0, (k, h, w)).astype(np.float32)
     target = rng.uniform(1.0, 2.0, (h, w)).astype(np.float32)
-    x, _ = _core.poisson_blend(values, weights, target, tol=1e-12)
+    x, _ = _core.poisson_blend(values, weights, target, poisson(tolerance=1e-12))
     flipped, _ = _core.poisson_blend(
         np.ascontiguousarray(values[:, ::-1]),
         np.ascontiguousarray(weights[:, ::-1]),
         np.ascontiguousarray(target[::-1]),
-        tol=1e-12,
+        poisson(tolerance=1e-12),
     )
     np.testing.assert_allclose(flipped[::-1], x, rtol=1e-9)
     # And the same for a reversal of longitude (a mirror about a meridian): with the weight of
@@ -271,7 +280,7 @@ def test_pole_symmetry_at_solver_level() -> None:
         np.ascontiguousarray(values[:, :, ::-1]),
         np.ascontiguousarray(weights[:, :, ::-1]),
         np.ascontiguousarray(target[:, ::-1]),
-        tol=1e-12,
+        poisson(tolerance=1e-12),
     )
     np.testing.assert_allclose(mirrored[:, ::-1], x, rtol=1e-9)
 
@@ -279,8 +288,8 @@ def test_pole_symmetry_at_solver_level() -> None:
 @pytest.mark.parametrize("blend", WEIGHTED)
 def test_no_jump_at_the_longitude_wrap_and_across_the_poles(blend: str) -> None:
     lay = layout(1024)
-    tiles = as_perspective(smooth_field(tangent_directions(lay)), lay)
-    out = m360.stitch(tiles, lay, align="none", blend=blend)
+    tangents = as_perspective(smooth_field(tangent_directions(lay)), lay)
+    out = m360.stitch(tangents, lay, align="none", blend=blend)
     want = smooth_field(sph.erp_directions(*lay.erp_shape))
     jump = np.abs(out[:, 0] - out[:, -1])
     assert np.abs(jump - np.abs(want[:, 0] - want[:, -1])).max() < 2e-3
@@ -294,14 +303,15 @@ def test_no_jump_at_the_longitude_wrap_and_across_the_poles(blend: str) -> None:
 @pytest.mark.parametrize("blend", ["frustum", "radial", "poisson"])
 def test_same_result_with_one_and_two_threads(blend: str) -> None:
     lay = layout(1024)
-    tiles = _distorted(1024)
+    tangents = _distorted(1024)
     outs = []
+    before = m360.get_num_threads()
     try:
         for n in (1, 2):
             m360.set_num_threads(n)
-            outs.append(m360.stitch(tiles, lay, align="none", blend=blend, return_details=True))
+            outs.append(m360.stitch(tangents, lay, align="none", blend=blend, return_details=True))
     finally:
-        m360.set_num_threads(None)
+        m360.set_num_threads(before)
     np.testing.assert_array_equal(outs[0].disparity, outs[1].disparity)
     np.testing.assert_array_equal(outs[0].confidence, outs[1].confidence)
     if blend == "poisson":
@@ -310,30 +320,30 @@ def test_same_result_with_one_and_two_threads(blend: str) -> None:
 
 @pytest.mark.parametrize("blend", ["nn", "mean", "frustum", "poisson"])
 def test_confidence_is_the_samples_spread_and_is_skipped_unless_asked(blend: str) -> None:
-    """The one-pass spread against numpy's std of the per-face ERP stack; ``spread=False``
-    gives the same disparity and no spread."""
+    """The one-pass confidence (the samples' spread) against numpy's std of the per-face ERP
+    stack; ``confidence=False`` gives the same disparity and no confidence."""
     lay = layout(512)
     plan = plan_for(lay)
     spherical = plan.spherical_disparity(_distorted(512))
     stack = plan.tangents_to_erp(spherical).astype(np.float64)
     want = np.nanstd(stack, axis=0)
     assert np.isfinite(want).all() and want.max() > 1e-3
-    disparity, spread, _ = plan.blend(spherical, blend)
-    assert spread is not None
-    np.testing.assert_allclose(spread, want, rtol=1e-3, atol=1e-6)
-    again, skipped, _ = plan.blend(spherical, blend, spread=False)
+    disparity, confidence, _ = plan.blend(spherical, {"method": blend})
+    assert confidence is not None
+    np.testing.assert_allclose(confidence, want, rtol=1e-3, atol=1e-6)
+    again, skipped, _ = plan.blend(spherical, {"method": blend}, confidence=False)
     assert skipped is None
     np.testing.assert_array_equal(again, disparity)
 
 
 def test_masked_faces_and_uncovered_pixels() -> None:
     lay = layout(512)
-    tiles = tangent_disparity(0, 512)
-    mask = np.zeros(tiles.shape, bool)
+    tangents = tangent_disparity(0, 512)
+    mask = np.zeros(tangents.shape, bool)
     mask[:10] = True
     for blend in WEIGHTED:
-        out = m360.stitch(tiles, lay, align="none", blend=blend, mask=mask)
-        ref = m360.stitch(tiles, lay, align="none", blend="nn", mask=mask)
+        out = m360.stitch(tangents, lay, align="none", blend=blend, mask=mask)
+        ref = m360.stitch(tangents, lay, align="none", blend="nn", mask=mask)
         np.testing.assert_array_equal(np.isnan(out), np.isnan(ref))
         assert np.isnan(out).any() and np.isfinite(out).any()
 
@@ -343,8 +353,8 @@ def test_masked_faces_and_uncovered_pixels() -> None:
     [
         ({"fidelity": "bogus"}, "fidelity"),
         ({"lam": 0}, "lam"),
-        ({"tol": 2.0}, "tol"),
-        ({"max_iterations": 0}, "max_iterations"),
+        ({"tolerance": 2.0}, "tolerance"),
+        ({"iterations": 0}, "iterations"),
         ({"solver": "lu"}, "solver"),
         ({"nope": 1}, "unknown"),
         ("fast", "mapping"),
@@ -370,7 +380,7 @@ def test_unconverged_solve_raises_solver_error() -> None:
             lay,
             align="none",
             blend="poisson",
-            blend_options={"max_iterations": 1, "tol": 1e-12},
+            blend_options={"iterations": 1, "tolerance": 1e-12},
         )
 
 

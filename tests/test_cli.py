@@ -67,7 +67,7 @@ def test_run_writes_arrays_preview_and_sidecar(
     assert meta["model"]["output_kind"] == "affine_disparity"
     # 43x50 tangents fit inside 64x96 keeping their aspect: scale 64/43 -> 64 x 74.4 -> 64 x 74.
     assert meta["model"]["threads"] == 1 and meta["model"]["network_size"] == [64, 74]
-    assert meta["options"]["align"] == "none" and meta["options"]["blend"] == "mean"
+    assert meta["options"]["align"] is None and meta["options"]["blend"] == {"method": "mean"}
     assert meta["quantities"]["depth"]["units"] == "relative"
     assert meta["quantities"]["disparity"]["invalid"].startswith("NaN")
     assert "latitude" in meta["erp_convention"] and meta["input"]["path"] == str(panorama)
@@ -153,3 +153,43 @@ def test_demo_runs_estimate_with_a_labelled_simulated_network(
     assert meta["model"]["name"].startswith("simulated")
     for name in ("demo.disparity.npy", "demo.depth.npy", "demo.preview.png", "demo_rgb.png"):
         assert (out / name).is_file()
+
+
+def test_run_passes_every_stitching_flag(
+    tmp_path: Path, panorama: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    model = g.affine_of_mean(tmp_path / "m.onnx", 1.0, 0.1)
+    out = tmp_path / "out"
+    code = main(
+        [
+            "run", str(panorama), "-o", str(out), "--model", str(model), "--threads", "1",
+            "--input-size", "64", "96", "--align", "4x3,6x5", "--energy", "paper",
+            "--solver", "lbfgs", "--iterations", "9", "--tolerance", "1e-5",
+            "--sample-fraction", "0.02", "--pole-cap-deg", "2", "--smoothness", "3",
+            "--scale-weight", "0.05", "--offsets", "perspective", "--blend", "poisson",
+            "--fidelity", "nn", "--poisson-lam", "0.2", "--poisson-tolerance", "1e-5",
+            "--poisson-iterations", "800", "--poisson-solver", "fused",
+        ]
+    )  # fmt: skip
+    assert code == 0, capsys.readouterr().err
+    options = json.loads((out / "room.json").read_text())["options"]
+    assert options["align"] == {
+        "levels": [[4, 3], [6, 5]],
+        "energy": "paper",
+        "solver": "lbfgs",
+        "iterations": 9,
+        "tolerance": 1e-5,
+        "sample_fraction": 0.02,
+        "pole_cap_deg": 2.0,
+        "smoothness": 3.0,
+        "scale_weight": 0.05,
+        "offsets": "perspective",
+    }
+    assert options["blend"] == {
+        "method": "poisson",
+        "fidelity": "nn",
+        "lam": 0.2,
+        "tolerance": 1e-5,
+        "iterations": 800,
+        "solver": "fused",
+    }

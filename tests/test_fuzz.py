@@ -39,9 +39,9 @@ import pytest
 from hypothesis import event, given, settings
 from hypothesis import strategies as st
 from m360 import M360Error, eval, models
-from m360.estimate import OnnxEstimator, SimulatedEstimator, to_perspective_disparity
+from m360.blend import BLEND_METHODS
+from m360.estimators import OnnxEstimator, SimulatedEstimator, to_perspective_disparity
 from m360.geometry import Layout
-from m360.stitch import BLEND_MODES
 
 pytestmark = pytest.mark.fuzz
 
@@ -188,7 +188,7 @@ def layout(erp_width: int) -> Layout:
 
 
 @functools.lru_cache(maxsize=2)
-def distorted_tiles(erp_width: int) -> np.ndarray:
+def distorted_tangents(erp_width: int) -> np.ndarray:
     """Tangent disparity of a synthetic room, per-tangent affinely distorted (valid input)."""
     lay = layout(erp_width)
     exact = syn.tangent_perspective_disparity(syn.room(1), lay.cameras)
@@ -350,15 +350,17 @@ def test_fuzz_tangents_to_erp(
 ) -> None:
     lay = layout(erp_width)
     h, w = lay.tangent_shape
-    tiles = data.draw(arrays((n, max(0, h + dh), w), dtype))
-    out = outcome(m360.tangents_to_erp, tiles, lay if junk_layout is None else junk_layout)
+    tangents = data.draw(arrays((n, max(0, h + dh), w), dtype))
+    out = outcome(m360.tangents_to_erp, tangents, lay if junk_layout is None else junk_layout)
     if isinstance(out, M360Error):
         return
     assert out.shape == (20, *lay.erp_shape) and out.dtype == np.float32
     assert not np.isinf(out).any()
-    if np.all(tiles == tiles.flat[0]):  # a constant face maps to that constant (or NaN: unseen)
+    if np.all(
+        tangents == tangents.flat[0]
+    ):  # a constant face maps to that constant (or NaN: unseen)
         seen = np.isfinite(out)
-        np.testing.assert_allclose(out[seen], np.float32(tiles.flat[0]), rtol=1e-6)
+        np.testing.assert_allclose(out[seen], np.float32(tangents.flat[0]), rtol=1e-6)
 
 
 # --------------------------------------------------------------------------------------------
@@ -376,7 +378,7 @@ ALIGN = st.one_of(
 BLEND_OPTIONS = st.one_of(
     st.none(),
     st.dictionaries(
-        st.sampled_from(["fidelity", "lam", "tol", "max_iterations", "solver", "nope"]),
+        st.sampled_from(["fidelity", "lam", "tolerance", "iterations", "solver", "nope"]),
         st.one_of(
             st.sampled_from(["frustum", "nn", "mean", "fused", "faer"]),
             st.floats(1e-8, 10.0),
@@ -393,7 +395,7 @@ BLEND_OPTIONS = st.one_of(
 #: Valid values of every stitch option (kept cheap: small iteration caps, loose tolerances).
 STITCH_VALID = {
     "align": st.sampled_from(["none", "multiscale", (2, 2), (4, 3), [(2, 2), (4, 3)]]),
-    "blend": st.sampled_from(BLEND_MODES),
+    "blend": st.sampled_from(BLEND_METHODS),
     "energy": st.sampled_from(["normalized", "paper"]),
     "solver": st.sampled_from(["newton", "lbfgs"]),
     "iterations": st.one_of(st.none(), st.integers(0, 60)),
@@ -410,8 +412,8 @@ STITCH_VALID = {
             optional={
                 "fidelity": st.sampled_from(["frustum", "nn", "mean"]),
                 "lam": st.floats(1e-6, 1e3),
-                "tol": st.floats(1e-8, 0.5),
-                "max_iterations": st.integers(1, 3000),
+                "tolerance": st.floats(1e-8, 0.5),
+                "iterations": st.integers(1, 3000),
                 "solver": st.sampled_from(["fused", "faer"]),
             },
         ),
@@ -453,20 +455,20 @@ def test_fuzz_stitch_options(
     for name in broken:
         options[name] = data.draw(STITCH_INVALID[name], label=name)
     lay = layout(erp_width)
-    tiles = distorted_tiles(erp_width)
+    tangents = distorted_tangents(erp_width)
     rng = np.random.default_rng(0)
     masks: dict[str, Any] = {
         "none": None,
-        "random": rng.random(tiles.shape) > 0.1,
-        "all-false": np.zeros(tiles.shape, bool),
-        "int": np.ones(tiles.shape, int),
-        "wrong-shape": np.ones(tiles.shape[1:], bool),
+        "random": rng.random(tangents.shape) > 0.1,
+        "all-false": np.zeros(tangents.shape, bool),
+        "int": np.ones(tangents.shape, int),
+        "wrong-shape": np.ones(tangents.shape[1:], bool),
         "junk": "mask",
     }
     options["mask"] = masks[options["mask"]]
     if "blend" not in broken and "blend_options" not in broken and options["blend"] != "poisson":
         options["blend_options"] = None
-    out = outcome(m360.stitch, tiles, lay, **options)
+    out = outcome(m360.stitch, tangents, lay, **options)
     if isinstance(out, M360Error):
         return
     disparity = out.disparity if options["return_details"] else out
@@ -481,10 +483,10 @@ def test_fuzz_stitch_options(
     dtype=FLOATY,
     data=st.data(),
     align=st.sampled_from(["none", "none", "multiscale", (2, 2)]),
-    blend=st.sampled_from(BLEND_MODES),
+    blend=st.sampled_from(BLEND_METHODS),
     junk_layout=st.one_of(st.none(), st.none(), JUNK),
 )
-def test_fuzz_stitch_tiles(
+def test_fuzz_stitch_tangents(
     erp_width: int,
     n: int,
     dtype: Any,
@@ -494,9 +496,9 @@ def test_fuzz_stitch_tiles(
     junk_layout: Any,
 ) -> None:
     lay = layout(erp_width)
-    tiles = data.draw(arrays((n, *lay.tangent_shape), dtype))
+    tangents = data.draw(arrays((n, *lay.tangent_shape), dtype))
     target = lay if junk_layout is None else junk_layout
-    out = outcome(m360.stitch, tiles, target, align=align, blend=blend)
+    out = outcome(m360.stitch, tangents, target, align=align, blend=blend)
     if isinstance(out, M360Error):
         return
     assert out.shape == lay.erp_shape and out.dtype == np.float32
@@ -509,7 +511,7 @@ def test_fuzz_stitch_tiles(
     value=st.floats(1e-3, 1e3),
     holes=st.one_of(st.just(0.0), st.floats(0.0, 0.02)),
     seed=st.integers(0, 2**16),
-    blend=st.sampled_from(BLEND_MODES),
+    blend=st.sampled_from(BLEND_METHODS),
     fidelity=st.sampled_from(["frustum", "nn", "mean"]),
 )
 def test_fuzz_stitch_keeps_working_on_valid_input(
@@ -519,10 +521,10 @@ def test_fuzz_stitch_keeps_working_on_valid_input(
     spherical disparity `value` everywhere. Whatever the blend and the holes, the stitch is
     that value wherever it is defined (oracle: |q| by numpy from the intrinsics)."""
     lay = layout(erp_width)
-    tiles = (value * ray_lengths(erp_width)).astype(np.float32)
-    tiles[np.random.default_rng(seed).random(tiles.shape) < holes] = np.nan
+    tangents = (value * ray_lengths(erp_width)).astype(np.float32)
+    tangents[np.random.default_rng(seed).random(tangents.shape) < holes] = np.nan
     options = {"fidelity": fidelity} if blend == "poisson" else None
-    out = outcome(m360.stitch, tiles, lay, align="none", blend=blend, blend_options=options)
+    out = outcome(m360.stitch, tangents, lay, align="none", blend=blend, blend_options=options)
     assert not isinstance(out, M360Error), out
     seen = np.isfinite(out)
     assert seen.all() if holes == 0 else seen.mean() > 0.8
@@ -541,11 +543,11 @@ class _Misbehaving:
     def __init__(self, result: Any) -> None:
         self.result = result
 
-    def predict(self, tiles: np.ndarray) -> Any:
+    def predict(self, tangents: np.ndarray) -> Any:
         if isinstance(self.result, Exception):
             raise self.result
         if callable(self.result):
-            return self.result(tiles)
+            return self.result(tangents)
         return self.result
 
 
@@ -694,11 +696,11 @@ def test_fuzz_estimate(
         ),
         max_size=3,
     ),
-    tiles=st.one_of(st.integers(0, 4).flatmap(lambda h: arrays((1, h, 4, 3))), JUNK),
+    tangents=st.one_of(st.integers(0, 4).flatmap(lambda h: arrays((1, h, 4, 3))), JUNK),
     junk=JUNK,
 )
 def test_fuzz_onnx_estimator(
-    offline: Path, path: str, kwargs: dict[str, Any], tiles: Any, junk: Any
+    offline: Path, path: str, kwargs: dict[str, Any], tangents: Any, junk: Any
 ) -> None:
     chosen = {
         "tiny": offline / "tiny.onnx",
@@ -712,9 +714,9 @@ def test_fuzz_onnx_estimator(
     estimator = outcome(OnnxEstimator, chosen, **kwargs)
     if isinstance(estimator, M360Error):
         return
-    out = outcome(estimator.predict, tiles)
+    out = outcome(estimator.predict, tangents)
     if not isinstance(out, M360Error):
-        assert out.shape == np.shape(tiles)[:3] and out.dtype == np.float32
+        assert out.shape == np.shape(tangents)[:3] and out.dtype == np.float32
 
 
 @budget(0.4)
@@ -982,8 +984,8 @@ def test_fuzz_scene_parts(
 def test_fuzz_distort(
     n: int, data: st.DataObject, seed: Any, scale: Any, shift: Any, field: Any, noise: Any
 ) -> None:
-    tiles = data.draw(st.one_of(arrays((n, 3, 4)), arrays((n, 3)), JUNK))
-    out = outcome(syn.distort, tiles, seed, scale=scale, shift=shift, field=field, noise=noise)
+    tangents = data.draw(st.one_of(arrays((n, 3, 4)), arrays((n, 3)), JUNK))
+    out = outcome(syn.distort, tangents, seed, scale=scale, shift=shift, field=field, noise=noise)
     if not isinstance(out, M360Error):
         assert out.shape == (n, 3, 4) and out.dtype == np.float32
 

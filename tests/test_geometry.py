@@ -100,8 +100,8 @@ def test_layout_equality_and_plan_reuse() -> None:
 def test_custom_layout_from_cameras() -> None:
     base = layout(512)
     lay = m360.Layout.from_cameras(base.cameras[:3], base.erp_shape)
-    tiles = m360.erp_to_tangents(np.ones(base.erp_shape, np.float32), lay)
-    assert tiles.shape == (3, *base.tangent_shape)
+    tangents = m360.erp_to_tangents(np.ones(base.erp_shape, np.float32), lay)
+    assert tangents.shape == (3, *base.tangent_shape)
 
 
 # ---------------------------------------------------------------------------------- ERP → tangents
@@ -110,9 +110,9 @@ def test_custom_layout_from_cameras() -> None:
 def test_erp_to_tangents_matches_ray_casting(threads: int) -> None:
     lay = layout(2048)
     depth = erp_depth(0, 2048).astype(np.float32)
-    tiles = m360.erp_to_tangents(depth, lay)
+    tangents = m360.erp_to_tangents(depth, lay)
     truth = scene(0).distance(tangent_directions(lay))
-    rel = np.abs(tiles - truth) / truth
+    rel = np.abs(tangents - truth) / truth
     # Away from depth edges (where bilinear mixes two surfaces) the error is tiny.
     smooth = _away_from_edges(truth)
     assert np.median(rel[smooth]) < 1e-3
@@ -133,9 +133,9 @@ def _away_from_edges(d: np.ndarray, tol: float = 0.02) -> np.ndarray:
 def test_erp_to_tangents_smooth_field_everywhere_including_poles() -> None:
     lay = layout(1024)
     erp = smooth_field(sph.erp_directions(*lay.erp_shape)).astype(np.float32)
-    tiles = m360.erp_to_tangents(erp, lay)
+    tangents = m360.erp_to_tangents(erp, lay)
     want = smooth_field(tangent_directions(lay))
-    err = np.abs(tiles - want)
+    err = np.abs(tangents - want)
     # Bilinear error of a smooth field ~ curvature * pixel²; the polar faces (0-4, 15-19) sample
     # across the pole rows and the longitude wrap.
     assert err.max() < 2e-3, err.reshape(20, -1).max(axis=1)
@@ -187,8 +187,8 @@ def test_default_layout_is_the_icosahedron() -> None:
 
 def test_tangents_to_erp_per_face_maps() -> None:
     lay = layout(512)
-    tiles = smooth_field(tangent_directions(lay)).astype(np.float32)
-    maps = m360.tangents_to_erp(tiles, lay)
+    tangents = smooth_field(tangent_directions(lay)).astype(np.float32)
+    maps = m360.tangents_to_erp(tangents, lay)
     assert maps.shape == (20, *lay.erp_shape) and maps.dtype == np.float32
     grid = sph.erp_directions(*lay.erp_shape)
     want = smooth_field(grid)
@@ -265,7 +265,7 @@ def test_compiled_core_checks_shapes_itself() -> None:
 
     plan = plan_for(layout(512))
     with pytest.raises(InputError, match="shape"):
-        plan.blend(np.zeros((20, 3, 3), np.float32), "mean")
+        plan.blend(np.zeros((20, 3, 3), np.float32), {"method": "mean"})
     with pytest.raises(InputError, match="shape"):
         plan.erp_to_tangents(np.zeros((10, 20, 3), np.uint8))
     with pytest.raises(InputError, match="contiguous"):
@@ -274,3 +274,36 @@ def test_compiled_core_checks_shapes_itself() -> None:
         _core.Plan((256, 512), np.ones((1, 3, 3)), np.ones((1, 4)), (10, 10))
     with pytest.raises(InputError, match="threads"):
         m360.set_num_threads(0)
+
+
+def test_plan_cache_is_safe_under_many_threads() -> None:
+    """Threads asking for plans of several layouts at once while the cache is cleared: every
+    call gets a working plan of its own layout, and a cached layout has one plan."""
+    import threading
+
+    from m360.geometry import plan_for
+
+    layouts = [m360.Layout.icosahedron(w) for w in (64, 96, 128, 160, 192, 224)]
+    errors: list[BaseException] = []
+    start = threading.Barrier(8)
+
+    def work(k: int) -> None:
+        try:
+            start.wait()
+            for i in range(40):
+                lay = layouts[(k + i) % len(layouts)]
+                plan = plan_for(lay)
+                assert plan.coverage().shape == lay.erp_shape
+                if k == 0 and i % 10 == 0:
+                    m360.clear_plan_cache()
+        except BaseException as exc:  # reported below, in the test's thread
+            errors.append(exc)
+
+    threads = [threading.Thread(target=work, args=(k,)) for k in range(8)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    lay = layouts[0]
+    assert plan_for(lay) is plan_for(lay)

@@ -20,7 +20,7 @@ import pytest
 from local_http import LocalServer
 from m360 import models
 from m360.errors import ModelError
-from m360.estimate import OUTPUT_KINDS, OnnxEstimator, load_estimator
+from m360.estimators import OUTPUT_KINDS, OnnxEstimator, load_estimator
 
 
 @pytest.fixture(autouse=True)

@@ -47,8 +47,9 @@ def test_round_trip_4k() -> None:
 
 
 def test_spherical_factor_is_per_pixel_and_per_face() -> None:
-    """Reference bug B1 used one face's factor for all faces: a constant perspective disparity
-    of 1 must become exactly cos(angle to that face's own axis) on every face."""
+    """Reference pitfall B1 (docs/reference-pitfalls.md) used one face's factor for all faces: a
+    constant perspective disparity of 1 must become exactly cos(angle to that face's own axis)
+    on every face."""
     lay = layout(512)
     from m360.geometry import plan_for
 
@@ -61,8 +62,8 @@ def test_spherical_factor_is_per_pixel_and_per_face() -> None:
 @pytest.mark.parametrize("blend", ["mean", "nn"])
 def test_no_seam_at_the_longitude_wrap_and_poles(blend: str) -> None:
     lay = layout(1024)
-    tiles = as_perspective(smooth_field(tangent_directions(lay)), lay)
-    out = m360.stitch(tiles, lay, align="none", blend=blend)
+    tangents = as_perspective(smooth_field(tangent_directions(lay)), lay)
+    out = m360.stitch(tangents, lay, align="none", blend=blend)
     grid = sph.erp_directions(*lay.erp_shape)
     want = smooth_field(grid)
     # Across the wrap: columns W-1 and 0 differ only as much as the field does there.
@@ -111,33 +112,36 @@ def _in_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 @pytest.mark.parametrize("blend", ["mean", "nn"])
 def test_mask_excludes_pixels_even_through_bilinear_neighbours(blend: str) -> None:
     lay = layout(512)
-    tiles = tangent_disparity(0, 512).copy()
-    mask = np.ones(tiles.shape, bool)
+    tangents = tangent_disparity(0, 512).copy()
+    mask = np.ones(tangents.shape, bool)
     mask[3] = False  # a whole face without estimate
     mask[7, 40:60, 50:90] = False  # a tripod-like patch
-    poisoned = tiles.copy()
+    poisoned = tangents.copy()
     poisoned[~mask] = 1e6
-    as_nan = tiles.copy()
+    as_nan = tangents.copy()
     as_nan[~mask] = np.nan
     out = m360.stitch(poisoned, lay, align="none", blend=blend, mask=mask)
     ref = m360.stitch(as_nan, lay, align="none", blend=blend)
     np.testing.assert_array_equal(out, ref)
     assert np.nanmax(out) < 1e3
     # Where every covering face is masked the output is NaN.
-    full = np.zeros(tiles.shape, bool)
+    full = np.zeros(tangents.shape, bool)
     full[:10] = True
-    partial = m360.stitch(tiles, lay, align="none", blend=blend, mask=full)
+    partial = m360.stitch(tangents, lay, align="none", blend=blend, mask=full)
     assert np.isnan(partial).any() and np.isfinite(partial).any()
 
 
 def test_same_result_with_one_and_two_threads() -> None:
     lay = layout(1024)
-    tiles = tangent_disparity(1, 1024)
+    tangents = tangent_disparity(1, 1024)
     outs = []
-    for n in (1, 2):
-        m360.set_num_threads(n)
-        outs.append(m360.stitch(tiles, lay, align="none", blend="mean", return_details=True))
-    m360.set_num_threads(None)
+    before = m360.get_num_threads()
+    try:
+        for n in (1, 2):
+            m360.set_num_threads(n)
+            outs.append(m360.stitch(tangents, lay, align="none", blend="mean", return_details=True))
+    finally:
+        m360.set_num_threads(before)
     np.testing.assert_array_equal(outs[0].disparity, outs[1].disparity)
     np.testing.assert_array_equal(outs[0].confidence, outs[1].confidence)
 
@@ -159,9 +163,9 @@ def test_details() -> None:
     ("kwargs", "match"),
     [
         ({"align": "bogus"}, "not supported"),
-        ({"blend": "bogus"}, "not supported"),
+        ({"blend": "bogus"}, r"choose one of [\"']poisson"),
         ({"blend": "mean", "blend_options": {"fidelity": "nn"}}, "blend='poisson' only"),
-        ({"blend": 3}, "not supported"),
+        ({"blend": 3}, r"choose one of [\"']poisson"),
         ({"mask": np.ones((20, 2, 2), bool)}, "mask"),
         ({"mask": "yes"}, "mask"),
         ({"return_details": "yes"}, "return_details"),
@@ -174,7 +178,7 @@ def test_stitch_rejects_bad_options(kwargs: dict, match: str) -> None:
         m360.stitch(np.ones((20, *lay.tangent_shape), np.float32), lay, **args)
 
 
-def test_stitch_rejects_bad_tiles() -> None:
+def test_stitch_rejects_bad_tangents() -> None:
     lay = layout(512)
     h, w = lay.tangent_shape
     bad = np.ones((20, h, w), np.float32)

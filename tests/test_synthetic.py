@@ -263,23 +263,23 @@ def tiles_fixture(n: int = 4, h: int = 40, w: int = 48) -> np.ndarray:
 
 
 def test_distort_identity() -> None:
-    tiles = tiles_fixture()
-    out = syn.distort(tiles, 5, scale=(1.0, 1.0), shift=0.0)
-    assert out.dtype == np.float32 and out.shape == tiles.shape
-    np.testing.assert_array_equal(out, tiles)
+    tangents = tiles_fixture()
+    out = syn.distort(tangents, 5, scale=(1.0, 1.0), shift=0.0)
+    assert out.dtype == np.float32 and out.shape == tangents.shape
+    np.testing.assert_array_equal(out, tangents)
 
 
 def test_distort_is_exact_affine_per_tile() -> None:
-    tiles = tiles_fixture(n=6)
-    tiles[2, 3:7, 5:9] = np.nan
-    out = syn.distort(tiles, 123)
-    np.testing.assert_array_equal(np.isnan(out), np.isnan(tiles))
-    np.testing.assert_array_equal(out, syn.distort(tiles, 123))
-    assert not np.array_equal(out, syn.distort(tiles, 124))
+    tangents = tiles_fixture(n=6)
+    tangents[2, 3:7, 5:9] = np.nan
+    out = syn.distort(tangents, 123)
+    np.testing.assert_array_equal(np.isnan(out), np.isnan(tangents))
+    np.testing.assert_array_equal(out, syn.distort(tangents, 123))
+    assert not np.array_equal(out, syn.distort(tangents, 124))
     scales = []
-    for k in range(tiles.shape[0]):
-        ok = np.isfinite(tiles[k])
-        x = tiles[k][ok].astype(np.float64)
+    for k in range(tangents.shape[0]):
+        ok = np.isfinite(tangents[k])
+        x = tangents[k][ok].astype(np.float64)
         y = out[k][ok].astype(np.float64)
         a = np.stack([x, np.ones_like(x)], axis=1)
         (s, o), *_ = np.linalg.lstsq(a, y, rcond=None)
@@ -287,13 +287,13 @@ def test_distort_is_exact_affine_per_tile() -> None:
         assert 0.5 <= s <= 2.0
         assert abs(o) <= 0.3 * np.median(x) + 1e-6
         scales.append(s)
-    assert np.ptp(scales) > 0.1  # tiles get independent maps
+    assert np.ptp(scales) > 0.1  # tangents get independent maps
 
 
 def test_distort_field_is_bounded_and_smooth() -> None:
-    tiles = np.full((3, 64, 64), 2.0, dtype=np.float32)
-    out = syn.distort(tiles, 7, scale=(1.0, 1.0), shift=0.0, field=0.2)
-    ratio = out / tiles - 1.0
+    tangents = np.full((3, 64, 64), 2.0, dtype=np.float32)
+    out = syn.distort(tangents, 7, scale=(1.0, 1.0), shift=0.0, field=0.2)
+    ratio = out / tangents - 1.0
     assert np.abs(ratio).max() <= 0.2 + 1e-6
     assert ratio.std(axis=(1, 2)).min() > 0.005
     # Wavelength >= 1/1.5 tile: neighbour differences stay below 0.2 * 2π * 1.5 * √2 / 64.
@@ -302,8 +302,8 @@ def test_distort_field_is_bounded_and_smooth() -> None:
 
 
 def test_distort_noise_level() -> None:
-    tiles = np.full((2, 100, 100), 2.0, dtype=np.float32)
-    out = syn.distort(tiles, 9, scale=(1.0, 1.0), shift=0.0, noise=0.01)
+    tangents = np.full((2, 100, 100), 2.0, dtype=np.float32)
+    out = syn.distort(tangents, 9, scale=(1.0, 1.0), shift=0.0, noise=0.01)
     rel = (out.astype(np.float64) - 2.0) / 2.0
     assert rel.std() == pytest.approx(0.01, rel=0.05)
     assert abs(rel.mean()) < 0.001

@@ -6,8 +6,9 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 
 >>> import m360
 >>> layout = m360.Layout.icosahedron(erp_width=2048)
->>> tiles = m360.erp_to_tangents(erp, layout)             # (20, 346, 400[, C])
->>> disp = m360.stitch(tangent_disparity, layout, align="none", blend="mean")
+>>> tangents = m360.erp_to_tangents(erp, layout)          # (20, 346, 400[, C])
+>>> disp = m360.stitch(tangents, layout, align="none", blend="mean")
+>>> opts = m360.StitchOptions(energy="paper", blend="frustum")  # validated, canonical
 >>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
 >>> m360.save(result, "out/pano", formats=("npy", "exr"))      # m360.load("out/pano") reads it
 >>> report = m360.batch.run(["photos/"], "out/", workers=2)     # many images, resumable
@@ -15,12 +16,13 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 
 from __future__ import annotations
 
-from . import batch, eval, io, models, synthetic
+from . import align, batch, blend, decode, estimators, eval, io, models, synthetic
 from ._core import __version__, get_num_threads, set_num_threads
 from .errors import AspectRatioError, InputError, M360Error, ModelError, ReadError, SolverError
 from .estimate import EstimateResult, estimate
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
 from .io import SavedResult, load, save
+from .options import StitchOptions
 from .stitch import StitchResult, stitch
 
 __all__ = [
@@ -33,13 +35,18 @@ __all__ = [
     "ReadError",
     "SavedResult",
     "SolverError",
+    "StitchOptions",
     "StitchResult",
     "TangentCamera",
     "__version__",
+    "align",
     "batch",
+    "blend",
     "clear_plan_cache",
+    "decode",
     "erp_to_tangents",
     "estimate",
+    "estimators",
     "eval",
     "get_num_threads",
     "io",

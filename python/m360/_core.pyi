@@ -5,14 +5,26 @@ import numpy as np
 import numpy.typing as npt
 
 __all__ = [
+    "CHOICES",
+    "DEFAULTS",
+    "LIMITS",
     "Plan",
     "__version__",
     "get_num_threads",
     "icosahedron_cameras",
     "poisson_blend",
     "set_num_threads",
+    "stitch_options",
 ]
 __version__: str
+# Option names per kind, the first the default: blend, fidelity, poisson_solver, energy, solver,
+# offsets, weights.
+CHOICES: dict[str, tuple[str, ...]]
+# max_threads, max_iterations, min_poisson_tolerance, max_pole_cap_deg.
+LIMITS: dict[str, Any]
+# align, blend (the resolved defaults), and per energy or solver: schedules, iterations,
+# weights (smoothness, scale_weight), offsets.
+DEFAULTS: dict[str, Any]
 
 def set_num_threads(threads: int | None = None) -> None: ...
 def get_num_threads() -> int: ...
@@ -21,6 +33,11 @@ def icosahedron_cameras(
 ) -> tuple[
     npt.NDArray[np.float64], npt.NDArray[np.float64], tuple[int, int], npt.NDArray[np.float64]
 ]: ...
+def stitch_options(
+    align: dict[str, Any] | None,
+    blend: dict[str, Any],
+    tangent_shape: tuple[int, int] | None = None,
+) -> tuple[dict[str, Any] | None, dict[str, Any]]: ...
 
 @final
 class Plan:
@@ -41,41 +58,15 @@ class Plan:
     def spherical_disparity(
         self, perspective: npt.NDArray[np.float32], mask: npt.NDArray[np.bool_] | None = None
     ) -> npt.NDArray[np.float32]: ...
+    def ray_lengths(self) -> npt.NDArray[np.float32]: ...
     def align(
-        self,
-        maps: npt.NDArray[np.float32],
-        levels: list[tuple[int, int]],
-        energy: str,
-        smoothness: float,
-        scale: float,
-        solver: str,
-        max_iterations: int,
-        tolerance: float,
-        sample_fraction: float,
-        pole_cap_deg: float,
-        offsets: str,
+        self, maps: npt.NDArray[np.float32], align: dict[str, Any]
     ) -> tuple[npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]]]: ...
     def alignment_problem(
-        self,
-        maps: npt.NDArray[np.float32],
-        grid: tuple[int, int],
-        energy: str,
-        smoothness: float,
-        scale: float,
-        sample_fraction: float,
-        pole_cap_deg: float,
-        offsets: str,
+        self, maps: npt.NDArray[np.float32], grid: tuple[int, int], align: dict[str, Any]
     ) -> dict[str, Any]: ...
     def blend(
-        self,
-        tangents: npt.NDArray[np.float32],
-        blend: str,
-        fidelity: str = "frustum",
-        lam: float = 0.1,
-        tol: float = 1e-6,
-        max_iterations: int = 2000,
-        solver: str = "multigrid",
-        spread: bool = True,
+        self, tangents: npt.NDArray[np.float32], blend: dict[str, Any], confidence: bool = True
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None, dict[str, Any]]: ...
     def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
 
@@ -83,8 +74,5 @@ def poisson_blend(
     values: npt.NDArray[np.float32],
     weights: npt.NDArray[np.float32],
     target: npt.NDArray[np.float32],
-    lam: float = 0.1,
-    tol: float = 1e-6,
-    max_iterations: int = 2000,
-    solver: str = "multigrid",
+    blend: dict[str, Any] | None = None,
 ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]: ...

@@ -1,4 +1,4 @@
-"""Numpy oracle of m360's sphere and camera conventions (DESIGN.md §1).
+"""Numpy oracle of m360's sphere and camera conventions (docs/conventions.md).
 
 Plain, vectorised numpy: used by the tests (as an independent reference for the Rust core) and by
 :mod:`m360.synthetic`. World frame: x right, y down, z forward (OpenCV style, right-handed).
@@ -227,4 +227,4 @@ def camera_pixel_directions(
     dirs = (q / norm[..., None]) @ r  # row-vector form of Rᵀ q
     if return_ray_norm:
         return dirs, norm
-    return dirs
+    return dirs  # type: ignore[no-any-return]  # numpy stubs: Any

@@ -1,7 +1,9 @@
-"""Checks at the Python door: every user argument is validated here before it reaches the core.
+"""Generic checks at the Python door: types, shapes, dtypes and plain ranges of arguments.
 
 Each failure raises :class:`m360.errors.InputError` naming the argument, what it is and what was
-expected, so a batch log says what to fix.
+expected, so a batch log says what to fix. Option *values* of the stitcher (names, defaults,
+limits) are the core's: :mod:`m360.options` only normalises their types here and lets
+``_core.stitch_options`` judge them.
 """
 
 from __future__ import annotations
@@ -11,6 +13,7 @@ from typing import Any
 
 import numpy as np
 
+from . import _core
 from .errors import AspectRatioError, InputError
 
 #: Largest ERP width m360 accepts (16K: beyond any 360° camera). A plan holds about 42 bytes per
@@ -18,10 +21,10 @@ from .errors import AspectRatioError, InputError
 #: instead of failing (or aborting) in an allocation.
 MAX_ERP_WIDTH = 1 << 14
 #: Largest thread count m360 (or ONNX Runtime through it) will start: absurd counts are refused
-#: before any thread is spawned.
-MAX_THREADS = 1024
-#: Largest iteration cap of the solvers: a cap above this is a typo, not a budget.
-MAX_ITERATIONS = 100_000
+#: before any thread is spawned. The core's limit.
+MAX_THREADS: int = int(_core.LIMITS["max_threads"])
+#: Largest integer an option of the core can hold (a signed 64-bit count).
+_MAX_INT64 = (1 << 63) - 1
 
 
 def as_array(value: Any, name: str) -> np.ndarray:
@@ -74,6 +77,76 @@ def integer(value: Any, name: str, low: int = 0, high: int | None = None) -> int
     return result
 
 
+def threads(value: Any, name: str = "threads") -> int | None:
+    """A thread count in [1, the core's ``max_threads``], or None (the default count)."""
+    if value is None:
+        return None
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise InputError(f"{name} must be a positive integer or None, got {value!r}")
+    if not 1 <= value <= MAX_THREADS:
+        raise InputError(f"{name} must be a positive integer up to {MAX_THREADS}, got {value!r}")
+    return int(value)
+
+
+def real(value: Any, name: str) -> float:
+    """``value`` as a float (its range is the core's to judge); bools and non-numbers refused.
+
+    An int beyond the float range becomes ``inf``, which the core refuses by name.
+    """
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.floating, np.integer)):
+        raise InputError(f"{name}={value!r} must be a number")
+    try:
+        return float(value)
+    except OverflowError:
+        return float("inf")
+
+
+def count(value: Any, name: str, high: int | None = None) -> int:
+    """``value`` as a non-negative int that fits the core's counters (its range is the core's).
+
+    ``high`` only names the core's limit in the message.
+    """
+    if (
+        isinstance(value, bool)
+        or not isinstance(value, (int, np.integer))
+        or not (0 <= int(value) <= _MAX_INT64)
+    ):
+        bound = f"in [0, {high}]" if high is not None else ">= 0"
+        raise InputError(f"{name}={value!r} must be an integer {bound}")
+    return int(value)
+
+
+def text(value: Any, name: str, choices: Sequence[str]) -> str:
+    """``value`` if it is a str (whether it is one of ``choices`` is the core's to judge)."""
+    if not isinstance(value, str):
+        options = ", ".join(repr(c) for c in choices)
+        raise InputError(f"{name}={value!r} is not supported; choose one of {options}")
+    return value
+
+
+def size_pair(value: Any, name: str, high: int) -> tuple[int, int]:
+    """``(height, width)`` of two ints in [1, high]; one int means a square."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        value = (value, value)
+    try:
+        h, w = value
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be (height, width), got {value!r}") from exc
+    for v in (h, w):
+        if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not 1 <= v <= high:
+            raise InputError(
+                f"{name} must be two integers in [1, {high}] (height, width), got {value!r}"
+            )
+    return int(h), int(w)
+
+
+def flag(value: Any, name: str) -> bool:
+    """``value`` if it is True or False."""
+    if not isinstance(value, bool):
+        raise InputError(f"{name} must be True or False, got {value!r}")
+    return value
+
+
 def seed(value: Any, name: str = "seed") -> int | None:
     """A seed for ``np.random.default_rng``: a non-negative integer (or None: fresh entropy)."""
     if value is None:
@@ -84,7 +157,7 @@ def seed(value: Any, name: str = "seed") -> int | None:
 def check_shape(array: np.ndarray, name: str, dims: Sequence[str], **expected: int) -> None:
     """Check ``array.ndim == len(dims)`` and every dimension named in ``expected``.
 
-    >>> check_shape(tiles, "tiles", ("N", "h", "w"), N=20, h=346, w=400)
+    >>> check_shape(tangents, "tangents", ("N", "h", "w"), N=20, h=346, w=400)
     """
     if array.ndim != len(dims):
         raise InputError(

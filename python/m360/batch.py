@@ -3,13 +3,14 @@
 >>> report = m360.batch.run(["photos/"], "out/", model="midas-v21-small", workers=2)
 >>> report.exit_code          # 0 if every image succeeded (or was already done), else 1
 
-What it guarantees (DESIGN.md §9):
+What it guarantees (docs/architecture.md, batch guarantees):
 
 - **Complete or absent.** Every file is written under a temporary name and renamed; the sidecar
   ``STEM.json`` is written last, so its presence means the set is complete.
 - **Resumable.** An image whose sidecar exists, lists files that exist, was made from the same
   input file (path, size, modification time) with the same options (model and its sha256,
-  align, blend, formats …) is skipped; the rest is done. ``resume=False`` redoes everything.
+  its input size and output kind, every stitching option, formats …: :func:`fingerprint`) is
+  skipped; the rest is done. ``resume=False`` redoes everything.
 - **One failure is one line.** An image that fails is appended to ``OUT/failures.jsonl`` (input,
   output, error type, message) and the run goes on; a worker process that dies (segfault, out of
   memory) costs only its image, which is retried once alone and then recorded as
@@ -47,24 +48,18 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any
 
-import numpy as np
-
 from . import models as _models
 from ._validate import MAX_THREADS, integer
+from ._validate import threads as check_threads
+from .align import AlignSolver, Energy, Offsets
+from .blend import BlendMethod
+from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
-from .io import (
-    IMAGE_SUFFIXES,
-    _check_formats,
-    decode_image,
-    fix_aspect_ratio,
-    listed_files,
-    read_input_bytes,
-    read_sidecar,
-    remove_stale_temporaries,
-    save,
-)
+from .estimators import OnnxEstimator
+from .io import check_formats, listed_files, read_sidecar, remove_stale_temporaries, save
+from .options import AlignSpec, StitchOptions, build
 
-__all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "run"]
+__all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
 
 MANIFEST_SUFFIXES = (".txt", ".csv")
 FAILURES_FILE = "failures.jsonl"
@@ -84,9 +79,12 @@ class Job:
 
 @dataclass
 class ImageOutcome:
-    """What happened to one image: ``done``, ``skipped`` (already done), ``busy`` (claimed by
-    another run), ``failed`` (with ``error`` type name and ``message``) or ``interrupted``
-    (Ctrl-C; nothing written)."""
+    """What happened to one image.
+
+    ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
+    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
+    written).
+    """
 
     input: str
     stem: str
@@ -157,7 +155,7 @@ class BatchReport:
         return totals
 
     def summary(self) -> str:
-        """A few lines for the end of a run: counts, rate and time per stage."""
+        """Describe the run in a few lines: counts, rate and time per stage."""
         counts = (
             f"{len(self.done)} done, {len(self.skipped)} already done, "
             f"{len(self.failed)} failed"
@@ -294,7 +292,7 @@ class _Settings:
 
     model: Any
     model_options: dict[str, Any]
-    estimate_options: dict[str, Any]
+    options: StitchOptions
     formats: tuple[str, ...]
     preview: bool
     fix_aspect: bool
@@ -308,7 +306,7 @@ class _Worker:
     """Per-process state: the estimator is loaded once; the plan cache lives in the process."""
 
     def __init__(self, settings: _Settings, estimator: Any | None = None) -> None:
-        from .estimate import load_estimator
+        from .estimators import load_estimator
 
         self.settings = settings
         self.estimator = estimator or load_estimator(
@@ -333,7 +331,7 @@ class _Worker:
                 original = rgb.shape[:2]
                 rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
                 t_read = time.perf_counter()
-                result = estimate(rgb, self.estimator, **s.estimate_options)
+                result = estimate(rgb, self.estimator, options=s.options)
                 t_estimate = time.perf_counter()
                 source = {
                     "path": str(job.input),
@@ -365,8 +363,11 @@ class _Worker:
 
 
 def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
-    """True if ``job``'s sidecar exists, its files exist, and it was made from the same input
-    file (path, size, mtime) with the same options."""
+    """Tell whether ``job`` is already done with these options.
+
+    True if its sidecar exists, its files exist, and it was made from the same input file (path,
+    size, mtime) with the same ``fingerprint`` (see :func:`fingerprint`).
+    """
     try:
         meta = read_sidecar(job.stem)
         stat = job.input.stat()
@@ -395,10 +396,13 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
 
 @contextlib.contextmanager
 def _claim(stem: Path) -> Iterator[bool]:
-    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (False if another process
-    holds it). The OS releases the lock when its process dies, so a killed run blocks nothing.
-    The lock file is removed while still held, after the work; a claimer that locked a file
-    which was removed meanwhile retries on the new one, so two claimers never both hold it."""
+    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem``.
+
+    Yields False if another process holds it. The OS releases the lock when its process dies,
+    so a killed run blocks nothing. The lock file is removed while still held, after the work;
+    a claimer that locked a file which was removed meanwhile retries on the new one, so two
+    claimers never both hold it.
+    """
     stem.parent.mkdir(parents=True, exist_ok=True)
     path = stem.with_name(f".{stem.name}.lock")
     while True:
@@ -449,8 +453,19 @@ def run(
     out_dir: str | os.PathLike[str],
     *,
     model: Any = _models.DEFAULT_MODEL,
-    align: Any = "multiscale",
-    blend: str = "poisson",
+    align: AlignSpec = "multiscale",
+    blend: BlendMethod | None = None,
+    energy: Energy | None = None,
+    solver: AlignSolver | None = None,
+    iterations: int | None = None,
+    tolerance: float | None = None,
+    sample_fraction: float | None = None,
+    pole_cap_deg: float | None = None,
+    smoothness: float | None = None,
+    scale_weight: float | None = None,
+    offsets: Offsets | None = None,
+    blend_options: Mapping[str, Any] | None = None,
+    options: StitchOptions | None = None,
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
     workers: int = 1,
@@ -475,8 +490,10 @@ def run(
     model : str, path or estimator
         As for :func:`m360.estimate`. With ``workers > 1`` an estimator object must be
         picklable.
-    align, blend : str
-        As for :func:`m360.estimate`.
+    align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
+        The stitching options, as for :func:`m360.stitch`.
+    pole_cap_deg, smoothness, scale_weight, offsets, blend_options, options : optional
+        The stitching options, as for :func:`m360.stitch`.
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
     workers : int
@@ -502,9 +519,7 @@ def run(
     BatchReport
         Per-image outcomes, failures, time per stage; ``exit_code`` as ``m360 run`` uses it.
     """
-    from .estimate import load_estimator
-    from .geometry import Layout
-    from .stitch import BLEND_MODES, _schedule
+    from .estimators import load_estimator
 
     started = time.perf_counter()
     if not isinstance(out_dir, (str, os.PathLike)):
@@ -513,11 +528,23 @@ def run(
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
-    threads = None if threads is None else integer(threads, "threads", low=1, high=MAX_THREADS)
-    chosen = _check_formats(formats)
-    _schedule(align, Layout.icosahedron(2048), "normalized")  # refuses a bad align up front
-    if not isinstance(blend, str) or blend not in BLEND_MODES:
-        raise InputError(f"blend={blend!r} is not supported; choose one of {BLEND_MODES}")
+    threads = check_threads(threads)
+    chosen = check_formats(formats)
+    opts = build(
+        options,
+        align,
+        blend,
+        energy=energy,
+        solver=solver,
+        iterations=iterations,
+        tolerance=tolerance,
+        sample_fraction=sample_fraction,
+        pole_cap_deg=pole_cap_deg,
+        smoothness=smoothness,
+        scale_weight=scale_weight,
+        offsets=offsets,
+        blend_options=blend_options,
+    )
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)
@@ -535,12 +562,14 @@ def run(
     settings = _Settings(
         model=model,
         model_options=model_options,
-        estimate_options={"align": align, "blend": blend},
+        options=opts,
         formats=chosen,
         preview=bool(preview),
         fix_aspect=bool(fix_aspect),
         resume=bool(resume),
-        fingerprint=_fingerprint(estimator, align, blend, chosen, preview, fix_aspect),
+        fingerprint=fingerprint(
+            estimator, opts, chosen, preview=bool(preview), fix_aspect=bool(fix_aspect)
+        ),
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
     )
@@ -590,21 +619,55 @@ def run(
     return report
 
 
-def _fingerprint(
+def fingerprint(
     estimator: Any,
-    align: Any,
-    blend: str,
-    formats: tuple[str, ...],
+    options: StitchOptions,
+    formats: Sequence[str],
+    *,
     preview: bool,
     fix_aspect: bool,
 ) -> dict[str, Any]:
-    """The options that decide an image's outputs (not threads or workers)."""
-    return {
-        "model": getattr(estimator, "name", type(estimator).__name__),
-        "model_sha256": getattr(estimator, "sha256", None),
+    """Every option that can change a byte of an image's outputs (not threads or workers).
+
+    The model (name, sha256, declared output kind and, for ONNX models, the preprocessing that
+    feeds it: input size, normalisation, providers), the canonical stitching options
+    (:meth:`m360.StitchOptions.as_dict`), the formats, the preview and the aspect fix. A rerun
+    skips an image only if its sidecar holds the same fingerprint.
+
+    Parameters
+    ----------
+    estimator : Estimator
+        The loaded estimator.
+    options : StitchOptions
+        The stitching options.
+    formats : sequence of str
+        The array formats written.
+    preview, fix_aspect : bool
+        Whether the preview is written and the aspect fixed.
+
+    Returns
+    -------
+    dict
+        JSON-able.
+    """
+    model: dict[str, Any] = {
+        "name": getattr(estimator, "name", type(estimator).__name__),
+        "sha256": getattr(estimator, "sha256", None),
         "output_kind": estimator.output_kind,
-        "align": align if isinstance(align, str) else [list(g) for g in np.atleast_2d(align)],
-        "blend": blend,
+    }
+    if isinstance(estimator, OnnxEstimator):
+        # What reaches the network: a rerun with another input size must not be skipped.
+        model.update(
+            input_size=None if estimator.input_size is None else list(estimator.input_size),
+            multiple_of=estimator.multiple_of,
+            resize=estimator.resize,
+            mean=[float(v) for v in estimator.mean],
+            std=[float(v) for v in estimator.std],
+            providers=list(estimator.providers),
+        )
+    return {
+        "model": model,
+        "stitch": options.as_dict(),
         "formats": sorted(formats),
         "preview": bool(preview),
         "fix_aspect": bool(fix_aspect),
@@ -621,8 +684,10 @@ def _check_picklable(settings: _Settings) -> None:
 
 
 def _append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
-    """One JSON line per failure, appended with a single write (O_APPEND keeps lines whole
-    even when two runs share the folder)."""
+    """Append one JSON line for a failure, in a single write.
+
+    O_APPEND keeps lines whole even when two runs share the folder.
+    """
     record = {
         "time": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
         "run": run_id,
@@ -741,8 +806,10 @@ def _run_pool(
 def _record_finished(
     inflight: Mapping[Future[ImageOutcome], Job], record: Callable[[Job, ImageOutcome], None]
 ) -> list[Job]:
-    """Wait for ``inflight``; record every outcome but "interrupted"; return the jobs whose
-    future failed (their worker died) or was cancelled."""
+    """Wait for ``inflight`` and record every outcome but "interrupted".
+
+    Returns the jobs whose future failed (their worker died) or was cancelled.
+    """
     wait(inflight)
     lost = []
     for future, job in inflight.items():

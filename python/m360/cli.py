@@ -17,23 +17,20 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from . import __version__, batch, models, synthetic
+from . import __version__, _core, batch, models, synthetic
+from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
-from .estimate import OUTPUT_KINDS, SimulatedEstimator, estimate
+from .estimate import estimate
+from .estimators import OUTPUT_KINDS, SimulatedEstimator
 from .eval import depth_metrics, format_metrics
 from .geometry import Layout
 from .io import SAVE_FORMATS, load, output_stem, read_array, save, save_npy, save_png
-from .stitch import ALIGN_MODES, BLEND_MODES
+from .options import AlignSpec, StitchOptions
 
-
-def default_align() -> str:
-    """The method's alignment (``"multiscale"``) when this build has it, else ``"none"``."""
-    return "multiscale" if "multiscale" in ALIGN_MODES else "none"
-
-
-def default_blend() -> str:
-    """The method's blend (``"poisson"``) when this build has it, else ``"mean"``."""
-    return "poisson" if "poisson" in BLEND_MODES else "mean"
+#: Where ``m360 run`` can run images; the first is the default.
+ENGINES = ("local", "ray")
+#: Engines parsed but not built yet (exit 2 naming them).
+_PLANNED_ENGINES = ("ray",)
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -111,9 +108,9 @@ def main(argv: Sequence[str] | None = None) -> int:
     run.add_argument("--no-progress", action="store_true", help="no progress bar")
     run.add_argument(
         "--engine",
-        choices=("local",),
-        default="local",
-        help="where images run: local processes (Ray is not in this version)",
+        choices=ENGINES,
+        default=ENGINES[0],
+        help="where images run: local processes (default); ray is not available yet",
     )
     run.add_argument(
         "--input-size",
@@ -142,9 +139,9 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="the paper's depth metrics of a prediction against ground truth",
         description=(
             "Print AbsRel, RMSE, log10 and the delta accuracies of PRED against GT after a "
-            "least-squares scale and shift of the disparity (DESIGN.md §5). PRED is an m360 "
-            "output (its stem, sidecar or any of its files) or an array file (.npy, .pfm, "
-            ".exr); GT is an array file of radial depth (or disparity with --gt-kind)."
+            "least-squares scale and shift of the disparity (docs/method.md, evaluation). PRED "
+            "is an m360 output (its stem, sidecar or any of its files) or an array file (.npy, "
+            ".pfm, .exr); GT is an array file of radial depth (or disparity with --gt-kind)."
         ),
     )
     ev.add_argument("pred", type=Path, help="m360 output or array file")
@@ -173,7 +170,7 @@ def main(argv: Sequence[str] | None = None) -> int:
         return int(exc.code or 0)
     try:
         if args.command == "demo":
-            return _demo(args.output, args.width, args.seed, args.noise, args.align, args.blend)
+            return _demo(args.output, args.width, args.seed, args.noise, _options(args))
         if args.command == "run":
             return _run(args)
         if args.command == "eval":
@@ -201,22 +198,149 @@ def _formats(text: str) -> tuple[str, ...]:
     return chosen
 
 
+def _align(text: str) -> AlignSpec:
+    """``--align``: a mode name, or grids ``COLSxROWS[,COLSxROWS...]`` (e.g. ``4x3,8x7``)."""
+    if text in ALIGN_MODES:
+        return text
+    try:
+        grids = [tuple(int(v) for v in g.lower().split("x")) for g in text.split(",")]
+    except ValueError:
+        grids = []
+    if not grids or any(len(g) != 2 for g in grids):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: use {' or '.join(ALIGN_MODES)}, or grids COLSxROWS[,COLSxROWS...] "
+            "such as 4x3,8x7"
+        )
+    return [(g[0], g[1]) for g in grids]
+
+
 def _stitch_options(parser: argparse.ArgumentParser) -> None:
-    parser.add_argument(
+    """Add the stitching flags, one per :class:`m360.StitchOptions` keyword.
+
+    The help texts show the core's defaults.
+    """
+    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["blend"]
+    choices = _core.CHOICES
+    schedules = "; ".join(
+        f"{energy}: {','.join(f'{c}x{r}' for c, r in levels)}"
+        for energy, levels in _core.DEFAULTS["schedules"].items()
+    )
+    iterations = ", ".join(f"{k} {v}" for k, v in _core.DEFAULTS["iterations"].items())
+    group = parser.add_argument_group("stitching (defaults are the core's)")
+    group.add_argument(
         "--align",
-        choices=ALIGN_MODES,
-        default=default_align(),
-        help=f"alignment (default {default_align()!r} in this build)",
+        type=_align,
+        default="multiscale",
+        help=f"alignment: multiscale (default; the energy's schedule, {schedules}), none, or "
+        "grids COLSxROWS[,COLSxROWS...]",
     )
-    parser.add_argument(
+    group.add_argument(
         "--blend",
-        choices=BLEND_MODES,
-        default=default_blend(),
-        help=f"blending (default {default_blend()!r} in this build)",
+        choices=choices["blend"],
+        default=None,
+        help=f"blending (default {blend['method']})",
+    )
+    group.add_argument(
+        "--energy", choices=choices["energy"], help=f"alignment energy (default {align['energy']})"
+    )
+    group.add_argument(
+        "--solver", choices=choices["solver"], help=f"alignment solver (default {align['solver']})"
+    )
+    group.add_argument(
+        "--iterations",
+        type=int,
+        help=f"alignment iteration cap per level (default per solver: {iterations})",
+    )
+    group.add_argument(
+        "--tolerance",
+        type=float,
+        help=f"alignment gradient tolerance (default {align['tolerance']:g})",
+    )
+    group.add_argument(
+        "--sample-fraction",
+        type=float,
+        help=f"fraction of overlap pixels in the data term (default {align['sample_fraction']:g})",
+    )
+    group.add_argument(
+        "--pole-cap-deg",
+        type=float,
+        help=f"leave out samples this close to the poles (default {align['pole_cap_deg']:g})",
+    )
+    per_energy = {
+        "smoothness": ", ".join(f"{e} {w[0]:g}" for e, w in ENERGY_WEIGHTS.items()),
+        "scale_weight": ", ".join(f"{e} {w[1]:g}" for e, w in ENERGY_WEIGHTS.items()),
+        "offsets": ", ".join(f"{e} {o}" for e, o in DEFAULT_OFFSETS.items()),
+    }
+    group.add_argument(
+        "--smoothness",
+        type=float,
+        help=f"smoothness weight (default per energy: {per_energy['smoothness']})",
+    )
+    group.add_argument(
+        "--scale-weight",
+        type=float,
+        help=f"scale term weight (default per energy: {per_energy['scale_weight']})",
+    )
+    group.add_argument(
+        "--offsets",
+        choices=choices["offsets"],
+        help=f"where the offset acts (default per energy: {per_energy['offsets']})",
+    )
+    group.add_argument(
+        "--poisson-fidelity",
+        "--fidelity",
+        dest="poisson_fidelity",
+        choices=choices["fidelity"],
+        help=f"Poisson fidelity target (default {blend['fidelity']})",
+    )
+    group.add_argument(
+        "--poisson-lam",
+        type=float,
+        help=f"Poisson fidelity weight λ (default {blend['lam']:g})",
+    )
+    group.add_argument(
+        "--poisson-tolerance",
+        type=float,
+        help=f"Poisson relative residual (default {blend['tolerance']:g})",
+    )
+    group.add_argument(
+        "--poisson-iterations",
+        type=int,
+        help=f"Poisson iteration cap (default {blend['iterations']})",
+    )
+    group.add_argument(
+        "--poisson-solver",
+        choices=choices["poisson_solver"],
+        help=f"Poisson solver (default {blend['solver']})",
     )
 
 
-def _demo(out: Path, width: int, seed: int, noise: float, align: str, blend: str) -> int:
+def _options(args: argparse.Namespace) -> StitchOptions:
+    """Build the :class:`m360.StitchOptions` the stitching flags describe (InputError: exit 2)."""
+    poisson = {
+        "fidelity": args.poisson_fidelity,
+        "lam": args.poisson_lam,
+        "tolerance": args.poisson_tolerance,
+        "iterations": args.poisson_iterations,
+        "solver": args.poisson_solver,
+    }
+    return StitchOptions(
+        args.align,
+        args.blend,
+        energy=args.energy,
+        solver=args.solver,
+        iterations=args.iterations,
+        tolerance=args.tolerance,
+        sample_fraction=args.sample_fraction,
+        pole_cap_deg=args.pole_cap_deg,
+        smoothness=args.smoothness,
+        scale_weight=args.scale_weight,
+        offsets=args.offsets,
+        blend_options={k: v for k, v in poisson.items() if v is not None} or None,
+    )
+
+
+def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions) -> int:
     t0 = time.perf_counter()
     layout = Layout.icosahedron(width)
     scene = synthetic.room(seed)
@@ -227,17 +351,14 @@ def _demo(out: Path, width: int, seed: int, noise: float, align: str, blend: str
         "  network: SIMULATED, not a trained model: exact tangent disparity with a random "
         f"scale/shift per tangent and {noise:g} relative noise"
     )
-    print(f"  rendered in {time.perf_counter() - t0:.1f} s; align={align!r} blend={blend!r}")
-    result = estimate(rgb, network, align=align, blend=blend)
+    align = options.align
+    levels = "none" if align is None else ",".join(f"{c}x{r}" for c, r in align["levels"])
+    print(f"  rendered in {time.perf_counter() - t0:.1f} s; align={levels} blend={options.method}")
+    result = estimate(rgb, network, options=options)
     metrics = depth_metrics(result.disparity, gt_depth)
     stages = ", ".join(f"{k} {v:.3f}" for k, v in result.timings.items())
     print(f"  timings (s): {stages}")
     print(f"  vs true depth: {format_metrics(metrics)}")
-    if align == "none":
-        print(
-            "  alignment is not in this build (align='none'): the per-tangent distortion stays; "
-            "the multi-scale alignment removes it"
-        )
     written = save(result, out / "demo", extra={"input": "synthetic.room", "seed": seed})
     written["rgb"] = save_png(out / "demo_rgb.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     written["gt_depth"] = save_npy(out / "demo_gt_depth.npy", gt_depth)
@@ -250,12 +371,15 @@ def _run(args: argparse.Namespace) -> int:
         if outcome.status == "failed":
             _log(f"m360: {outcome.input}: {outcome.error}: {outcome.message}")
 
+    if args.engine in _PLANNED_ENGINES:
+        raise InputError(
+            f"--engine {args.engine} is not available yet; use --engine {ENGINES[0]} (the default)"
+        )
     report = batch.run(
         args.inputs,
         args.output,
         model=args.model,
-        align=args.align,
-        blend=args.blend,
+        options=_options(args),
         formats=args.formats,
         preview=not args.no_preview,
         workers=args.workers,
@@ -274,7 +398,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _log(line: str) -> None:
-    """A line on stderr that does not tear the progress bar."""
+    """Write a line on stderr without tearing the progress bar."""
     from tqdm import tqdm
 
     tqdm.write(line, file=sys.stderr)
@@ -306,7 +430,7 @@ def _inverse(values: np.ndarray) -> np.ndarray:
 
 
 def _read_map(path: Path, kind: str, *, allow_output: bool) -> np.ndarray:
-    """An m360 output's ``kind`` map (when ``path`` names one with a sidecar) or an array file."""
+    """Read an m360 output's ``kind`` map (when ``path`` names one with a sidecar) or an array."""
     stem = output_stem(path)
     if allow_output and stem.with_name(stem.name + ".json").is_file():
         values: np.ndarray = getattr(load(stem), kind)

@@ -1,4 +1,4 @@
-"""The paper's depth metrics on ERP maps (DESIGN.md §5).
+"""The paper's depth metrics on ERP maps (docs/method.md, evaluation).
 
 The prediction is a disparity known up to scale and shift: fit both by least squares against the
 ground-truth disparity 1/depth over the valid pixels, convert the fitted disparity to depth, then
@@ -114,12 +114,12 @@ def depth_metrics(
     """Scale/shift-aligned depth metrics of an ERP disparity prediction, as in the paper.
 
     Valid pixels: ground-truth depth finite and > 0, prediction finite, ``valid`` true (if given),
-    and row-centre latitude within ``±(90° - pole_cap_deg)`` (rows follow the ERP convention of
-    DESIGN.md §1: row i has latitude ``90° - 180° (i + 0.5) / H``). Scale s and shift o are fitted
-    by weighted least squares of ``s·pred + o`` against ``1/gt_depth`` over the valid pixels; the
-    fitted disparity is clamped below at ``1e-3 x min(1/gt_depth)`` over the valid pixels (so a
-    fitted value ≤ 0 becomes a very far but finite depth) and inverted to depth. Every metric then
-    averages over the valid pixels with weights 1 (``"uniform"``) or cos(latitude)
+    and row-centre latitude within ``±(90° - pole_cap_deg)`` (rows follow the ERP convention
+    of docs/conventions.md: row i has latitude ``90° - 180° (i + 0.5) / H``). Scale s and shift
+    o are fitted by weighted least squares of ``s·pred + o`` against ``1/gt_depth`` over the valid
+    pixels; the fitted disparity is clamped below at ``1e-3 x min(1/gt_depth)`` over the valid
+    pixels (so a fitted value ≤ 0 becomes a very far but finite depth) and inverted to depth. Every
+    metric then averages over the valid pixels with weights 1 (``"uniform"``) or cos(latitude)
     (``"solid_angle"``, each pixel weighted by the solid angle it covers).
 
     Parameters
@@ -273,19 +273,21 @@ def _dilate(mask: np.ndarray, radius: int) -> np.ndarray:
     for dy in range(1, radius + 1):
         grown[dy:] |= out[:-dy]
         grown[:-dy] |= out[dy:]
-    return grown
+    return grown  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _edges(labels: np.ndarray) -> np.ndarray:
-    """Pixels whose right or lower neighbour (right wraps) has another label, and those
-    neighbours."""
+    """Mark the pixels whose right or lower neighbour (right wraps) has another label.
+
+    The neighbours are marked too.
+    """
     right = labels != np.roll(labels, -1, axis=1)
     down = np.zeros_like(right)
     down[:-1] = labels[:-1] != labels[1:]
     edge = right | down
     edge |= np.roll(right, 1, axis=1)
     edge[1:] |= down[:-1]
-    return edge
+    return edge  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:
@@ -300,14 +302,15 @@ def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:
     n = len(layout)
     h, w = layout.tangent_shape
     borders = np.zeros(layout.erp_shape, bool)
-    tiles = np.full((n, h, w), np.nan, np.float32)
+    nearest = {"method": "nn"}
+    tangents = np.full((n, h, w), np.nan, np.float32)
     for k in range(n):
-        tiles[k] = 1.0
-        inside = np.isfinite(plan.blend(tiles, "nn")[0])
-        tiles[k] = np.nan
+        tangents[k] = 1.0
+        inside = np.isfinite(plan.blend(tangents, nearest, confidence=False)[0])
+        tangents[k] = np.nan
         borders |= _edges(inside)
     ids = np.broadcast_to(np.arange(n, dtype=np.float32)[:, None, None], (n, h, w))
-    owner = np.rint(plan.blend(np.ascontiguousarray(ids), "nn")[0])
+    owner = np.rint(plan.blend(np.ascontiguousarray(ids), nearest, confidence=False)[0])
     masks = (_dilate(borders, band), _dilate(_edges(owner), band))
     with _SEAM_LOCK:
         _SEAM_MASKS[key] = masks

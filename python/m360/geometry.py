@@ -1,9 +1,9 @@
 """Tangent layouts and resampling between the equirectangular image and its tangent images.
 
-Conventions (``DESIGN.md`` §1): world frame x right, y down, z forward. ERP pixel (row i, column j)
-of an H x 2H image looks at longitude 2π(j+0.5)/W − π and latitude π/2 − π(i+0.5)/H. A tangent
-camera maps a world direction d to X = R d and, when X_z > 0, to pixel x = fx X_x/X_z + cx,
-y = fy X_y/X_z + cy, pixel centres at integer coordinates.
+Conventions (docs/conventions.md): world frame x right, y down, z forward. ERP pixel (row i,
+column j) of an H x 2H image looks at longitude 2π(j+0.5)/W − π and latitude π/2 − π(i+0.5)/H. A
+tangent camera maps a world direction d to X = R d and, when X_z > 0, to pixel
+x = fx X_x/X_z + cx, y = fy X_y/X_z + cy, pixel centres at integer coordinates.
 """
 
 from __future__ import annotations
@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from . import _core
+from ._compat import renamed
 from ._validate import (
     MAX_ERP_WIDTH,
     as_array,
@@ -64,7 +65,7 @@ class TangentCamera:
     @property
     def axis(self) -> np.ndarray:
         """(3,) world direction of the optical axis."""
-        return self.rotation[2].copy()
+        return self.rotation[2].copy()  # type: ignore[no-any-return]  # numpy stubs: Any
 
     def project(self, directions: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Pixel positions ``(x, y)`` of world directions (..., 3), and whether each is in front."""
@@ -104,7 +105,7 @@ class Layout:
     def icosahedron(
         cls, erp_width: int, padding: float = 0.3, tangent_width: int | None = None
     ) -> Layout:
-        """The paper's layout: 20 cameras, one per icosahedron face.
+        """Make the paper's layout: 20 cameras, one per icosahedron face.
 
         Each camera looks at its face centroid with no roll (image x = local east, y = local
         south); its image is the bounding box of the face triangle with every edge pushed out by
@@ -148,8 +149,10 @@ class Layout:
 
     @classmethod
     def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
-        """A layout of user-given cameras (all the same image size) for ERP images of
-        ``erp_shape`` = (H, W)."""
+        """Make a layout of user-given cameras, all of one image size.
+
+        For ERP images of ``erp_shape`` = (H, W).
+        """
         if isinstance(cameras, (str, bytes)) or not isinstance(cameras, Sequence) or not cameras:
             raise InputError("a layout needs a non-empty sequence of TangentCamera")
         if not (isinstance(erp_shape, (tuple, list)) and len(erp_shape) == 2):
@@ -219,25 +222,37 @@ _plans_lock = threading.Lock()
 
 
 def plan_for(layout: Layout) -> _core.Plan:
-    """The cached compiled plan of ``layout`` (maps are built lazily on first use)."""
+    """Get the cached compiled plan of ``layout`` (maps are built lazily on first use).
+
+    Safe to call from many threads at once (docs/architecture.md, plan cache): the lock guards
+    only the cache's bookkeeping, never the core's work, so threads wanting other layouts do
+    not wait for each other; two threads missing the same layout at once both build a plan
+    and the first one stored wins.
+    """
     with _plans_lock:
         plan = _plans.get(layout.key)
         if plan is not None:
             _plans.move_to_end(layout.key)
             return plan
-        rotations = np.stack([np.asarray(c.rotation, dtype=np.float64) for c in layout.cameras])
-        intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in layout.cameras], dtype=np.float64)
-        plan = _core.Plan(layout.erp_shape, rotations, intrinsics, layout.tangent_shape)
-        _plans[layout.key] = plan
+    rotations = np.stack([np.asarray(c.rotation, dtype=np.float64) for c in layout.cameras])
+    intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in layout.cameras], dtype=np.float64)
+    built = _core.Plan(layout.erp_shape, rotations, intrinsics, layout.tangent_shape)
+    evicted = []
+    with _plans_lock:
+        plan = _plans.setdefault(layout.key, built)
+        _plans.move_to_end(layout.key)
         while len(_plans) > _PLAN_CACHE_SIZE:
-            _plans.popitem(last=False)
-        return plan
+            evicted.append(_plans.popitem(last=False))
+    del evicted  # the evicted plans' maps are freed here, outside the lock
+    return plan
 
 
 def clear_plan_cache() -> None:
     """Drop every cached plan (frees their sampling maps)."""
     with _plans_lock:
+        dropped = list(_plans.values())
         _plans.clear()
+    del dropped  # freed outside the lock
 
 
 # --------------------------------------------------------------------------------------------
@@ -283,7 +298,8 @@ def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray
     return out[..., 0] if planar else out
 
 
-def tangents_to_erp(tiles: np.ndarray, layout: Layout) -> np.ndarray:
+@renamed(tiles="tangents")
+def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
     """Map each tangent image onto the ERP grid.
 
     Every ERP pixel whose ray lands on a tangent image (in front of it) gets that image's value,
@@ -291,23 +307,26 @@ def tangents_to_erp(tiles: np.ndarray, layout: Layout) -> np.ndarray:
 
     Parameters
     ----------
-    tiles : (N, h, w) float32 array
+    tangents : (N, h, w) float32 array
         One image per camera of ``layout``; NaN marks invalid pixels.
     layout : Layout
+        The layout the tangents belong to.
 
     Returns
     -------
-    (N, H, W) float32, NaN where a face does not see the pixel or a bilinear neighbour is NaN.
+    numpy.ndarray
+        (N, H, W) float32, NaN where a face does not see the pixel or a bilinear neighbour is
+        NaN.
     """
-    data = check_tiles(tiles, layout, "tiles")
+    data = check_tangents(tangents, layout, "tangents")
     return plan_for(layout).tangents_to_erp(data)
 
 
-def check_tiles(tiles: np.ndarray, layout: Layout, name: str) -> np.ndarray:
-    """Validated (N, h, w) float32 C-contiguous tiles for ``layout``."""
+def check_tangents(tangents: np.ndarray, layout: Layout, name: str) -> np.ndarray:
+    """Check ``tangents`` for ``layout``: (N, h, w) float32, C-contiguous."""
     if not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
-    array = as_array(tiles, name)
+    array = as_array(tangents, name)
     h, w = layout.tangent_shape
     check_shape(array, name, ("N", "h", "w"), N=len(layout), h=h, w=w)
     return float32_array(array, name)

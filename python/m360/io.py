@@ -1,4 +1,7 @@
-"""Reading panoramas, writing results and reading them back, never leaving a half-written file.
+"""Writing results and reading them back, never leaving a half-written file.
+
+Input panoramas are read by :mod:`m360.decode` (``m360.io.load_image`` and its kin are
+re-exported here).
 
 Every output file is written to a temporary name in its target folder and renamed onto its final
 name (atomic on one file system). :func:`save` writes the sidecar ``STEM.json`` last, so a sidecar
@@ -22,8 +25,17 @@ from typing import Any
 import cv2
 import numpy as np
 
-from ._validate import check_erp_shape
-from .errors import AspectRatioError, InputError, ReadError
+from .decode import (
+    IMAGE_SUFFIXES,
+    decode_image,
+    fix_aspect_ratio,
+    load_image,
+    read_bytes,
+    read_exr,
+    read_image,
+    read_input_bytes,
+)
+from .errors import InputError, ReadError
 
 __all__ = [
     "ERP_CONVENTION",
@@ -31,6 +43,7 @@ __all__ = [
     "SAVE_FORMATS",
     "SavedResult",
     "atomic_path",
+    "check_formats",
     "colorize",
     "decode_image",
     "fix_aspect_ratio",
@@ -56,12 +69,10 @@ SAVE_FORMATS = ("npy", "pfm", "exr", "png16")
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
 FORMAT_SUFFIXES = {"npy": ".npy", "pfm": ".pfm", "exr": ".exr", "png16": ".png"}
-#: Input images :func:`read_image` decodes (and batch folders collect).
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
 #: PNG16 codes: 0 = invalid, 1..65535 = the finite range, linearly.
 _PNG16_STEPS = 65534
 
-#: The ERP convention written into every sidecar (DESIGN.md §1).
+#: The ERP convention written into every sidecar (docs/conventions.md).
 ERP_CONVENTION = {
     "shape": "H x W with W == 2H",
     "longitude": "2*pi*(j + 0.5)/W - pi (column j; -pi at the left edge, increasing rightwards)",
@@ -194,13 +205,13 @@ def read_array(
     empty or corrupt file.
     """
     p = Path(path)
-    data = _read_bytes(p, "array file")
+    data = read_bytes(p, "array file")
     suffix = p.suffix.lower()
     try:
         if suffix == ".npy":
             values = np.load(_bytes_io.BytesIO(data), allow_pickle=False)
         elif suffix == ".exr":
-            values = _read_exr(p)
+            values = read_exr(p)
         elif suffix in (".pfm", ".png", ".tif", ".tiff"):
             values = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
         else:
@@ -219,7 +230,7 @@ def read_array(
         return _png16_values(values, png16)
     if values.dtype.kind != "f":
         raise ReadError(f"{p} holds {values.dtype} values; expected a float map")
-    return values.astype(np.float32, copy=False)
+    return values.astype(np.float32, copy=False)  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 def _png16_codes(values: np.ndarray) -> tuple[np.ndarray, float, float]:
@@ -251,165 +262,12 @@ def _write_exr(path: str | os.PathLike[str], values: np.ndarray) -> Path:
     return target
 
 
-def _read_exr(path: Path) -> np.ndarray:
-    """The EXR's channels as (H, W) or (H, W, C) float, colour channels in RGB order."""
-    import OpenEXR
-
-    with OpenEXR.File(str(path)) as exr:
-        channels = {name: np.asarray(ch.pixels) for name, ch in exr.channels().items()}
-    for name in ("Y", "Z", "RGB", "RGBA"):
-        if name in channels:
-            values = channels[name]
-            return values[..., :3] if name == "RGBA" else values
-    if {"R", "G", "B"} <= channels.keys():
-        return np.stack([channels[c] for c in "RGB"], axis=-1)
-    if len(channels) == 1:
-        return next(iter(channels.values()))
-    raise ReadError(f"{path}: EXR channels {sorted(channels)}; expected Y, Z or R, G, B")
-
-
-def _read_bytes(path: Path, what: str) -> bytes:
-    if not path.is_file():
-        raise ReadError(f"{what} {path} does not exist (or is not a file)")
-    try:
-        with open(path, "rb") as f:  # read-only: inputs are never modified
-            data = f.read()
-    except OSError as exc:
-        raise ReadError(f"cannot read {path}: {exc.strerror or exc}") from exc
-    if not data:
-        raise ReadError(f"{what} {path} is empty (0 bytes)")
-    return data
-
-
-# --------------------------------------------------------------------------------------------
-# Input panoramas.
-
-
-def read_input_bytes(path: str | os.PathLike[str]) -> bytes:
-    """The bytes of an input image (opened read-only), or :class:`m360.ReadError` if it is
-    missing, unreadable or empty."""
-    return _read_bytes(Path(path), "input image")
-
-
-def read_image(path: str | os.PathLike[str]) -> np.ndarray:
-    """Read an image file as (H, W, 3) uint8 RGB, whatever its aspect (opened read-only).
-
-    JPEG, PNG, TIFF (what OpenCV decodes) and OpenEXR. 16-bit images are rounded to 8 bits,
-    grey images get three channels, alpha is dropped; float images (EXR, float TIFF) are linear
-    radiance: scaled so their 99th percentile is white, clipped and gamma-encoded (1/2.2). EXIF
-    orientation is ignored: panorama pixels are taken as stored (a 360° camera's orientation flag
-    would turn a 2:1 image into a 1:2 one). Raises :class:`m360.ReadError` for a missing, empty,
-    truncated or undecodable file.
-    """
-    return decode_image(read_input_bytes(path), path)
-
-
-def decode_image(data: bytes, path: str | os.PathLike[str]) -> np.ndarray:
-    """:func:`read_image` of bytes already read from ``path`` (named in errors)."""
-    p = Path(path)
-    if data[:4] == b"\x76\x2f\x31\x01":  # OpenEXR magic
-        try:
-            image = _read_exr(p)
-        except ReadError:
-            raise
-        except Exception as exc:
-            raise ReadError(f"cannot decode {p} as OpenEXR: {exc}") from exc
-        return _to_rgb8(image, p, order="RGB")
-    if data[:2] == b"\xff\xd8":
-        _check_jpeg_complete(data, p)
-    try:
-        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    except cv2.error as exc:
-        raise ReadError(f"cannot decode {p} as an image: {exc}") from exc
-    if decoded is None:
-        raise ReadError(f"cannot decode {p} as an image (truncated or not JPEG/PNG/TIFF/EXR?)")
-    return _to_rgb8(decoded, p, order="BGR")
-
-
-def load_image(path: str | os.PathLike[str], *, fix_aspect: bool = False) -> np.ndarray:
-    """Read an equirectangular panorama as (H, W, 3) uint8 RGB (see :func:`read_image`).
-
-    A panorama must be W == 2H: otherwise :class:`m360.AspectRatioError` naming its size, or, with
-    ``fix_aspect=True``, it is resized to W x W/2 (W rounded up to even).
-    """
-    return fix_aspect_ratio(read_image(path), path, fix=fix_aspect)
-
-
-def fix_aspect_ratio(image: np.ndarray, path: str | os.PathLike[str], *, fix: bool) -> np.ndarray:
-    """``image`` if it is W == 2H; else resized to W x W/2 if ``fix``, else AspectRatioError."""
-    height, width = image.shape[:2]
-    if width == 2 * height:
-        return image
-    if not fix:
-        try:
-            check_erp_shape(height, width, str(path))
-        except AspectRatioError as exc:
-            raise AspectRatioError(f"{exc}; resize it, or pass fix_aspect/--fix-aspect") from None
-    width += width % 2
-    interpolation = cv2.INTER_AREA if width // 2 < height else cv2.INTER_LINEAR
-    return cv2.resize(image, (width, width // 2), interpolation=interpolation)
-
-
-def _to_rgb8(image: np.ndarray, path: Path, *, order: str) -> np.ndarray:
-    if image.dtype == np.uint16:
-        image = ((image.astype(np.uint32) + 128) // 257).astype(np.uint8)
-    elif image.dtype.kind == "f":
-        image = _tonemap(image)
-    elif image.dtype != np.uint8:
-        raise ReadError(f"{path} has pixel type {image.dtype}; use 8/16-bit or float images")
-    if image.ndim == 3 and image.shape[2] == 1:
-        image = image[:, :, 0]
-    if image.ndim == 2 or (image.ndim == 3 and image.shape[2] == 2):  # grey (+ alpha)
-        grey = image if image.ndim == 2 else image[:, :, 0]
-        return np.ascontiguousarray(np.repeat(grey[:, :, None], 3, axis=2))
-    if image.ndim != 3 or image.shape[2] not in (3, 4):
-        raise ReadError(f"{path} has an unsupported channel layout {image.shape}")
-    rgb = image[:, :, :3] if order == "RGB" else image[:, :, 2::-1]
-    return np.ascontiguousarray(rgb)
-
-
-def _tonemap(image: np.ndarray) -> np.ndarray:
-    linear = np.nan_to_num(image.astype(np.float32), nan=0.0, posinf=0.0, neginf=0.0)
-    np.maximum(linear, 0.0, out=linear)
-    white = float(np.percentile(linear, 99.0)) or float(linear.max()) or 1.0
-    encoded = np.clip(linear / white, 0.0, 1.0) ** (1.0 / 2.2)
-    return np.rint(encoded * 255.0).astype(np.uint8)
-
-
-def _check_jpeg_complete(data: bytes, path: Path) -> None:
-    """Refuse a JPEG whose primary image has no end-of-image marker (a truncated download).
-
-    Old OpenCV builds decode such files with a grey bottom and only a warning. Walks the marker
-    segments to the first scan (so an EXIF thumbnail's own markers are skipped), then looks for
-    EOI among the markers in the entropy-coded data (0xFF bytes there are stuffed, so every
-    0xFF not followed by 0x00, a restart code or fill is a real marker). Bytes a camera appends
-    after EOI are allowed.
-    """
-    pos = 2
-    while pos + 4 <= len(data):
-        if data[pos] != 0xFF:
-            raise ReadError(f"{path} is not a valid JPEG (bad marker at byte {pos})")
-        marker = data[pos + 1]
-        if marker == 0xFF:  # fill byte
-            pos += 1
-            continue
-        if marker == 0xDA:  # start of scan: entropy-coded data follows
-            break
-        pos += 2 + int.from_bytes(data[pos + 2 : pos + 4], "big")
-    else:
-        raise ReadError(f"{path} is a truncated JPEG (ends before its first scan)")
-    scan = np.frombuffer(data, np.uint8)[pos + 2 :]
-    ff = np.flatnonzero(scan[:-1] == 0xFF)
-    if not (scan[ff + 1] == 0xD9).any():
-        raise ReadError(f"{path} is a truncated JPEG (no end-of-image marker)")
-
-
 # --------------------------------------------------------------------------------------------
 # Results.
 
 
 def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.0)) -> np.ndarray:
-    """A colour preview (H, W, 3) uint8 BGR of a disparity map: near warm, far cool, NaN black.
+    """Colour a disparity map as a (H, W, 3) uint8 BGR preview: near warm, far cool, NaN black.
 
     Values are scaled between the given percentiles of the finite values (robust to outliers).
     """
@@ -426,7 +284,7 @@ def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.
 
 
 def output_stem(path: str | os.PathLike[str]) -> Path:
-    """The stem of an output set given the stem itself or any of its files."""
+    """Find the stem of an output set given the stem itself or any of its files."""
     p = Path(path)
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
@@ -439,7 +297,8 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
     return p
 
 
-def _check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
+def check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
+    """Check the array formats ``formats`` names (one name or a list); drop repeats."""
     if isinstance(formats, str):
         chosen: tuple[Any, ...] = (formats,)
     elif isinstance(formats, (list, tuple)):
@@ -501,7 +360,7 @@ def save(
     """
     from . import __version__
 
-    chosen = _check_formats(formats)
+    chosen = check_formats(formats)
     with np.errstate(over="ignore"):  # float64 beyond float32's range is ±inf, as in m360's maps
         arrays = {
             q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
@@ -623,7 +482,7 @@ class SavedResult:
 
 
 def read_sidecar(stem: str | os.PathLike[str]) -> dict[str, Any]:
-    """The sidecar of an output set, or :class:`m360.ReadError` if it is missing or corrupt."""
+    """Read the sidecar of an output set (:class:`m360.ReadError` if missing or corrupt)."""
     base = output_stem(stem)
     path = base.with_name(base.name + ".json")
     if not path.is_file():

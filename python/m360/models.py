@@ -8,9 +8,10 @@ process. ``M360_OFFLINE=1`` never touches the network.
 
 Download, hash check and atomic rename are pooch's (``pooch.retrieve`` writes to a temporary file
 in the cache folder, checks the hash, then moves it into place): it is the ecosystem's maintained
-tool for exactly this (DESIGN.md §10) and brings tqdm progress bars. m360 adds what pooch does not
-know: the offline switch, a check that the file is an ONNX graph and not an HTML error page, and
-:class:`~m360.errors.ModelError` messages that say where to put a manually downloaded copy.
+tool for exactly this (docs/architecture.md) and brings tqdm progress bars. m360 adds what
+pooch does not know: the offline switch, a check that the file is an ONNX graph and not an HTML
+error page, and :class:`~m360.errors.ModelError` messages that say where to put a manually
+downloaded copy.
 
 Where the publisher's sha256 could not be confirmed, the entry stores ``sha256=None`` and says so
 in ``sha256_source``; such a file is refused unless ``M360_ALLOW_UNVERIFIED=1`` is set (then it is
@@ -91,7 +92,7 @@ class ModelEntry:
         ``"upper_bound"`` (fit inside ``input_size``, keep aspect) or ``"lower_bound"`` (cover
         ``input_size``, keep aspect); only used when the file's input size is dynamic.
     output_kind : str
-        ``"affine_disparity"``, ``"metric_depth"`` or ``"distance"`` (DESIGN.md §8).
+        ``"affine_disparity"``, ``"metric_depth"`` or ``"distance"`` (docs/architecture.md).
     description : str
         One line for ``m360 models``.
     notes : str
@@ -266,12 +267,12 @@ _lock = threading.Lock()
 
 
 def names() -> list[str]:
-    """Registered model names."""
+    """List the registered model names."""
     return list(REGISTRY)
 
 
 def get(name: str) -> ModelEntry:
-    """The registry entry called ``name``, or ModelError listing the known names."""
+    """Look up the registry entry ``name`` (ModelError listing the known names if unknown)."""
     entry = REGISTRY.get(name) if isinstance(name, str) else None
     if entry is None:
         known = ", ".join(REGISTRY)
@@ -310,7 +311,7 @@ def _candidates(entry: ModelEntry) -> Iterator[Path]:
 
 
 def local_path(entry: ModelEntry) -> Path | None:
-    """The existing local copy of ``entry`` (not verified), or None."""
+    """Find an existing local copy of ``entry`` (not verified), or None."""
     for path in _candidates(entry):
         if path.is_file():
             return path
@@ -425,7 +426,7 @@ def verify(entry: ModelEntry, path: str | os.PathLike[str]) -> Path:
 
 
 def ensure(name: str, *, progress: bool = True) -> Path:
-    """A verified local path of model ``name``, downloading it if needed (unless offline)."""
+    """Get a verified local path of model ``name``, downloading it if needed (unless offline)."""
     entry = get(name)
     path = local_path(entry)
     if path is not None:

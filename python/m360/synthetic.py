@@ -3,7 +3,7 @@
 A :class:`Scene` is a box room that encloses the camera (at the world origin) plus a few
 objects: oriented boxes (axis-aligned furniture, or thin tilted slabs) and spheres. Rays start at
 the origin, so the radial distance to the first hit is the exact ground-truth depth of m360's
-convention (DESIGN.md §1: x right, y down, z forward; depth = |P|).
+convention (docs/conventions.md: x right, y down, z forward; depth = |P|).
 
 ``room(seed)`` builds a random but deterministic scene; :func:`render` gives an ERP image and its
 depth; :func:`tangent_distance` / :func:`tangent_perspective_disparity` give exact per-tangent
@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from m360._compat import renamed
 from m360._sphere import (
     camera_pixel_directions,
     erp_latitudes,
@@ -63,7 +64,7 @@ def _vec3(name: str, value: Any) -> np.ndarray:
 
 
 def _length(value: Any, name: str, low: float = 0.0) -> float:
-    """A finite positive length (metres) up to SCENE_LIMIT."""
+    """Check a finite positive length (metres) up to SCENE_LIMIT."""
     result = number(value, name, low=low, high=SCENE_LIMIT)
     if result <= 0:
         raise InputError(f"{name}={value!r} must be > 0")
@@ -90,7 +91,7 @@ def rotation_matrix(yaw: float = 0.0, pitch: float = 0.0, roll: float = 0.0) -> 
     ry = np.array([[cy, 0.0, sy], [0.0, 1.0, 0.0], [-sy, 0.0, cy]])
     rx = np.array([[1.0, 0.0, 0.0], [0.0, cp, -sp], [0.0, sp, cp]])
     rz = np.array([[cr, -sr, 0.0], [sr, cr, 0.0], [0.0, 0.0, 1.0]])
-    return rz @ rx @ ry
+    return rz @ rx @ ry  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
 @dataclass(frozen=True)
@@ -499,7 +500,7 @@ class Scene:
             light += lt.intensity * lam / (1.0 + 0.1 * r * r)
         rgb = albedo * (self._texture(point, obj) * light)[:, None]
         rgb = np.clip(rgb, 0.0, 1.0) ** (1 / 2.2)
-        return np.round(rgb * 255).astype(np.uint8)
+        return np.round(rgb * 255).astype(np.uint8)  # type: ignore[no-any-return]  # numpy stubs: Any
 
     def shade(self, directions: np.ndarray) -> np.ndarray:
         """Colour seen along each direction: textured albedo, Lambert point lights, ambient.
@@ -537,7 +538,7 @@ def _random_material(rng: np.random.Generator, texture: str | None = None) -> Ma
 
 
 def room(seed: int = 0) -> Scene:
-    """A random furnished room around the camera, deterministic for a seed.
+    """Make a random furnished room around the camera, deterministic for a seed.
 
     The room is 3-9 m wide (x) and deep (z), 2.4-4 m high; the camera (origin) is off-centre
     horizontally and 1-1.8 m above the floor. Inside are 2-4 axis-aligned boxes standing on the
@@ -657,7 +658,7 @@ def render(scene: Scene, erp_width: int) -> tuple[np.ndarray, np.ndarray]:
     rgb : np.ndarray
         (H, W, 3) uint8.
     depth : np.ndarray
-        (H, W) float32 radial distance |P| in metres (DESIGN.md §1 pixel-centre convention).
+        (H, W) float32 radial distance |P| in metres (docs/conventions.md pixel-centre convention).
     """
     if not isinstance(scene, Scene):
         raise InputError(f"scene must be an m360.synthetic.Scene, got {type(scene).__name__}")
@@ -785,7 +786,7 @@ def _check_scene(scene: Any) -> None:
 
 
 def _smooth_field(rng: np.random.Generator, h: int, w: int, n_waves: int = 4) -> np.ndarray:
-    """Low-frequency random field on an (h, w) tile with max |f| ≤ 1."""
+    """Low-frequency random field on an (h, w) tangent with max |f| ≤ 1."""
     y = (np.arange(h, dtype=np.float64) + 0.5) / h
     x = (np.arange(w, dtype=np.float64) + 0.5) / w
     amp = rng.uniform(0.2, 1.0, size=n_waves)
@@ -798,8 +799,9 @@ def _smooth_field(rng: np.random.Generator, h: int, w: int, n_waves: int = 4) ->
     return f
 
 
+@renamed(tiles="tangents")
 def distort(
-    tiles: np.ndarray,
+    tangents: np.ndarray,
     seed: int,
     *,
     scale: tuple[float, float] = (0.5, 2.0),
@@ -809,16 +811,16 @@ def distort(
 ) -> np.ndarray:
     """Simulate a network's per-tangent affine ambiguity, plus an optional smooth warp and noise.
 
-    For each tile independently: ``d' = s·d + o`` with ``s`` log-uniform in ``scale`` and ``o``
+    For each tangent independently: ``d' = s·d + o`` with ``s`` log-uniform in ``scale`` and ``o``
     uniform in ``±shift·|median(d)|``; then, if ``field > 0``, ``d' *= 1 + field·f(x, y)`` with
-    ``f`` a sum of four random low-frequency cosines (≤ 1.5 cycles per tile, |f| ≤ 1); then, if
+    ``f`` a sum of four random low-frequency cosines (≤ 1.5 cycles per tangent, |f| ≤ 1); then, if
     ``noise > 0``, gaussian noise of std ``noise·|median(d)|`` is added. Medians ignore NaN; NaN
-    stays NaN. The random draws per tile do not depend on ``field``/``noise`` being zero, so the
+    stays NaN. The random draws per tangent do not depend on ``field``/``noise`` being zero, so the
     affine part for a given seed is the same whichever extras are enabled.
 
     Parameters
     ----------
-    tiles : np.ndarray
+    tangents : np.ndarray
         (N, h, w) floating array (typically perspective disparity).
     seed : int
         Seed of ``np.random.default_rng``.
@@ -836,18 +838,18 @@ def distort(
     np.ndarray
         (N, h, w) float32 (values beyond the float32 range become ±inf).
     """
-    t = as_array(tiles, "tiles")
+    t = as_array(tangents, "tangents")
     if t.ndim != 3:
-        raise InputError(f"tiles must have shape (N, h, w), got {t.shape}")
+        raise InputError(f"tangents must have shape (N, h, w), got {t.shape}")
     if not np.issubdtype(t.dtype, np.floating):
-        raise InputError(f"tiles must be a float array (float32 expected), got dtype {t.dtype}")
+        raise InputError(f"tangents must be a float array (float32 expected), got dtype {t.dtype}")
     with np.errstate(invalid="ignore"):
         too_large = np.abs(t[np.isfinite(t)]) > np.finfo(np.float32).max
     if too_large.any():
-        raise InputError(f"tiles has {int(too_large.sum())} values beyond the float32 range")
+        raise InputError(f"tangents has {int(too_large.sum())} values beyond the float32 range")
     if not (isinstance(scale, (tuple, list)) and len(scale) == 2):
         raise InputError(f"scale must be a pair (lo, hi), got {scale!r}")
-    # Bounded so that s·d + o and the noise stay far inside float64 for any float32 tile.
+    # Bounded so that s·d + o and the noise stay far inside float64 for any float32 tangent.
     lo, hi = (number(v, "scale", low=0.0, high=SCENE_LIMIT) for v in scale)
     if not 0 < lo <= hi:
         raise InputError(f"scale must satisfy 0 < lo <= hi, got {scale!r}")

@@ -1,0 +1,163 @@
+"""Depth estimators: what :func:`m360.estimate` runs on the tangent images.
+
+An *estimator* is anything with ``predict(tangents) -> (N, h, w) float32`` and an
+``output_kind`` (:data:`OUTPUT_KINDS`; docs/architecture.md): :class:`OnnxEstimator` (ONNX
+Runtime, :mod:`m360.estimators.onnx`), :class:`SimulatedEstimator` (demo and tests) or a user's
+own object. :func:`load_estimator` turns a registry name, an ``.onnx`` path or such an object
+into one.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import numpy as np
+
+from .. import models as _models
+from ..errors import InputError
+from .kinds import OUTPUT_KINDS, OutputKind, check_output_kind, ray_norms, to_perspective_disparity
+from .onnx import MAX_NETWORK_SIZE, RESIZE_MODES, OnnxEstimator, is_file, network_size
+from .simulated import SimulatedEstimator
+
+__all__ = [
+    "MAX_NETWORK_SIZE",
+    "OUTPUT_KINDS",
+    "RESIZE_MODES",
+    "Estimator",
+    "OnnxEstimator",
+    "OutputKind",
+    "SimulatedEstimator",
+    "check_output_kind",
+    "load_estimator",
+    "network_size",
+    "ray_norms",
+    "to_perspective_disparity",
+]
+
+
+@runtime_checkable
+class Estimator(Protocol):
+    """What :func:`estimate` needs from a depth estimator.
+
+    Attributes
+    ----------
+    output_kind : str
+        One of :data:`OUTPUT_KINDS`.
+    """
+
+    @property
+    def output_kind(self) -> str:
+        """One of :data:`OUTPUT_KINDS`."""
+        ...
+
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        """Predict one map per tangent image.
+
+        Parameters
+        ----------
+        tangents : (N, h, w, 3) uint8
+            RGB tangent images (float RGB in [0, 1] is possible too).
+
+        Returns
+        -------
+        numpy.ndarray
+            (N, h, w) float32 of ``output_kind``; NaN where there is no estimate.
+        """
+        ...
+
+
+def load_estimator(
+    model: str | os.PathLike[str] | Estimator = _models.DEFAULT_MODEL,
+    *,
+    providers: Sequence[str] | None = None,
+    threads: int | None = None,
+    input_size: tuple[int, int] | None = None,
+    output_kind: str | None = None,
+    mean: Sequence[float] | None = None,
+    std: Sequence[float] | None = None,
+) -> Estimator:
+    """Resolve ``model`` to an estimator.
+
+    Parameters
+    ----------
+    model : str, path or Estimator
+        A registry name (``m360.models.names()``: fetched, verified and loaded with its own
+        preprocessing), a path to an ``.onnx`` file (loaded with the options below; defaults:
+        affine disparity, ImageNet normalisation, 384 px) or an object with ``predict`` and
+        ``output_kind`` (returned as is; the options below are refused for it).
+    providers : list of str, optional
+        ONNX Runtime execution providers in order of preference.
+    threads : int, optional
+        ONNX Runtime intra-op threads.
+    input_size : (int, int), optional
+        Network (height, width) of a dynamic-size model.
+    output_kind : str, optional
+        What the model outputs (:data:`OUTPUT_KINDS`).
+    mean, std : 3 floats, optional
+        Input normalisation per RGB channel.
+
+    Returns
+    -------
+    Estimator
+        Ready to ``predict``.
+
+    Raises
+    ------
+    m360.ModelError
+        For an unknown, missing, corrupt or unverifiable model.
+    m360.InputError
+        For unusable options.
+    """
+    if isinstance(model, (str, os.PathLike)):
+        text = os.fspath(model)
+        if text in _models.REGISTRY:
+            entry = _models.get(text)
+            path = _models.ensure(text)
+            return OnnxEstimator(
+                path,
+                output_kind=output_kind or entry.output_kind,
+                input_size=input_size or entry.input_size,
+                mean=entry.mean if mean is None else mean,
+                std=entry.std if std is None else std,
+                multiple_of=entry.multiple_of,
+                resize=entry.resize,
+                providers=providers,
+                threads=threads,
+                name=entry.name,
+                sha256=entry.sha256,
+            )
+        if text.endswith(".onnx") or is_file(Path(text)):
+            return OnnxEstimator(
+                text,
+                output_kind=output_kind or "affine_disparity",
+                input_size=input_size,
+                mean=_models.IMAGENET_MEAN if mean is None else mean,
+                std=_models.IMAGENET_STD if std is None else std,
+                providers=providers,
+                threads=threads,
+            )
+        _models.get(text)  # raises ModelError naming the registered models
+    if isinstance(model, Estimator):
+        given = {
+            "providers": providers,
+            "threads": threads,
+            "input_size": input_size,
+            "output_kind": output_kind,
+            "mean": mean,
+            "std": std,
+        }
+        ignored = [k for k, v in given.items() if v is not None]
+        if ignored:
+            raise InputError(
+                f"{', '.join(ignored)} apply to ONNX models given by name or path; configure "
+                f"the {type(model).__name__} object itself instead"
+            )
+        check_output_kind(model.output_kind, f"estimator {type(model).__name__} output_kind")
+        return model
+    raise InputError(
+        f"model must be a registry name, a path to an .onnx file, or an object with "
+        f"predict(tangents) and output_kind; got {type(model).__name__}"
+    )

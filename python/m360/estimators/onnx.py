@@ -1,0 +1,379 @@
+"""ONNX Runtime estimators: a depth network in an ``.onnx`` file, run one tangent at a time.
+
+:class:`OnnxEstimator` runs an ONNX graph with ONNX Runtime, one tangent at a time by default
+(on a few CPU cores batching gains nothing and multiplies the activation memory), with the
+model's own resize and normalisation, and resizes the prediction back to the tangent size.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+import os
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from .. import models as _models
+from .._compat import renamed
+from .._validate import as_array, integer, size_pair
+from .._validate import threads as check_threads
+from ..errors import InputError, ModelError
+from .kinds import check_output_kind
+
+__all__ = ["MAX_NETWORK_SIZE", "RESIZE_MODES", "OnnxEstimator", "is_file", "network_size"]
+
+RESIZE_MODES = ("upper_bound", "lower_bound", "exact")
+#: Largest network input side (and rounding multiple) accepted: depth networks run at ≤ 1536 px,
+#: and one 4096² float32 RGB input is already 200 MB.
+MAX_NETWORK_SIZE = 4096
+#: Largest |mean| and std of the input normalisation, and smallest std: beyond them the
+#: float32 network input would overflow.
+_NORMALISATION_LIMIT = 1e6
+
+
+@dataclass(frozen=True)
+class _InputSpec:
+    name: str
+    layout: str  # "NCHW" or "NHWC"
+    batch: int | None  # fixed batch size or None (dynamic)
+    size: tuple[int, int] | None  # fixed (H, W) or None (dynamic)
+
+
+@functools.lru_cache(maxsize=4)
+def _session(
+    path: str, size: int, mtime_ns: int, providers: tuple[str, ...], threads: int | None
+) -> Any:
+    import onnxruntime as ort
+
+    options = ort.SessionOptions()
+    options.log_severity_level = 3
+    options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
+    options.inter_op_num_threads = 1
+    if threads is not None:
+        options.intra_op_num_threads = threads
+    try:
+        return ort.InferenceSession(path, sess_options=options, providers=list(providers))
+    except Exception as exc:  # onnxruntime raises its own exception types per failure
+        reason = _models.sniff_onnx(path)
+        detail = reason if reason else f"ONNX Runtime says: {str(exc).strip()[:300]}"
+        raise ModelError(f"cannot load {path} as an ONNX model: {detail}") from exc
+
+
+def _pick_providers(providers: Sequence[str] | None) -> tuple[str, ...]:
+    import onnxruntime as ort
+
+    available = ort.get_available_providers()
+    if providers is None:
+        return ("CPUExecutionProvider",)
+    if isinstance(providers, str):
+        providers = [providers]
+    if not isinstance(providers, (Sequence, set, frozenset)) or not all(
+        isinstance(p, str) for p in providers
+    ):
+        raise InputError(f"providers must be a list of provider names, got {providers!r}")
+    chosen = tuple(p for p in providers if p in available)
+    if not chosen:
+        raise InputError(
+            f"none of providers={list(providers)} is available in this onnxruntime build; "
+            f"available: {', '.join(available)} (GPU providers need onnxruntime-gpu)"
+        )
+    return chosen
+
+
+def _fixed(dim: Any) -> int | None:
+    return int(dim) if isinstance(dim, (int, np.integer)) and dim > 0 else None
+
+
+def _round_to(value: float, multiple: int, mode: str) -> int:
+    if mode == "lower_bound":
+        n = math.ceil(value / multiple - 1e-9)
+    elif mode == "upper_bound":
+        n = math.floor(value / multiple + 1e-9)
+    else:
+        n = round(value / multiple)
+    return max(multiple, int(n) * multiple)
+
+
+@renamed(tile_shape="tangent_shape")
+def network_size(
+    tangent_shape: tuple[int, int],
+    input_size: tuple[int, int],
+    *,
+    multiple_of: int = 1,
+    resize: str = "upper_bound",
+) -> tuple[int, int]:
+    """Network input (height, width) for a tangent of ``tangent_shape`` and a dynamic-size model.
+
+    ``"upper_bound"`` scales the tangent to fit inside ``input_size`` keeping its aspect ratio and
+    rounds down to ``multiple_of`` (MiDaS); ``"lower_bound"`` scales it to cover ``input_size``
+    and rounds up (Depth Anything); ``"exact"`` uses ``input_size`` rounded to ``multiple_of``.
+    """
+    h, w = tangent_shape
+    th, tw = input_size
+    if resize == "exact":
+        return _round_to(th, multiple_of, "nearest"), _round_to(tw, multiple_of, "nearest")
+    scale = min(th / h, tw / w) if resize == "upper_bound" else max(th / h, tw / w)
+    return _round_to(h * scale, multiple_of, resize), _round_to(w * scale, multiple_of, resize)
+
+
+class OnnxEstimator:
+    """A depth network in an ONNX file, run with ONNX Runtime.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The .onnx file. Its first input must be a 4-D float image, NCHW (1, 3, H, W) or NHWC
+        (1, H, W, 3); its first output (B, H', W') or (B, 1, H', W').
+    output_kind : str
+        What the network outputs (:data:`m360.estimators.OUTPUT_KINDS`).
+    input_size : (int, int), optional
+        Network (height, width) for models whose input size is dynamic; ignored (with the
+        file's size used instead) when the file fixes it. Default 384 x 384.
+    mean, std : 3 floats
+        Normalisation ``(rgb / 255 - mean) / std`` per RGB channel. Default ImageNet's.
+    multiple_of : int
+        Round dynamic network sizes to a multiple of this (32 for CNN/DPT, 14 for ViT-14).
+    resize : str
+        How a dynamic size follows the tangent's aspect: ``"upper_bound"``, ``"lower_bound"`` or
+        ``"exact"`` (see :func:`network_size`).
+    providers : list of str, optional
+        ONNX Runtime execution providers in order of preference (e.g. ``["CUDAExecutionProvider",
+        "CPUExecutionProvider"]``); unavailable ones are skipped. Default CPU.
+    threads : int, optional
+        Intra-op threads of the session (default: ONNX Runtime's choice, all cores).
+    batch_size : int
+        Tangents per network call (1: one at a time, the default; larger only when the model's
+        batch dimension is dynamic).
+    name : str, optional
+        Name for reports (default: the file name).
+    sha256 : str, optional
+        The file's sha256 if already known (registry models); computed lazily otherwise.
+
+    Notes
+    -----
+    Sessions are cached per process by (file, size, mtime, providers, threads). Tangents are
+    resized to the network size with ``cv2.INTER_AREA`` when shrinking and ``cv2.INTER_LINEAR``
+    when enlarging, and predictions back to the tangent size with ``cv2.INTER_LINEAR`` (no
+    overshoot at depth edges). uint8 tangents are divided by 255; float tangents are taken as RGB in
+    [0, 1].
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike[str],
+        *,
+        output_kind: str = "affine_disparity",
+        input_size: tuple[int, int] | None = None,
+        mean: Sequence[float] = _models.IMAGENET_MEAN,
+        std: Sequence[float] = _models.IMAGENET_STD,
+        multiple_of: int = 1,
+        resize: str = "upper_bound",
+        providers: Sequence[str] | None = None,
+        threads: int | None = None,
+        batch_size: int = 1,
+        name: str | None = None,
+        sha256: str | None = None,
+    ) -> None:
+        if not isinstance(path, (str, os.PathLike)):
+            raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+        self.path = Path(path)
+        if not is_file(self.path):
+            raise ModelError(f"model file {self.path} does not exist (or is not a file)")
+        self.output_kind = check_output_kind(output_kind)
+        self.input_size = (
+            size_pair(input_size, "input_size", MAX_NETWORK_SIZE) if input_size else None
+        )
+        self.mean = _check_triple(mean, "mean")
+        self.std = _check_triple(std, "std")
+        if np.any(np.abs(self.mean) > _NORMALISATION_LIMIT):
+            raise InputError(f"mean must be at most {_NORMALISATION_LIMIT:g} in magnitude")
+        if np.any(self.std < 1 / _NORMALISATION_LIMIT) or np.any(self.std > _NORMALISATION_LIMIT):
+            raise InputError(
+                f"std must be > 0 per channel (within [1e-6, 1e6]), got {tuple(self.std)}"
+            )
+        self.multiple_of = integer(multiple_of, "multiple_of", low=1, high=MAX_NETWORK_SIZE)
+        if not isinstance(resize, str) or resize not in RESIZE_MODES:
+            raise InputError(f"resize={resize!r} is not supported; choose one of {RESIZE_MODES}")
+        self.resize = resize
+        self.batch_size = integer(batch_size, "batch_size", low=1, high=1 << 16)
+        if name is not None and not isinstance(name, str):
+            raise InputError(f"name must be a str, got {type(name).__name__}")
+        if sha256 is not None and not isinstance(sha256, str):
+            raise InputError(f"sha256 must be a hex str, got {type(sha256).__name__}")
+        self.threads = check_threads(threads)
+        self.requested_providers = _pick_providers(providers)
+        self.name = name or self.path.name
+        self._sha256 = sha256
+        stat = self.path.stat()
+        self.session = _session(
+            str(self.path.resolve()),
+            stat.st_size,
+            stat.st_mtime_ns,
+            self.requested_providers,
+            self.threads,
+        )
+        self.providers = tuple(self.session.get_providers())
+        self._input = self._inspect_input()
+        self._output_name = self.session.get_outputs()[0].name
+        if self._input.batch is not None and self._input.batch != 1 and self.batch_size == 1:
+            raise ModelError(
+                f"{self.name}: input {self._input.name!r} has a fixed batch of "
+                f"{self._input.batch}; m360 runs one tangent at a time and needs batch 1 "
+                "(or a dynamic batch dimension)"
+            )
+
+    def _inspect_input(self) -> _InputSpec:
+        inputs = self.session.get_inputs()
+        first = inputs[0]
+        shape = list(first.shape)
+        if len(inputs) != 1:
+            raise ModelError(
+                f"{self.name} has {len(inputs)} inputs ({', '.join(i.name for i in inputs)}); "
+                "m360 can feed models with exactly one image input"
+            )
+        if len(shape) != 4:
+            raise ModelError(
+                f"{self.name}: input {first.name!r} has rank {len(shape)} (shape {shape}); m360 "
+                "needs a 4-D image input, NCHW (1, 3, H, W) or NHWC (1, H, W, 3)"
+            )
+        if first.type != "tensor(float)":
+            raise ModelError(
+                f"{self.name}: input {first.name!r} has type {first.type}; m360 feeds float32 "
+                "images (tensor(float))"
+            )
+        if _fixed(shape[1]) == 3:
+            layout, hw = "NCHW", (shape[2], shape[3])
+        elif _fixed(shape[3]) == 3:
+            layout, hw = "NHWC", (shape[1], shape[2])
+        elif _fixed(shape[1]) is None and _fixed(shape[3]) is None:
+            layout, hw = "NCHW", (shape[2], shape[3])
+        else:
+            raise ModelError(
+                f"{self.name}: input {first.name!r} has shape {shape}: neither dimension 1 "
+                "(NCHW) nor dimension 3 (NHWC) is 3 RGB channels"
+            )
+        fixed_hw = (_fixed(hw[0]), _fixed(hw[1]))
+        size = (fixed_hw[0], fixed_hw[1]) if None not in fixed_hw else None
+        return _InputSpec(first.name, layout, _fixed(shape[0]), size)  # type: ignore[arg-type]
+
+    @property
+    def sha256(self) -> str:
+        """sha256 of the model file (computed on first access for non-registry files)."""
+        if self._sha256 is None:
+            self._sha256 = _file_sha256(str(self.path.resolve()), *_stat_key(self.path))
+        return self._sha256
+
+    @renamed(tile_shape="tangent_shape")
+    def network_size(self, tangent_shape: tuple[int, int]) -> tuple[int, int]:
+        """Network input (height, width) used for tangents of ``tangent_shape``."""
+        if self._input.size is not None:
+            return self._input.size
+        target = self.input_size or (384, 384)
+        return network_size(tangent_shape, target, multiple_of=self.multiple_of, resize=self.resize)
+
+    @renamed(tiles="tangents")
+    def preprocess(self, tangents: np.ndarray) -> np.ndarray:
+        """(B, h, w, 3) uint8/float RGB → network input (B, 3, H, W) or (B, H, W, 3) float32."""
+        b, h, w = tangents.shape[:3]
+        nh, nw = self.network_size((h, w))
+        out = np.empty((b, nh, nw, 3), dtype=np.float32)
+        scale = 1.0 / 255.0 if tangents.dtype == np.uint8 else 1.0
+        flag = cv2.INTER_AREA if nh <= h and nw <= w else cv2.INTER_LINEAR
+        for k in range(b):
+            image = tangents[k].astype(np.float32) * np.float32(scale)
+            out[k] = (
+                image if (nh, nw) == (h, w) else cv2.resize(image, (nw, nh), interpolation=flag)
+            )
+        # Float input far outside [0, 1] may overflow float32 here: it becomes inf, the network's
+        # output there is not finite, and predict() marks it NaN (no estimate).
+        with np.errstate(over="ignore", invalid="ignore"):
+            out -= self.mean.astype(np.float32)
+            out /= self.std.astype(np.float32)
+        if self._input.layout == "NCHW":
+            out = out.transpose(0, 3, 1, 2)
+        return np.ascontiguousarray(out)
+
+    def _run(self, batch: np.ndarray) -> np.ndarray:
+        result = self.session.run([self._output_name], {self._input.name: batch})[0]
+        pred = np.asarray(result)
+        b = batch.shape[0]
+        if pred.ndim == 4 and pred.shape[0] == b and pred.shape[1] == 1:
+            pred = pred[:, 0]
+        if pred.ndim != 3 or pred.shape[0] != b or min(pred.shape[1:]) < 1:
+            raise ModelError(
+                f"{self.name}: output {self._output_name!r} has shape {tuple(pred.shape)} for an "
+                f"input of shape {tuple(batch.shape)}; m360 needs one depth map per image, "
+                f"shape ({b}, H, W) or ({b}, 1, H, W)"
+            )
+        return pred.astype(np.float32, copy=False)
+
+    @renamed(tiles="tangents")
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        """Run the network on each tangent.
+
+        Parameters
+        ----------
+        tangents : (N, h, w, 3) uint8 RGB (or float RGB in [0, 1])
+
+        Returns
+        -------
+        (N, h, w) float32 in the model's ``output_kind``, NaN where the output is not finite.
+        """
+        array = as_array(tangents, "tangents")
+        if array.ndim != 4 or array.shape[3] != 3 or min(array.shape[1:3]) < 1:
+            raise InputError(
+                f"tangents must have shape (N, h, w, 3) RGB with h, w > 0, got {array.shape}"
+            )
+        n, h, w = array.shape[:3]
+        out = np.empty((n, h, w), dtype=np.float32)
+        step = self.batch_size if self._input.batch is None else 1
+        for start in range(0, n, step):
+            pred = self._run(self.preprocess(array[start : start + step]))
+            for k in range(pred.shape[0]):
+                p = pred[k]
+                out[start + k] = (
+                    p
+                    if p.shape == (h, w)
+                    else cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
+                )
+        out[~np.isfinite(out)] = np.nan
+        return out
+
+    def __repr__(self) -> str:
+        return (
+            f"OnnxEstimator({self.name!r}, output_kind={self.output_kind!r}, "
+            f"providers={list(self.providers)}, threads={self.threads})"
+        )
+
+
+def _stat_key(path: Path) -> tuple[int, int]:
+    stat = path.stat()
+    return stat.st_size, stat.st_mtime_ns
+
+
+@functools.lru_cache(maxsize=16)
+def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
+    return _models.sha256_of(path)
+
+
+def is_file(path: Path) -> bool:
+    """``path.is_file()``, False for names the OS refuses (too long, NUL bytes)."""
+    try:
+        return path.is_file()
+    except (OSError, ValueError):
+        return False
+
+
+def _check_triple(value: Sequence[float], name: str) -> np.ndarray:
+    try:
+        array = np.asarray(value, dtype=np.float64)
+    except (TypeError, ValueError) as exc:
+        raise InputError(f"{name} must be 3 numbers (R, G, B), got {value!r}") from exc
+    if array.shape != (3,) or not np.all(np.isfinite(array)):
+        raise InputError(f"{name} must be 3 finite numbers (R, G, B), got {value!r}")
+    return array

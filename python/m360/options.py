@@ -1,0 +1,342 @@
+"""One validated, canonical set of stitching options: :class:`StitchOptions`.
+
+:func:`m360.stitch`, :func:`m360.estimate`, :func:`m360.batch.run` and ``m360 run`` take the same
+stitching keywords (see :mod:`m360.align` and :mod:`m360.blend` for what each means) or a ready
+``options=StitchOptions(...)``. Python only normalises the *types* of the keywords; the compiled
+core fills in its defaults and judges every value (``_core.stitch_options``), so names, defaults
+and limits live in one place.
+"""
+
+from __future__ import annotations
+
+import copy
+import warnings
+from collections.abc import Mapping, Sequence
+from typing import Any, TypedDict
+
+import numpy as np
+
+from . import _core
+from ._validate import count, real, text
+from .align import AlignSolver, Energy, Offsets
+from .blend import BlendMethod, Fidelity, PoissonSolver
+from .errors import InputError
+
+__all__ = ["AlignOptions", "AlignSpec", "BlendOptions", "StitchOptions"]
+
+#: What ``align`` may be: ``"multiscale"``, ``"none"``, a (cols, rows) grid or a list of grids.
+AlignSpec = str | tuple[int, int] | Sequence[tuple[int, int]]
+
+_LIMIT_ITERATIONS = int(_core.LIMITS["max_iterations"])
+#: The Poisson keys of ``blend_options``, named by the core.
+_POISSON_KEYS = tuple(k for k in _core.DEFAULTS["blend"] if k != "method")
+#: Old spellings of ``blend_options`` keys, still accepted with a DeprecationWarning.
+_RENAMED_BLEND_KEYS = {"tol": "tolerance", "max_iterations": "iterations"}
+
+
+class AlignOptions(TypedDict):
+    """The alignment options as the core resolved them (every default filled in)."""
+
+    levels: list[tuple[int, int]]
+    energy: Energy
+    solver: AlignSolver
+    iterations: int
+    tolerance: float
+    sample_fraction: float
+    pole_cap_deg: float
+    smoothness: float
+    scale_weight: float
+    offsets: Offsets
+
+
+class _BlendMethodOnly(TypedDict):
+    method: BlendMethod
+
+
+class BlendOptions(_BlendMethodOnly, total=False):
+    """The blend options as the core resolved them.
+
+    ``method``, and for ``"poisson"`` every Poisson option.
+    """
+
+    fidelity: Fidelity
+    lam: float
+    tolerance: float
+    iterations: int
+    solver: PoissonSolver
+
+
+class StitchOptions:
+    """Frozen, validated stitching options: the alignment schedule and solver, the blend.
+
+    Built from the keywords :func:`m360.stitch` takes; every value is checked and every default
+    filled in by the core, so two option sets that stitch alike compare equal and have the same
+    :meth:`as_dict`.
+
+    Parameters
+    ----------
+    align : str, (cols, rows) or list of (cols, rows)
+        ``"multiscale"`` (default: the energy's schedule), ``"none"`` (no alignment), one grid
+        or a schedule of grids (see :mod:`m360.align`).
+    blend : str, optional
+        Blend method (default: the core's, ``"poisson"``; see :mod:`m360.blend`).
+    energy, solver, iterations, tolerance, sample_fraction : optional
+        Alignment options; None takes the core's default (see :mod:`m360.align`).
+    pole_cap_deg, smoothness, scale_weight, offsets : optional
+        Alignment options; None takes the core's default (see :mod:`m360.align`). Ignored with
+        ``align="none"``.
+    blend_options : mapping, optional
+        Poisson options ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (see
+        :mod:`m360.blend`); refused for another method.
+
+    Raises
+    ------
+    m360.InputError
+        Naming the first option that is unusable.
+
+    Examples
+    --------
+    >>> opts = m360.StitchOptions(energy="paper", blend_options={"lam": 0.2})
+    >>> opts.align["levels"], opts.blend["lam"]
+    ([(4, 3), (8, 7), (16, 14)], 0.2)
+    """
+
+    __slots__ = ("_align", "_blend")
+    _align: AlignOptions | None
+    _blend: BlendOptions
+
+    def __init__(
+        self,
+        align: AlignSpec = "multiscale",
+        blend: BlendMethod | None = None,
+        *,
+        energy: Energy | None = None,
+        solver: AlignSolver | None = None,
+        iterations: int | None = None,
+        tolerance: float | None = None,
+        sample_fraction: float | None = None,
+        pole_cap_deg: float | None = None,
+        smoothness: float | None = None,
+        scale_weight: float | None = None,
+        offsets: Offsets | None = None,
+        blend_options: Mapping[str, Any] | None = None,
+    ) -> None:
+        levels = _levels(align)
+        raw_align: dict[str, Any] | None = None
+        if levels is not False:
+            raw_align = {
+                "levels": levels,
+                "energy": _choice(energy, "energy", "energy"),
+                "solver": _choice(solver, "solver", "solver"),
+                "iterations": _count(iterations, "iterations"),
+                "tolerance": _real(tolerance, "tolerance"),
+                "sample_fraction": _real(sample_fraction, "sample_fraction"),
+                "pole_cap_deg": _real(pole_cap_deg, "pole_cap_deg"),
+                "smoothness": _real(smoothness, "smoothness"),
+                "scale_weight": _real(scale_weight, "scale_weight"),
+                "offsets": _choice(offsets, "offsets", "offsets"),
+            }
+            raw_align = {k: v for k, v in raw_align.items() if v is not None}
+        method = (
+            _core.CHOICES["blend"][0]
+            if blend is None
+            else text(blend, "blend", _core.CHOICES["blend"])
+        )
+        raw_blend = {"method": method, **_blend_options(blend_options)}
+        resolved_align, resolved_blend = _core.stitch_options(raw_align, raw_blend)
+        self._set(resolved_align, resolved_blend)
+
+    def _set(self, align: Any, blend: Any) -> None:
+        if align is not None:
+            align = {**align, "levels": [(int(c), int(r)) for c, r in align["levels"]]}
+        object.__setattr__(self, "_align", align)
+        object.__setattr__(self, "_blend", dict(blend))
+
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> StitchOptions:
+        """Options from their :meth:`as_dict` form (e.g. a sidecar's), checked again by the core.
+
+        Parameters
+        ----------
+        data : mapping
+            ``{"align": {...} or None, "blend": {...}}``.
+
+        Returns
+        -------
+        StitchOptions
+        """
+        if not isinstance(data, Mapping) or set(data) != {"align", "blend"}:
+            raise InputError(f"stitch options must be {{'align': ..., 'blend': ...}}, got {data!r}")
+        align, blend = data["align"], data["blend"]
+        if align is not None and not isinstance(align, Mapping):
+            raise InputError(f"stitch options 'align' must be a mapping or None, got {align!r}")
+        if not isinstance(blend, Mapping):
+            raise InputError(f"stitch options 'blend' must be a mapping, got {blend!r}")
+        raw_align = None
+        if align is not None:
+            raw_align = dict(align)
+            if "levels" in raw_align and raw_align["levels"] is not None:
+                levels = _levels(raw_align["levels"])
+                if levels is False or levels is None:
+                    raise InputError(f"stitch options levels={raw_align['levels']!r} is unusable")
+                raw_align["levels"] = levels
+        options = cls.__new__(cls)
+        options._set(*_core.stitch_options(raw_align, dict(blend)))
+        return options
+
+    def checked_for(self, tangent_shape: tuple[int, int]) -> StitchOptions:
+        """``self``, after the core checked the grids against a tangent size (h, w).
+
+        Raises
+        ------
+        m360.InputError
+            If a grid has more nodes than the tangent has pixels.
+        """
+        align = None if self._align is None else dict(self._align)
+        _core.stitch_options(align, dict(self._blend), tangent_shape)
+        return self
+
+    @property
+    def align(self) -> AlignOptions | None:
+        """The resolved alignment options (a copy), None without alignment."""
+        return copy.deepcopy(self._align)
+
+    @property
+    def blend(self) -> BlendOptions:
+        """The resolved blend options (a copy): ``method`` and its options."""
+        return copy.deepcopy(self._blend)
+
+    @property
+    def method(self) -> BlendMethod:
+        """The blend method."""
+        return self._blend["method"]
+
+    def as_dict(self) -> dict[str, Any]:
+        """Give the canonical JSON-able form: ``{"align": {...} or None, "blend": {...}}``.
+
+        Every default is filled in and grids are ``[cols, rows]`` lists, so equal options give
+        equal dicts (the batch resume fingerprint hashes this).
+        """
+        align: dict[str, Any] | None = None
+        if self._align is not None:
+            align = {**self._align, "levels": [[c, r] for c, r in self._align["levels"]]}
+        return {"align": align, "blend": dict(self._blend)}
+
+    def __setattr__(self, name: str, value: object) -> None:
+        raise AttributeError("StitchOptions is frozen; build a new one")
+
+    def __delattr__(self, name: str) -> None:
+        raise AttributeError("StitchOptions is frozen")
+
+    def __reduce__(self) -> tuple[Any, ...]:
+        return (StitchOptions.from_dict, (self.as_dict(),))
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, StitchOptions) and other.as_dict() == self.as_dict()
+
+    def __hash__(self) -> int:
+        return hash(repr(self.as_dict()))
+
+    def __repr__(self) -> str:
+        return f"StitchOptions(align={self._align!r}, blend={self._blend!r})"
+
+
+def build(
+    options: StitchOptions | None,
+    align: AlignSpec = "multiscale",
+    blend: BlendMethod | None = None,
+    **keywords: Any,
+) -> StitchOptions:
+    """``options``, or the options the stitching keywords describe (not both).
+
+    The one place the callers of :class:`StitchOptions` (``stitch``, ``estimate``,
+    ``batch.run``) turn their keywords into options.
+    """
+    if options is None:
+        return StitchOptions(align, blend, **keywords)
+    if not isinstance(options, StitchOptions):
+        raise InputError(f"options must be an m360.StitchOptions, got {type(options).__name__}")
+    given = [k for k, v in keywords.items() if v is not None]
+    if isinstance(align, str) and align == "multiscale" and blend is None and not given:
+        return options
+    named = ", ".join(
+        ([] if isinstance(align, str) and align == "multiscale" else ["align"])
+        + ([] if blend is None else ["blend"])
+        + given
+    )
+    raise InputError(f"give either options= or the stitching keywords, not both (got {named})")
+
+
+def _levels(align: Any) -> list[tuple[int, int]] | bool | None:
+    """Read the levels of ``align``.
+
+    A list of grids, None (the energy's schedule) or False (no alignment).
+    """
+    if isinstance(align, str):
+        if align == "none":
+            return False
+        if align == "multiscale":
+            return None
+    elif _is_grid(align):
+        return [(int(align[0]), int(align[1]))]
+    elif isinstance(align, (list, tuple)) and align and all(_is_grid(g) for g in align):
+        return [(int(g[0]), int(g[1])) for g in align]
+    raise InputError(
+        f"align={align!r} is not supported; use 'multiscale', 'none', a (cols, rows) grid or a "
+        "list of grids such as [(4, 3), (8, 7)]"
+    )
+
+
+def _is_grid(value: object) -> bool:
+    return (
+        isinstance(value, (list, tuple))
+        and len(value) == 2
+        and all(
+            isinstance(v, (int, np.integer))
+            and not isinstance(v, bool)
+            and abs(int(v)) < 1 << 62  # beyond it the core's counters overflow; within, it judges
+            for v in value
+        )
+    )
+
+
+def _choice(value: Any, name: str, kind: str) -> str | None:
+    return None if value is None else text(value, name, _core.CHOICES[kind])
+
+
+def _real(value: Any, name: str) -> float | None:
+    return None if value is None else real(value, name)
+
+
+def _count(value: Any, name: str) -> int | None:
+    return None if value is None else count(value, name, _LIMIT_ITERATIONS)
+
+
+def _blend_options(options: Mapping[str, Any] | None) -> dict[str, Any]:
+    """``blend_options`` with types normalised and old key spellings renamed (with a warning)."""
+    if options is None:
+        return {}
+    if not isinstance(options, Mapping):
+        raise InputError(f"blend_options must be a mapping, got {type(options).__name__}")
+    out: dict[str, Any] = {}
+    for key, value in options.items():
+        name = _RENAMED_BLEND_KEYS.get(key, key) if isinstance(key, str) else key
+        if name != key:
+            warnings.warn(
+                f"blend_options key {key!r} is deprecated; use {name!r}",
+                DeprecationWarning,
+                stacklevel=4,
+            )
+            if name in options:
+                raise InputError(f"blend_options has both {key!r} and {name!r}")
+        if name not in _POISSON_KEYS:
+            known = ", ".join(_POISSON_KEYS)
+            raise InputError(f"unknown blend_options {key!r}; known: {known}")
+        if name in ("fidelity", "solver"):
+            kind = "fidelity" if name == "fidelity" else "poisson_solver"
+            out[name] = text(value, f"blend_options {name}", _core.CHOICES[kind])
+        elif name == "iterations":
+            out[name] = count(value, f"blend_options {name}", _LIMIT_ITERATIONS)
+        else:
+            out[name] = real(value, f"blend_options {name}")
+    return out
