@@ -4,6 +4,7 @@ Run as a script by ``tests/test_concurrency.py`` under a timeout (the watchdog: 
 the script instead of hanging the test run). ``python concurrency_jobs.py MODE LAYOUTS WORKERS``
 computes every job one at a time, then again with MODE ("threads", "fork" or "spawn") on fresh
 plans, and exits 0 when the results are bit-identical, 1 (naming the jobs) when they are not.
+MODE "first-calls" replays the recipe of the hang the watchdog guards against.
 """
 
 from __future__ import annotations
@@ -92,10 +93,32 @@ def run_all(jobs: list[tuple[int, str]], mode: str, workers: int) -> list[str]:
         return list(pool.map(_job, jobs))
 
 
+def first_calls(trials: int) -> int:
+    """The recipe that hung before plans were built outside the pool: on each fresh layout,
+    one thread calls ``erp_to_tangents`` while two call ``stitch(..., blend="frustum")``."""
+    for trial in range(trials):
+        layout = layout_of(trial)
+        rgb = np.zeros((*layout.erp_shape, 3), np.uint8)
+        tangents = np.ones((len(layout), *layout.tangent_shape), np.float32)
+        with concurrent.futures.ThreadPoolExecutor(3) as pool:
+            futures = [pool.submit(m360.erp_to_tangents, rgb, layout)] + [
+                pool.submit(m360.stitch, tangents, layout, align="none", blend="frustum")
+                for _ in range(2)
+            ]
+            results = [f.result() for f in futures]
+        if not np.array_equal(results[1], results[2], equal_nan=True):
+            print(f"trial {trial}: two identical stitches differ")
+            return 1
+    print(f"first calls: {trials} fresh layouts, 3 threads each")
+    return 0
+
+
 def main(argv: list[str]) -> int:
     """Compare ``argv[0]`` mode against the serial run; print what differs."""
     mode, layouts, workers = argv[0], int(argv[1]), int(argv[2])
     m360.set_num_threads(THREADS)
+    if mode == "first-calls":
+        return first_calls(layouts)
     # Layout-major order: the workers start on the same fresh layout together.
     jobs = [(i, v) for i in range(layouts) for v in VARIANTS]
     serial = run_all(jobs, "serial", 1)

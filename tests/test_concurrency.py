@@ -39,6 +39,13 @@ def test_eight_threads_on_twenty_fresh_layouts_match_the_serial_run() -> None:
     assert "160 calls on 20 fresh layouts, 8 workers" in out
 
 
+def test_first_calls_from_three_threads_on_fresh_layouts_finish() -> None:
+    # Before the fix this hung within 30 trials (measured: the old build was killed by a 180 s
+    # timeout on this recipe, the fixed one finishes it in seconds).
+    out = run_jobs("first-calls", layouts=30, workers=3)
+    assert "first calls: 30 fresh layouts" in out
+
+
 @pytest.mark.parametrize("start_method", ["fork", "spawn"])
 def test_processes_sharing_nothing_match_the_serial_run(start_method: str) -> None:
     # The parent has used m360 (its thread pool exists) before it forks: a forked child must
