@@ -56,25 +56,17 @@ impl LinOp<f64> for System {
     }
 }
 
-/// Jacobi (diagonal) preconditioner: with λ = 0.1 the system is well conditioned, and scaling
-/// by the diagonal evens out the 1–5-fold overlap of the faces.
-#[derive(Debug)]
-struct Jacobi<'a>(&'a [f64]);
-
-impl Jacobi<'_> {
-    fn scale(&self, x: &[f64], y: &mut [f64]) {
-        y.par_chunks_mut(1 << 14)
-            .zip(x.par_chunks(1 << 14))
-            .zip(self.0.par_chunks(1 << 14))
-            .for_each(|((y, x), d)| {
-                for ((y, x), d) in y.iter_mut().zip(x).zip(d) {
-                    *y = x / d;
-                }
-            });
-    }
+/// A symmetric positive definite approximation of A⁻¹ applied to one vector: z = M r.
+trait Preconditioner: Sync + std::fmt::Debug {
+    fn len(&self) -> usize;
+    fn precondition(&self, r: &[f64], z: &mut [f64]);
 }
 
-impl LinOp<f64> for Jacobi<'_> {
+/// A [`Preconditioner`] as faer's operator and `Precond`.
+#[derive(Debug)]
+struct ForFaer<P>(P);
+
+impl<P: Preconditioner> LinOp<f64> for ForFaer<P> {
     fn apply_scratch(&self, _rhs_ncols: usize, _par: Par) -> faer::dyn_stack::StackReq {
         faer::dyn_stack::StackReq::EMPTY
     }
@@ -85,23 +77,22 @@ impl LinOp<f64> for Jacobi<'_> {
         self.0.len()
     }
     fn apply(&self, out: MatMut<'_, f64>, rhs: MatRef<'_, f64>, _par: Par, _: &mut MemStack) {
-        let x = column(rhs);
-        write_column(out, |y| self.scale(&x, y));
+        let r = column(rhs);
+        write_column(out, |z| self.0.precondition(&r, z));
     }
     fn conj_apply(&self, out: MatMut<'_, f64>, rhs: MatRef<'_, f64>, par: Par, s: &mut MemStack) {
         LinOp::apply(self, out, rhs, par, s);
     }
 }
 
-impl Precond<f64> for Jacobi<'_> {
+impl<P: Preconditioner> Precond<f64> for ForFaer<P> {
     fn apply_in_place_scratch(&self, _rhs_ncols: usize, _par: Par) -> faer::dyn_stack::StackReq {
         faer::dyn_stack::StackReq::EMPTY
     }
     fn apply_in_place(&self, rhs: MatMut<'_, f64>, _par: Par, _: &mut MemStack) {
         write_column(rhs, |y| {
-            y.par_chunks_mut(1 << 14)
-                .zip(self.0.par_chunks(1 << 14))
-                .for_each(|(y, d)| y.iter_mut().zip(d).for_each(|(y, d)| *y /= d));
+            let r = y.to_vec();
+            self.0.precondition(&r, y);
         });
     }
     fn conj_apply_in_place(&self, rhs: MatMut<'_, f64>, par: Par, s: &mut MemStack) {
@@ -109,9 +100,30 @@ impl Precond<f64> for Jacobi<'_> {
     }
 }
 
-/// The multigrid V-cycle (see [`Multigrid`]) as a faer preconditioner. faer's `Precond` takes
-/// `&self` while a V-cycle reuses its coarse-grid buffers, hence the locks (never contended: CG
-/// applies the preconditioner from one thread at a time).
+/// Jacobi (diagonal) preconditioner: with λ = 0.1 the system is well conditioned, and scaling
+/// by the diagonal evens out the 1–5-fold overlap of the faces.
+#[derive(Debug)]
+struct Jacobi<'a>(&'a [f64]);
+
+impl Preconditioner for Jacobi<'_> {
+    fn len(&self) -> usize {
+        self.0.len()
+    }
+    fn precondition(&self, r: &[f64], z: &mut [f64]) {
+        z.par_chunks_mut(1 << 14)
+            .zip(r.par_chunks(1 << 14))
+            .zip(self.0.par_chunks(1 << 14))
+            .for_each(|((z, r), d)| {
+                for ((z, r), d) in z.iter_mut().zip(r).zip(d) {
+                    *z = r / d;
+                }
+            });
+    }
+}
+
+/// The multigrid V-cycle (see [`Multigrid`]). faer's `Precond` takes `&self` while a V-cycle
+/// reuses its coarse-grid buffers, hence the locks (never contended: CG applies the
+/// preconditioner from one thread at a time).
 #[derive(Debug)]
 struct VCycle<'a> {
     multigrid: Mutex<Multigrid>,
@@ -119,8 +131,11 @@ struct VCycle<'a> {
     system: &'a System,
 }
 
-impl VCycle<'_> {
-    fn run(&self, r: &[f64], out: &mut [f64]) {
+impl Preconditioner for VCycle<'_> {
+    fn len(&self) -> usize {
+        self.system.diag.len()
+    }
+    fn precondition(&self, r: &[f64], out: &mut [f64]) {
         let mut mg = self
             .multigrid
             .lock()
@@ -130,40 +145,6 @@ impl VCycle<'_> {
         out.par_iter_mut()
             .zip(z.par_iter())
             .for_each(|(o, &z)| *o = f64::from(z));
-    }
-}
-
-impl LinOp<f64> for VCycle<'_> {
-    fn apply_scratch(&self, _rhs_ncols: usize, _par: Par) -> faer::dyn_stack::StackReq {
-        faer::dyn_stack::StackReq::EMPTY
-    }
-    fn nrows(&self) -> usize {
-        self.system.diag.len()
-    }
-    fn ncols(&self) -> usize {
-        self.system.diag.len()
-    }
-    fn apply(&self, out: MatMut<'_, f64>, rhs: MatRef<'_, f64>, _par: Par, _: &mut MemStack) {
-        let r = column(rhs);
-        write_column(out, |y| self.run(&r, y));
-    }
-    fn conj_apply(&self, out: MatMut<'_, f64>, rhs: MatRef<'_, f64>, par: Par, s: &mut MemStack) {
-        LinOp::apply(self, out, rhs, par, s);
-    }
-}
-
-impl Precond<f64> for VCycle<'_> {
-    fn apply_in_place_scratch(&self, _rhs_ncols: usize, _par: Par) -> faer::dyn_stack::StackReq {
-        faer::dyn_stack::StackReq::EMPTY
-    }
-    fn apply_in_place(&self, rhs: MatMut<'_, f64>, _par: Par, _: &mut MemStack) {
-        write_column(rhs, |y| {
-            let r = y.to_vec();
-            self.run(&r, y);
-        });
-    }
-    fn conj_apply_in_place(&self, rhs: MatMut<'_, f64>, par: Par, s: &mut MemStack) {
-        self.apply_in_place(rhs, par, s);
     }
 }
 
@@ -194,9 +175,9 @@ pub(crate) fn solve_faer(
             z: Mutex::new(vec![0.0; h * w]),
             system,
         };
-        faer_cg(system, &precond, x, params)
+        faer_cg(system, &ForFaer(precond), x, params)
     } else {
-        faer_cg(system, &Jacobi(&system.diag), x, params)
+        faer_cg(system, &ForFaer(Jacobi(&system.diag)), x, params)
     }
 }
 
