@@ -86,7 +86,7 @@ def load_estimator(
     model : str, path or Estimator
         A registry name (``m360.models.names()``: fetched, verified and loaded with its own
         preprocessing), a path to an ``.onnx`` file (loaded with the options below; defaults:
-        affine disparity, ImageNet normalisation, 384 px) or an object with ``predict`` and
+        affine disparity, ImageNet normalisation unless the graph applies it, 384 px) or an object with ``predict`` and
         ``output_kind`` (returned as is; the options below are refused for it).
     providers : list of str, optional
         ONNX Runtime execution providers in order of preference.
@@ -97,7 +97,8 @@ def load_estimator(
     output_kind : str, optional
         What the model outputs (:data:`OUTPUT_KINDS`).
     mean, std : 3 floats, optional
-        Input normalisation per RGB channel.
+        Explicit input normalisation per RGB channel (wins over what the graph holds; default:
+        the model's own, applied by m360 only if the graph does not apply it).
 
     Returns
     -------
@@ -120,8 +121,9 @@ def load_estimator(
                 path,
                 output_kind=output_kind or entry.output_kind,
                 input_size=input_size or entry.input_size,
-                mean=entry.mean if mean is None else mean,
-                std=entry.std if std is None else std,
+                mean=mean,
+                std=std,
+                expected_normalization=(entry.mean, entry.std),
                 multiple_of=entry.multiple_of,
                 resize=entry.resize,
                 providers=providers,
@@ -134,8 +136,8 @@ def load_estimator(
                 text,
                 output_kind=output_kind or "affine_disparity",
                 input_size=input_size,
-                mean=_models.IMAGENET_MEAN if mean is None else mean,
-                std=_models.IMAGENET_STD if std is None else std,
+                mean=mean,
+                std=std,
                 providers=providers,
                 threads=threads,
             )
