@@ -86,8 +86,9 @@ def load_estimator(
     model : str, path or Estimator
         A registry name (``m360.models.names()``: fetched, verified and loaded with its own
         preprocessing), a path to an ``.onnx`` file (loaded with the options below; defaults:
-        affine disparity, ImageNet normalisation unless the graph applies it, 384 px) or an object with ``predict`` and
-        ``output_kind`` (returned as is; the options below are refused for it).
+        affine disparity, ImageNet normalisation unless the graph applies it, 384 px) or an
+        object with ``predict`` and ``output_kind`` (returned as is; the options below are
+        refused for it).
     providers : list of str, optional
         ONNX Runtime execution providers in order of preference.
     threads : int, optional
