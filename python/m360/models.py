@@ -50,6 +50,7 @@ __all__ = [
     "ModelEntry",
     "Normalization",
     "cache_dir",
+    "check",
     "ensure",
     "fetch",
     "get",
@@ -622,6 +623,11 @@ def _match(
     return None
 
 
+def _rounded(values: np.ndarray) -> tuple[float, float, float]:
+    # float32 constants: more digits than 7 are noise
+    return _triple(round(float(v), 7) for v in values)
+
+
 @functools.lru_cache(maxsize=16)
 def _graph_summary(path: str, size: int, mtime_ns: int) -> _onnxgraph.Summary | str:
     try:
@@ -704,11 +710,107 @@ def input_normalization(
     if matched is not None and found is not None:
         k = matched[2]
         return Normalization(
-            "graph", _triple(g_mean / k), _triple(g_std / k), k, False, found, note
+            "graph", _rounded(g_mean / k), _rounded(g_std / k), k, False, found, note
         )
     return Normalization(
         "m360", _triple(expected[0]), _triple(expected[1]), 1.0, False, found, note
     )
+
+
+#: ERP width whose default layout ``check`` reports the network size for.
+CHECK_ERP_WIDTH = 2048
+
+
+def check(
+    path: str | os.PathLike[str],
+    *,
+    output_kind: str | None = None,
+    erp_width: int = CHECK_ERP_WIDTH,
+) -> dict[str, Any]:
+    """Say what m360 will do with the ONNX file at ``path`` (``m360 models check``).
+
+    The file is loaded as :func:`m360.estimators.load_estimator` would (with a registry entry's
+    settings when its sha256 matches one) and run once on one grey tangent.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The .onnx file.
+    output_kind : str, optional
+        What the model outputs, if known (wins over the registry's).
+    erp_width : int
+        ERP width of the default layout (``Layout.icosahedron(erp_width)``) whose network size
+        is reported.
+
+    Returns
+    -------
+    dict
+        ``path``, ``size_bytes``, ``sha256``, ``registry`` (matching entry name or None),
+        ``input`` (name, shape, layout, static, size), ``tangent_shape``, ``network_size``,
+        ``normalization`` (:meth:`Normalization.as_dict`), ``output_kind`` and
+        ``output_kind_source`` (``"user"``, ``"registry"`` or None: unknown), ``output_shape``.
+
+    Raises
+    ------
+    m360.ModelError
+        When the file is missing, not ONNX, corrupt, or not a model m360 can feed.
+    """
+    from .estimators import OnnxEstimator, check_output_kind
+    from .geometry import Layout
+
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    p = Path(path)
+    if not p.is_file():
+        raise ModelError(f"{p} does not exist (or is not a file)")
+    problem = sniff_onnx(p)
+    if problem:
+        raise ModelError(f"{p} is not an ONNX model: {problem}")
+    digest = sha256_of(p)
+    entry = next((e for e in REGISTRY.values() if e.sha256 == digest), None)
+    kind = None if output_kind is None else check_output_kind(output_kind)
+    source = "user" if kind else "registry" if entry else None
+    settings: dict[str, Any] = {}
+    if entry is not None:
+        settings = {
+            "input_size": entry.input_size,
+            "expected_normalization": (entry.mean, entry.std),
+            "multiple_of": entry.multiple_of,
+            "resize": entry.resize,
+            "name": entry.name,
+        }
+    est = OnnxEstimator(
+        p,
+        output_kind=kind or (entry.output_kind if entry else "affine_disparity"),
+        sha256=digest,
+        **settings,
+    )
+    spec = est._input
+    first = est.session.get_inputs()[0]
+    tangent = Layout.icosahedron(erp_width).tangent_shape
+    # One run on a grey tangent: the output must be one map per image (ModelError otherwise).
+    out = est._run(est.preprocess(np.full((1, *tangent, 3), 128, np.uint8)))
+    return {
+        "path": str(p),
+        "size_bytes": p.stat().st_size,
+        "sha256": digest,
+        "registry": entry.name if entry else None,
+        "input": {
+            "name": spec.name,
+            "shape": [d if isinstance(d, int) else str(d) for d in first.shape],
+            "layout": spec.layout,
+            "static": spec.size is not None,
+            "size": None if spec.size is None else list(spec.size),
+        },
+        "erp_width": erp_width,
+        "tangent_shape": list(tangent),
+        "network_size": list(est.network_size(tangent)),
+        "normalization": est.normalization.as_dict(),
+        "output_kind": kind or (entry.output_kind if entry else None),
+        "output_kind_source": source,
+        "output_shape": list(out.shape),
+        "output_finite": bool(np.isfinite(out).all()),
+    }
 
 
 def list_models() -> list[dict[str, Any]]:
