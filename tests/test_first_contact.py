@@ -20,7 +20,7 @@ import onnx
 import onnx_graphs as g
 import pytest
 from local_http import LocalServer
-from m360 import models
+from m360 import _onnxgraph, models
 from m360.errors import ModelError
 from m360.estimators import OnnxEstimator, load_estimator
 from norm_graphs import MEAN, STD, VARIANTS, chain_then_channel, per_channel
@@ -281,3 +281,30 @@ def test_registry_urls_are_pinned_and_the_hf_copies_are_all_listed() -> None:
         assert root.rsplit("/", 1)[0] + "/onnx" == sub.rsplit("/", 1)[0]
     isl = models.get("midas-v21-small-isl")
     assert isl.urls[0] == "https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx"
+
+
+def test_in_memory_bytes_are_read_instead_of_the_file(tmp_path: Path) -> None:
+    inside = chain_then_channel(tmp_path / "in.onnx", 0, VARIANTS["sub_div"][0])
+    plain = chain_then_channel(tmp_path / "plain.onnx", 0, [])
+    assert models.input_normalization(plain).source == "m360"
+    assert models.input_normalization(plain, data=inside.read_bytes()).source == "graph"
+
+
+def test_the_graph_reader_only_ever_says_unreadable(tmp_path: Path) -> None:
+    # Every truncation and many one-byte corruptions of a normalising graph: the reader
+    # answers or raises ModelError, never another exception (the file comes from anywhere).
+    data = chain_then_channel(
+        tmp_path / "in.onnx", 0, VARIANTS["constant_nodes_after_cast_and_resize"][0]
+    ).read_bytes()
+    assert _onnxgraph.inspect(data).affine is not None
+    rng = np.random.default_rng(0)
+    variants = [data[:n] for n in range(len(data))]
+    for _ in range(400):
+        mutated = bytearray(data)
+        mutated[rng.integers(len(data))] = rng.integers(256)
+        variants.append(bytes(mutated))
+    for blob in variants:
+        try:
+            _onnxgraph.inspect(blob)
+        except ModelError:
+            pass

@@ -105,6 +105,8 @@ def _ints(wire: int, value: int | memoryview) -> list[int]:
 def _floats(wire: int, value: int | memoryview) -> list[float]:
     if isinstance(value, int):
         return [struct.unpack("<f", value.to_bytes(4, "little"))[0]]
+    if len(value) % 4:
+        raise _Truncated
     return list(np.frombuffer(value, dtype="<f4").astype(float))
 
 
@@ -181,6 +183,8 @@ def _tensor(raw: memoryview) -> np.ndarray | None:
                 [struct.unpack("<d", value.to_bytes(8, "little"))[0]]
                 if isinstance(value, int)
                 else list(np.frombuffer(value, dtype="<f8"))
+                if len(value) % 8 == 0
+                else []
             )
         elif number == _TENSOR_INT64S:
             ints += _ints(wire, value)
@@ -259,7 +263,7 @@ def parse(data: bytes | memoryview) -> Graph:
                         break
             elif number == _GRAPH_INPUT:
                 inputs.append(_value_info(value))
-    except _Truncated:
+    except (_Truncated, ValueError, OverflowError):  # never more than "unreadable"
         raise ModelError("it is not a readable ONNX protobuf (truncated or corrupt)") from None
     # Before IR version 4 initializers were listed among the inputs too.
     images = [i for i in inputs if i[0] not in initializers]
@@ -303,7 +307,7 @@ def input_affine(graph: Graph) -> InputAffine | None:
     """
     shape = graph.input_shape
     rank = len(shape) if shape else 4
-    axis = 3 if rank == 4 and shape[3] == 3 and shape[1] != 3 else 1
+    axis = 3 if len(shape) == 4 and shape[3] == 3 and shape[1] != 3 else 1
     scale, offset = np.ones(3), np.zeros(3)
     ops: list[str] = []
     affine = False
@@ -372,7 +376,7 @@ def inspect(data: bytes | memoryview) -> Summary:
     graph = parse(data)
     try:
         return Summary(graph.input_name, tuple(graph.input_shape), input_affine(graph))
-    except _Truncated:
+    except (_Truncated, ValueError, OverflowError):
         raise ModelError("it is not a readable ONNX protobuf (truncated or corrupt)") from None
 
 

@@ -645,6 +645,7 @@ def input_normalization(
         IMAGENET_MEAN,
         IMAGENET_STD,
     ),
+    data: bytes | None = None,
 ) -> Normalization:
     """Find whether the ONNX graph at ``path`` normalises its input, and decide who does.
 
@@ -663,17 +664,27 @@ def input_normalization(
         The user's explicit normalisation.
     expected : (mean, std)
         The normalisation the network was trained with (a registry entry's; default ImageNet).
+    data : bytes, optional
+        The file's bytes when already in memory (e.g. the verified bytes a session is loaded
+        from): read instead of the file, so both come from the same bytes.
 
     Returns
     -------
     Normalization
     """
-    p = Path(path)
-    try:
-        stat = p.stat()
-    except (OSError, ValueError) as exc:
-        raise ModelError(f"cannot read {os.fspath(path)!r}: {exc}") from exc
-    summary = _graph_summary(str(p.resolve()), stat.st_size, stat.st_mtime_ns)
+    summary: _onnxgraph.Summary | str
+    if data is not None:
+        try:
+            summary = _onnxgraph.inspect(data)
+        except ModelError as exc:
+            summary = str(exc)
+    else:
+        p = Path(path)
+        try:
+            stat = p.stat()
+        except (OSError, ValueError) as exc:
+            raise ModelError(f"cannot read {os.fspath(path)!r}: {exc}") from exc
+        summary = _graph_summary(str(p.resolve()), stat.st_size, stat.st_mtime_ns)
     found: dict[str, Any] | None = None
     matched = None
     g_mean = g_std = np.zeros(3)
