@@ -19,9 +19,11 @@ from onnx import TensorProto, helper, numpy_helper
 MEAN = np.array(models.IMAGENET_MEAN)
 STD = np.array(models.IMAGENET_STD)
 
-#: One preprocessing step: ("Transpose", perm), ("Cast",), ("Resize",) or
-#: (op, constant, where) with op Sub/Div/Mul/Add and where "init" (an initializer, constant on
-#: the right), "node" (a Constant node, on the right) or "left" (initializer on the left).
+#: One preprocessing step: ("Transpose", perm), ("Cast",), ("Resize",), ("Shape",) (a Shape
+#: node also reading the current tensor) or (op, constant, where) with op Sub/Div/Mul/Add and
+#: where "init" (an initializer, constant on the right), "node" (a Constant node, on the
+#: right), "left" (initializer on the left), "unsqueeze" / "reshape" (a (3,) constant made
+#: (1, 3, 1, 1) by an Unsqueeze / Reshape node).
 Step = tuple[Any, ...]
 
 
@@ -38,6 +40,9 @@ def chain_then_channel(
             nodes.append(helper.make_node("Transpose", [current], [out], perm=list(step[1])))
         elif op == "Cast":
             nodes.append(helper.make_node("Cast", [current], [out], to=TensorProto.FLOAT))
+        elif op == "Shape":  # a side reader of the size only; the chain goes on from current
+            nodes.append(helper.make_node("Shape", [current], [f"shape{i}"]))
+            continue
         elif op == "Resize":
             inits.append(numpy_helper.from_array(np.ones(4, np.float32), f"s{i}"))
             nodes.append(helper.make_node("Resize", [current, "", f"s{i}"], [out], mode="linear"))
@@ -47,6 +52,16 @@ def chain_then_channel(
             if where == "node":
                 tensor = numpy_helper.from_array(value, f"{const}_value")
                 nodes.append(helper.make_node("Constant", [], [const], value=tensor))
+            elif where == "unsqueeze":  # a (3,) Constant node unsqueezed to (1, 3, 1, 1)
+                tensor = numpy_helper.from_array(value.reshape(3), f"{const}_value")
+                nodes.append(helper.make_node("Constant", [], [f"{const}_3"], value=tensor))
+                inits.append(numpy_helper.from_array(np.array([0, 2, 3], np.int64), f"{const}_ax"))
+                nodes.append(helper.make_node("Unsqueeze", [f"{const}_3", f"{const}_ax"], [const]))
+            elif where == "reshape":  # a (3,) initializer reshaped to (1, 3, 1, 1)
+                inits.append(numpy_helper.from_array(value.reshape(3), f"{const}_3"))
+                shape = np.array([1, 3, 1, 1], np.int64)
+                inits.append(numpy_helper.from_array(shape, f"{const}_shape"))
+                nodes.append(helper.make_node("Reshape", [f"{const}_3", f"{const}_shape"], [const]))
             else:
                 inits.append(numpy_helper.from_array(value, const))
             operands = [const, current] if where == "left" else [current, const]
@@ -132,6 +147,17 @@ VARIANTS: dict[str, tuple[list[Step], tuple[int, ...], str, float]] = {
             TO_NCHW,
         ],
         NHWC,
+        "graph",
+        1.0,
+    ),
+    # As torch exports mean[None, :, None, None]; the input's size also read by a Shape node.
+    "unsqueezed_and_reshaped_constants_with_a_shape_reader": (
+        [
+            ("Shape",),
+            ("Sub", MEAN, "unsqueeze"),
+            ("Div", STD, "reshape"),
+        ],
+        NCHW,
         "graph",
         1.0,
     ),

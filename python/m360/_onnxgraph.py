@@ -143,24 +143,75 @@ class Graph:
         """Nodes that take tensor ``name`` as an input."""
         return [n for n in self.nodes if name in n.inputs]
 
-    def constant(self, name: str) -> np.ndarray | None:
-        """The value of a small constant tensor (initializer or Constant node), else None."""
+    def constant(self, name: str, depth: int = 0) -> np.ndarray | None:
+        """The value of a small constant tensor, else None.
+
+        An initializer, a Constant node, or one of them reshaped or cast (Unsqueeze, Reshape,
+        Squeeze, Cast, Identity): exporters often write ``mean[None, :, None, None]`` that way.
+        """
         if name in self.initializers:
             return _tensor(self.initializers[name])
-        for node in self.nodes:
-            if node.op_type == "Constant" and node.outputs[:1] == [name]:
-                fields = node.attribute("value")
-                if fields and _ATTR_T in fields:
-                    t = fields[_ATTR_T][0][1]
-                    return _tensor(t) if isinstance(t, memoryview) else None
-                fields = node.attribute("value_float") or node.attribute("value_floats")
-                if fields and _ATTR_F in fields:
-                    return np.array(_floats(*fields[_ATTR_F][0]), dtype=np.float64)
-                if fields and _ATTR_FLOATS in fields:
-                    values = [v for wire, raw in fields[_ATTR_FLOATS] for v in _floats(wire, raw)]
-                    return np.array(values, dtype=np.float64)
+        producer = next((n for n in self.nodes if name in n.outputs), None)
+        if producer is None or depth > 4:
+            return None
+        if producer.op_type == "Constant":
+            return _constant_node(producer)
+        if producer.op_type in _FOLDABLE and producer.inputs:
+            value = self.constant(producer.inputs[0], depth + 1)
+            if value is None:
                 return None
+            return _fold(self, producer, value, depth)
         return None
+
+
+_FOLDABLE = {"Unsqueeze", "Reshape", "Squeeze", "Cast", "Identity"}
+
+
+def _constant_node(node: Node) -> np.ndarray | None:
+    fields = node.attribute("value")
+    if fields and _ATTR_T in fields:
+        t = fields[_ATTR_T][0][1]
+        return _tensor(t) if isinstance(t, memoryview) else None
+    fields = node.attribute("value_float") or node.attribute("value_floats")
+    if fields and _ATTR_F in fields:
+        return np.array(_floats(*fields[_ATTR_F][0]), dtype=np.float64)
+    if fields and _ATTR_FLOATS in fields:
+        values = [v for wire, raw in fields[_ATTR_FLOATS] for v in _floats(wire, raw)]
+        return np.array(values, dtype=np.float64)
+    return None
+
+
+def _fold(graph: Graph, node: Node, value: np.ndarray, depth: int) -> np.ndarray | None:
+    """``node`` applied to a constant ``value`` (shape changes only), or None."""
+    if node.op_type in ("Cast", "Identity"):
+        return value
+    if node.op_type == "Reshape":
+        shape = graph.constant(node.inputs[1], depth + 1) if len(node.inputs) > 1 else None
+        if shape is None:
+            return None
+        dims = [int(d) for d in shape.reshape(-1)]
+        dims = [value.shape[i] if d == 0 and i < value.ndim else d for i, d in enumerate(dims)]
+        return value.reshape(dims)  # ValueError if impossible: the caller says "unreadable"
+    # Unsqueeze / Squeeze: axes as an attribute (opset < 13) or a second input.
+    fields = node.attribute("axes")
+    if fields:
+        axes = [v for w, raw in fields.get(_ATTR_INTS, []) for v in _ints(w, raw)]
+    elif len(node.inputs) > 1 and node.inputs[1]:
+        given = graph.constant(node.inputs[1], depth + 1)
+        if given is None:
+            return None
+        axes = [int(a) for a in given.reshape(-1)]
+    elif node.op_type == "Squeeze":
+        return value.reshape([d for d in value.shape if d != 1])
+    else:
+        return None
+    if node.op_type == "Squeeze":
+        return np.squeeze(value, axis=tuple(axes))
+    rank = value.ndim + len(axes)
+    out = value
+    for axis in sorted(a % rank for a in axes):
+        out = np.expand_dims(out, axis)
+    return out
 
 
 def _tensor(raw: memoryview) -> np.ndarray | None:
@@ -313,7 +364,8 @@ def input_affine(graph: Graph) -> InputAffine | None:
     affine = False
     current = graph.input_name
     for _ in range(_MAX_STEPS):
-        users = graph.consumers(current)
+        # Shape/Size read only the size (dynamic exports do): they do not use the values.
+        users = [n for n in graph.consumers(current) if n.op_type not in ("Shape", "Size")]
         if len(users) != 1:  # used twice: not a plain preprocessing chain
             break
         node = users[0]
