@@ -21,7 +21,7 @@ import onnx_graphs as g
 import pytest
 from local_http import LocalServer
 from m360 import _onnxgraph, models
-from m360.errors import ModelError
+from m360.errors import InputError, ModelError
 from m360.estimators import OnnxEstimator, load_estimator
 from norm_graphs import MEAN, STD, VARIANTS, chain_then_channel, per_channel
 from onnx import TensorProto, helper, numpy_helper
@@ -308,3 +308,11 @@ def test_the_graph_reader_only_ever_says_unreadable(tmp_path: Path) -> None:
             _onnxgraph.inspect(blob)
         except ModelError:
             pass
+
+
+def test_a_malformed_expected_normalisation_is_an_input_error(tmp_path: Path) -> None:
+    path = chain_then_channel(tmp_path / "plain.onnx", 0, [])
+    with pytest.raises(InputError, match=r"expected_normalization must be \(mean, std\)"):
+        OnnxEstimator(path, expected_normalization=(0.5, 0.5, 0.5))  # type: ignore[arg-type]
+    with pytest.raises(InputError, match="mean must be 3 finite numbers"):
+        OnnxEstimator(path, expected_normalization=((0.5, float("nan"), 0.5), (1, 1, 1)))

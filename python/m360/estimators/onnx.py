@@ -195,6 +195,10 @@ class OnnxEstimator:
             size_pair(input_size, "input_size", MAX_NETWORK_SIZE) if input_size else None
         )
         expected = expected_normalization or (_models.IMAGENET_MEAN, _models.IMAGENET_STD)
+        if not isinstance(expected, (tuple, list)) or len(expected) != 2:
+            raise InputError(
+                f"expected_normalization must be (mean, std), got {expected_normalization!r}"
+            )
         self.mean = _check_triple(expected[0] if mean is None else mean, "mean")
         self.std = _check_triple(expected[1] if std is None else std, "std")
         if np.any(np.abs(self.mean) > _NORMALISATION_LIMIT):
