@@ -316,3 +316,19 @@ def test_a_malformed_expected_normalisation_is_an_input_error(tmp_path: Path) ->
         OnnxEstimator(path, expected_normalization=(0.5, 0.5, 0.5))  # type: ignore[arg-type]
     with pytest.raises(InputError, match="mean must be 3 finite numbers"):
         OnnxEstimator(path, expected_normalization=((0.5, float("nan"), 0.5), (1, 1, 1)))
+
+
+def test_an_unverified_entry_skips_an_error_page_for_the_next_url(
+    server: LocalServer, tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    # No hash to reject it: the page is recognised as not ONNX, removed, and the next URL tried.
+    server.routes["/a/tiny.onnx"] = (200, b"<!DOCTYPE html><html>Sign in</html>", "ok")
+    server.routes["/b/tiny.onnx"] = (200, tiny, "ok")
+    register(monkeypatch, [server.url("/a/tiny.onnx"), server.url("/b/tiny.onnx")], tiny)
+    monkeypatch.setitem(
+        models.REGISTRY, "tiny", dataclasses.replace(models.get("tiny"), sha256=None)
+    )
+    monkeypatch.setenv("M360_ALLOW_UNVERIFIED", "1")
+    with pytest.warns(UserWarning, match="WITHOUT hash verification"):
+        assert models.fetch("tiny", progress=False).read_bytes() == tiny
+    assert server.requests == ["/a/tiny.onnx", "/b/tiny.onnx"]

@@ -502,6 +502,11 @@ def fetch(name: str, *, progress: bool = True, force: bool = False) -> Path:
     tried: list[str] = []
     for url in entry.urls:
         why = _download(url, entry, target, progress)
+        if why is None and entry.sha256 is None:  # no hash to catch an error page: sniff it
+            problem = sniff_onnx(target)
+            if problem:
+                target.unlink(missing_ok=True)
+                why = f"not an ONNX model: {problem}"
         if why is None:
             return verify(entry, target)
         tried.append(f"{len(tried) + 1}. {url}: {why}")
