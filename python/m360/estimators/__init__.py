@@ -120,8 +120,8 @@ def load_estimator(
             path = _models.ensure(text)
             return OnnxEstimator(
                 path,
-                output_kind=output_kind or entry.output_kind,
-                input_size=input_size or entry.input_size,
+                output_kind=entry.output_kind if output_kind is None else output_kind,
+                input_size=entry.input_size if input_size is None else input_size,
                 mean=mean,
                 std=std,
                 expected_normalization=(entry.mean, entry.std),
@@ -135,7 +135,7 @@ def load_estimator(
         if text.endswith(".onnx") or is_file(Path(text)):
             return OnnxEstimator(
                 text,
-                output_kind=output_kind or "affine_disparity",
+                output_kind="affine_disparity" if output_kind is None else output_kind,
                 input_size=input_size,
                 mean=mean,
                 std=std,

@@ -192,7 +192,7 @@ class OnnxEstimator:
             raise ModelError(f"model file {self.path} does not exist (or is not a file)")
         self.output_kind = check_output_kind(output_kind)
         self.input_size = (
-            size_pair(input_size, "input_size", MAX_NETWORK_SIZE) if input_size else None
+            None if input_size is None else size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
         )
         expected = expected_normalization or (_models.IMAGENET_MEAN, _models.IMAGENET_STD)
         if not isinstance(expected, (tuple, list)) or len(expected) != 2:
