@@ -85,7 +85,10 @@ def test_fetch_downloads_verifies_and_caches(
     est = load_estimator("tiny")
     assert isinstance(est, OnnxEstimator) and est.sha256 == sha(tiny)
     out = est.predict(np.full((1, 16, 16, 3), 255, np.uint8))
-    np.testing.assert_allclose(out, 3.0, rtol=1e-6)  # 2 * 1 + 1 (normalisation baked in)
+    # The graph does not normalise: m360 applies the entry's ImageNet normalisation.
+    fed = (1.0 - np.array(models.IMAGENET_MEAN)) / np.array(models.IMAGENET_STD)
+    assert est.normalization_source == "m360"
+    np.testing.assert_allclose(out, 2 * fed.mean() + 1, rtol=1e-5)
 
 
 def test_manual_copy_in_model_dir_is_found_and_verified(

@@ -163,6 +163,17 @@ def main(argv: Sequence[str] | None = None) -> int:
     fetch.add_argument("--force", action="store_true", help="download again even if cached")
     where = mod_commands.add_parser("path", help="print where a model's file is (or goes)")
     where.add_argument("name", choices=models.names(), metavar="NAME")
+    check = mod_commands.add_parser(
+        "check",
+        help="say what m360 will do with an .onnx file (exit 2 if it cannot use it)",
+    )
+    check.add_argument("file", type=Path, help="the .onnx file")
+    check.add_argument(
+        "--output-kind", choices=OUTPUT_KINDS, help="what the model outputs, if not registered"
+    )
+    check.add_argument(
+        "--width", type=int, default=models.CHECK_ERP_WIDTH, help="ERP width of the layout"
+    )
 
     try:
         args = parser.parse_args(argv)
@@ -438,7 +449,47 @@ def _read_map(path: Path, kind: str, *, allow_output: bool) -> np.ndarray:
     return read_array(path)
 
 
+def _models_check(args: argparse.Namespace) -> int:
+    try:
+        info = models.check(args.file, output_kind=args.output_kind, erp_width=args.width)
+    except ModelError as exc:  # corrupt, not ONNX, or not a model m360 can feed
+        print(f"m360: error: {exc}", file=sys.stderr)
+        return 2
+    inp, norm = info["input"], info["normalization"]
+    shape = ", ".join(str(d) for d in inp["shape"])
+    size = "static size {}x{}".format(*inp["size"]) if inp["static"] else "dynamic size"
+    registry = f"{info['registry']} (matched by sha256)" if info["registry"] else "not registered"
+    if norm["source"] == "graph":
+        how = f"graph (m360 feeds RGB in [0, {norm['input_range']:g}])"
+    else:
+        how = "m360 feeds (rgb - mean) / std"
+    kind = info["output_kind"]
+    kind_from = {"user": "--output-kind", "registry": f"registry: {info['registry']}"}
+    lines = [
+        f"file:          {info['path']} ({info['size_bytes']} bytes, sha256 {info['sha256']})",
+        f"registry:      {registry}",
+        f"input:         {inp['name']!r} ({shape}), {inp['layout']}, {size}",
+        "network size:  {}x{} for the default layout (icosahedron of a {}-px ERP, tangents "
+        "{}x{})".format(*info["network_size"], info["erp_width"], *info["tangent_shape"]),
+        f"normalisation: {how}: mean {tuple(norm['mean'])}, std {tuple(norm['std'])}",
+        f"               {norm['detail']}",
+        "output kind:   "
+        + (
+            f"{kind} ({kind_from[info['output_kind_source']]})"
+            if kind
+            else "unknown: pass --output-kind (m360 run assumes affine_disparity)"
+        ),
+        f"output:        shape {tuple(info['output_shape'])} for one tangent"
+        + ("" if info["output_finite"] else " (NOT all finite on a grey tangent)"),
+        "usable:        yes",
+    ]
+    print("\n".join(lines))
+    return 0
+
+
 def _models_command(args: argparse.Namespace) -> int:
+    if args.action == "check":
+        return _models_check(args)
     if args.action == "fetch":
         for name in args.names:
             path = models.fetch(name, force=args.force)

@@ -267,6 +267,7 @@ def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
             network_size=list(estimator.network_size(layout.tangent_shape)),
             mean=[float(v) for v in estimator.mean],
             std=[float(v) for v in estimator.std],
+            normalization=estimator.normalization.as_dict(),
         )
     else:
         info["sha256"] = None

@@ -13,6 +13,14 @@ pooch does not know: the offline switch, a check that the file is an ONNX graph 
 error page, and :class:`~m360.errors.ModelError` messages that say where to put a manually
 downloaded copy.
 
+Each entry lists every known location of the same file (``urls``), tried in order: a failed
+request or a hash mismatch moves on to the next one (a mismatching file is never kept), and the
+error lists what happened at every URL.
+
+The normalisation an entry names (``mean``/``std``) is what the *network* needs; whether m360
+applies it or the exported graph already does is found by reading the graph when a model is
+first loaded (:func:`input_normalization`), not taken from a model card.
+
 Where the publisher's sha256 could not be confirmed, the entry stores ``sha256=None`` and says so
 in ``sha256_source``; such a file is refused unless ``M360_ALLOW_UNVERIFIED=1`` is set (then it is
 used with a warning that prints the file's actual hash).
@@ -20,8 +28,10 @@ used with a warning that prints the file's actual hash).
 
 from __future__ import annotations
 
+import functools
 import hashlib
 import os
+import re
 import threading
 import warnings
 from collections.abc import Iterator
@@ -29,16 +39,22 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+import numpy as np
+
+from . import _onnxgraph
 from .errors import InputError, ModelError
 
 __all__ = [
     "DEFAULT_MODEL",
     "REGISTRY",
     "ModelEntry",
+    "Normalization",
     "cache_dir",
+    "check",
     "ensure",
     "fetch",
     "get",
+    "input_normalization",
     "is_cached",
     "list_models",
     "names",
@@ -70,7 +86,8 @@ class ModelEntry:
     filename : str
         File name in the cache folder.
     urls : tuple of str
-        Download URLs of byte-identical copies (tried in order), pinned to a revision.
+        Every known location of this very file (same sha256), pinned to a revision, tried in
+        order; a 404 or a hash mismatch moves on to the next.
     sha256 : str or None
         Expected sha256 (lower-case hex) of the file; None when no published hash could be
         confirmed (see ``sha256_source``).
@@ -84,8 +101,9 @@ class ModelEntry:
         Network input (height, width) the model was trained at; the file's own fixed input
         size, when it has one, takes precedence.
     mean, std : (float, float, float)
-        Per-channel normalisation of RGB in [0, 1]: ``(rgb - mean) / std``. (0, 0, 0) / (1, 1, 1)
-        when the exported graph normalises internally.
+        Per-channel normalisation of RGB in [0, 1] the network was trained with:
+        ``(rgb - mean) / std``. m360 applies it unless the exported graph is found to apply it
+        itself (:func:`input_normalization`).
     multiple_of : int
         Network sizes are rounded to a multiple of this (32 for CNN/DPT, 14 for DINOv2 ViTs).
     resize : str
@@ -119,14 +137,28 @@ class ModelEntry:
 _SENTIS = (
     "https://huggingface.co/julienkay/sentis-MiDaS/resolve/49661c6dbe7e7e1a57290e30aae95b649fd33d54"
 )
+
+
+def _sentis(filename: str) -> tuple[str, ...]:
+    # The repository's root copy (the registry's original URL), then the same file in its onnx/
+    # sub-folder, from which public projects also fetch it (…/resolve/main/onnx/<file>). Both
+    # are checked against the same sha256: a missing path (404) or other bytes move on.
+    # The authors' isl-org release assets (model-small.onnx, model-f6b98070.onnx) are their own
+    # exports, other bytes (another size): not copies of this file, so not listed here.
+    return (f"{_SENTIS}/{filename}", f"{_SENTIS}/onnx/{filename}")
+
+
 _SENTIS_NOTE = (
     "ONNX export of the official isl-org MiDaS weights by julienkay (Hugging Face "
-    "julienkay/sentis-MiDaS, revision 49661c6); its model card says input normalisation is "
-    "baked into the graph (input RGB in [0, 1]) and input sizes are static."
+    "julienkay/sentis-MiDaS, revision 49661c6); static input size. Its model card says the "
+    "input normalisation is baked into the graph, while public code using the same file "
+    "applies it outside: m360 reads the graph and applies it only if the graph does not."
 )
 _SENTIS_HASH = (
     "Hugging Face Git LFS pointer of this file at revision 49661c6 (published by the host)"
 )
+#: MiDaS v3 DPT models are trained with mean 0.5 / std 0.5 (isl-org/MiDaS run.py).
+_HALF = (0.5, 0.5, 0.5)
 
 REGISTRY: dict[str, ModelEntry] = {
     e.name: e
@@ -134,14 +166,14 @@ REGISTRY: dict[str, ModelEntry] = {
         ModelEntry(
             name="midas-v21-small",
             filename="midas_v21_small_256.onnx",
-            urls=(f"{_SENTIS}/midas_v21_small_256.onnx",),
+            urls=_sentis("midas_v21_small_256.onnx"),
             sha256="b0a5b3f12625137e626805167907fe0410665bec671685d59daaa2daab19f977",
             sha256_source=_SENTIS_HASH,
             size_bytes=66_400_000,
             licence="MIT",
             input_size=(256, 256),
-            mean=NO_NORMALISATION[0],
-            std=NO_NORMALISATION[1],
+            mean=IMAGENET_MEAN,
+            std=IMAGENET_STD,
             multiple_of=32,
             resize="upper_bound",
             output_kind="affine_disparity",
@@ -151,7 +183,12 @@ REGISTRY: dict[str, ModelEntry] = {
         ModelEntry(
             name="midas-v21-small-isl",
             filename="midas_v21_small_isl.onnx",
-            urls=("https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",),
+            urls=(
+                # The authors' v2_1 release asset; the repository was intel-isl/MiDaS when it
+                # was published and GitHub redirects that older address to the same asset.
+                "https://github.com/isl-org/MiDaS/releases/download/v2_1/model-small.onnx",
+                "https://github.com/intel-isl/MiDaS/releases/download/v2_1/model-small.onnx",
+            ),
             sha256=None,
             sha256_source=(
                 "none published: the isl-org v2_1 release lists no checksum for model-small.onnx; "
@@ -160,28 +197,28 @@ REGISTRY: dict[str, ModelEntry] = {
             size_bytes=66_845_081,
             licence="MIT",
             input_size=(256, 256),
-            mean=NO_NORMALISATION[0],
-            std=NO_NORMALISATION[1],
+            mean=IMAGENET_MEAN,
+            std=IMAGENET_STD,
             multiple_of=32,
             resize="upper_bound",
             output_kind="affine_disparity",
             description="MiDaS v2.1 small, the authors' own ONNX export (unverified hash)",
             notes=(
                 "Official isl-org file; the authors' export script (tf/make_onnx_model.py) bakes "
-                "the ImageNet normalisation into the graph, so input RGB is in [0, 1]."
+                "the ImageNet normalisation into the graph (m360 checks the graph on load)."
             ),
         ),
         ModelEntry(
             name="midas-v21-large",
             filename="midas_v21_384.onnx",
-            urls=(f"{_SENTIS}/midas_v21_384.onnx",),
+            urls=_sentis("midas_v21_384.onnx"),
             sha256="49c200fda47b9fe88f778acee05c1c773d555265122bcaa784e03298326c3b04",
             sha256_source=_SENTIS_HASH,
             size_bytes=416_000_000,
             licence="MIT",
             input_size=(384, 384),
-            mean=NO_NORMALISATION[0],
-            std=NO_NORMALISATION[1],
+            mean=IMAGENET_MEAN,
+            std=IMAGENET_STD,
             multiple_of=32,
             resize="upper_bound",
             output_kind="affine_disparity",
@@ -191,6 +228,8 @@ REGISTRY: dict[str, ModelEntry] = {
         ModelEntry(
             name="dpt-hybrid",
             filename="dpt_hybrid_midas.onnx",
+            # Transformers.js repositories keep their exports in onnx/ only (no root copy); the
+            # authors publish no ONNX of DPT-Hybrid.
             urls=(
                 "https://huggingface.co/Xenova/dpt-hybrid-midas/resolve/"
                 "c9ab952ed178a2f0c085a4602d0a9da35bc54bca/onnx/model.onnx",
@@ -217,14 +256,14 @@ REGISTRY: dict[str, ModelEntry] = {
         ModelEntry(
             name="dpt-large",
             filename="dpt_large_384.onnx",
-            urls=(f"{_SENTIS}/dpt_large_384.onnx",),
+            urls=_sentis("dpt_large_384.onnx"),
             sha256="42b2e08dada8bd0e4612ac268f5f92c065389484c7e4cfab4ca8f3c32a13090f",
             sha256_source=_SENTIS_HASH,
             size_bytes=1_370_000_000,
             licence="MIT",
             input_size=(384, 384),
-            mean=NO_NORMALISATION[0],
-            std=NO_NORMALISATION[1],
+            mean=_HALF,
+            std=_HALF,
             multiple_of=32,
             resize="upper_bound",
             output_kind="affine_disparity",
@@ -234,6 +273,8 @@ REGISTRY: dict[str, ModelEntry] = {
         ModelEntry(
             name="depth-anything-v2-small",
             filename="depth_anything_v2_vits.onnx",
+            # Only the repository root holds this export; the authors (DepthAnything/
+            # Depth-Anything-V2) publish PyTorch weights only.
             urls=(
                 "https://huggingface.co/yuvraj108c/Depth-Anything-2-Onnx/resolve/"
                 "10c37c92fed4668c65c063f3acd7d04aad2c33a8/depth_anything_v2_vits.onnx",
@@ -339,8 +380,9 @@ def sha256_of(path: str | os.PathLike[str], chunk: int = 1 << 20) -> str:
 
 def _where_to_put(entry: ModelEntry) -> str:
     target = cache_dir() / entry.filename
+    where = entry.urls[0] if len(entry.urls) == 1 else "one of " + ", ".join(entry.urls)
     return (
-        f"download it yourself from {entry.urls[0]} and put it at {target} "
+        f"download it yourself from {where} and put it at {target} "
         f"(or in the folder named by M360_MODEL_DIR, or set M360_HOME)"
     )
 
@@ -457,24 +499,30 @@ def fetch(name: str, *, progress: bool = True, force: bool = False) -> Path:
     target.parent.mkdir(parents=True, exist_ok=True)
     if force:
         target.unlink(missing_ok=True)
-    errors = []
+    tried: list[str] = []
     for url in entry.urls:
-        try:
-            _download(url, entry, target, progress)
-        except ModelError:
-            raise
-        except Exception as exc:  # network errors come in many types (requests, OSError, ...)
-            errors.append(f"{url}: {type(exc).__name__}: {exc}")
-            continue
-        return verify(entry, target)
+        why = _download(url, entry, target, progress)
+        if why is None and entry.sha256 is None:  # no hash to catch an error page: sniff it
+            problem = sniff_onnx(target)
+            if problem:
+                target.unlink(missing_ok=True)
+                why = f"not an ONNX model: {problem}"
+        if why is None:
+            return verify(entry, target)
+        tried.append(f"{len(tried) + 1}. {url}: {why}")
+    plural = "s" if len(tried) > 1 else ""
     raise ModelError(
         f"could not download model {entry.name!r} (expected sha256 "
-        f"{entry.sha256 or 'unpublished'}): " + "; ".join(errors) + f". {_where_to_put(entry)}"
+        f"{entry.sha256 or 'unpublished'}); tried {len(tried)} URL{plural}: "
+        + "; ".join(tried)
+        + f". Nothing was saved; {_where_to_put(entry)}"
     )
 
 
-def _download(url: str, entry: ModelEntry, target: Path, progress: bool) -> None:
+def _download(url: str, entry: ModelEntry, target: Path, progress: bool) -> str | None:
+    """Download ``url`` to ``target`` checking the hash; None, or what went wrong."""
     import pooch
+    import requests
 
     known_hash = f"sha256:{entry.sha256}" if entry.sha256 else None
     downloader = pooch.HTTPDownloader(progressbar=progress, timeout=_DOWNLOAD_TIMEOUT_S)
@@ -489,13 +537,296 @@ def _download(url: str, entry: ModelEntry, target: Path, progress: bool) -> None
             path=target.parent,
             downloader=downloader,
         )
-    except ValueError as exc:  # pooch's hash mismatch; the partial file was removed
-        raise ModelError(
-            f"the file downloaded from {url} for model {entry.name!r} fails its hash check "
-            f"(expected sha256 {entry.sha256}): {exc}. Nothing was saved; {_where_to_put(entry)}"
-        ) from exc
+    except ValueError as exc:  # pooch's hash mismatch: it removed the file
+        got = re.search(r"but got ([0-9a-f]{64})", str(exc))
+        return f"fails its hash check (got sha256 {got.group(1) if got else 'unknown'})"
+    except requests.HTTPError as exc:
+        status = exc.response.status_code if exc.response is not None else "?"
+        reason = exc.response.reason if exc.response is not None else str(exc)
+        return f"HTTP {status} {reason}".strip()
+    except Exception as exc:  # network errors come in many types (requests, OSError, ...)
+        return f"{type(exc).__name__}: {str(exc)[:200]}"
     finally:
         logger.setLevel(level)
+    return None
+
+
+#: Input ranges a graph's own normalisation may expect: RGB in [0, 1] or in [0, 255].
+_INPUT_RANGES = (1.0, 255.0)
+#: Relative tolerance when matching a graph's constants to a known normalisation (exporters
+#: round, or fold ``/ std`` into ``* (1 / std)``).
+_MATCH_RTOL = 0.02
+
+
+@dataclass(frozen=True)
+class Normalization:
+    """How a model's input is normalised, and by whom.
+
+    Attributes
+    ----------
+    source : str
+        ``"graph"`` (the ONNX graph normalises its input itself: m360 only scales RGB to
+        ``input_range``) or ``"m360"`` (m360 feeds ``(rgb - mean) / std``).
+    mean, std : (float, float, float)
+        The normalisation of RGB in [0, 1]: the one found in the graph (``source="graph"``) or
+        the one m360 applies.
+    input_range : float
+        The graph is fed RGB in [0, input_range]: 1, or 255 when its own constants are in
+        0-255 units (``source="graph"`` only; 1 otherwise).
+    explicit : bool
+        ``mean``/``std`` were given by the user: they win over what the graph holds.
+    found : dict or None
+        The per-channel affine map found at the graph's input, as mean/std in the input's own
+        units with the operations followed, whether it matched a known normalisation; None
+        when the graph starts with no such map (or could not be read: see ``detail``).
+    detail : str
+        One line for reports.
+    """
+
+    source: str
+    mean: tuple[float, float, float]
+    std: tuple[float, float, float]
+    input_range: float
+    explicit: bool
+    found: dict[str, Any] | None
+    detail: str
+
+    def feed(self) -> tuple[tuple[float, float, float], tuple[float, float, float]]:
+        """Return the ``(mean, std)`` m360 applies to RGB in [0, 1] before the network."""
+        if self.source == "graph":
+            return (0.0, 0.0, 0.0), (1.0 / self.input_range,) * 3
+        return self.mean, self.std
+
+    def as_dict(self) -> dict[str, Any]:
+        """JSON-able record (sidecars, ``m360 models check``)."""
+        return {
+            "source": self.source,
+            "mean": list(self.mean),
+            "std": list(self.std),
+            "input_range": self.input_range,
+            "explicit": self.explicit,
+            "found_in_graph": self.found,
+            "detail": self.detail,
+        }
+
+
+def _triple(values: Any) -> tuple[float, float, float]:
+    a, b, c = (float(v) for v in values)
+    return (a, b, c)
+
+
+def _match(
+    mean: np.ndarray, std: np.ndarray, candidates: list[tuple[tuple[float, ...], tuple[float, ...]]]
+) -> tuple[tuple[float, ...], tuple[float, ...], float] | None:
+    for cand_mean, cand_std in candidates:
+        for k in _INPUT_RANGES:
+            m, s = np.asarray(cand_mean) * k, np.asarray(cand_std) * k
+            if np.allclose(mean, m, rtol=_MATCH_RTOL, atol=1e-3 * k) and np.allclose(
+                std, s, rtol=_MATCH_RTOL, atol=0.0
+            ):
+                return cand_mean, cand_std, k
+    return None
+
+
+def _rounded(values: np.ndarray) -> tuple[float, float, float]:
+    # float32 constants: more digits than 7 are noise
+    return _triple(round(float(v), 7) for v in values)
+
+
+@functools.lru_cache(maxsize=16)
+def _graph_summary(path: str, size: int, mtime_ns: int) -> _onnxgraph.Summary | str:
+    try:
+        return _onnxgraph.inspect_file(path)
+    except ModelError as exc:
+        return str(exc)
+
+
+def input_normalization(
+    path: str | os.PathLike[str],
+    mean: tuple[float, float, float] | None = None,
+    std: tuple[float, float, float] | None = None,
+    *,
+    expected: tuple[tuple[float, float, float], tuple[float, float, float]] = (
+        IMAGENET_MEAN,
+        IMAGENET_STD,
+    ),
+    data: bytes | None = None,
+) -> Normalization:
+    """Find whether the ONNX graph at ``path`` normalises its input, and decide who does.
+
+    The graph's first operations on its input are read (after any Transpose/Cast/Resize): if
+    they are a per-channel affine map (Sub/Div/Mul/Add by constants, in any order) equal, within
+    2 %, to ``(x - mean·k) / (std·k)`` for the ImageNet constants or ``expected``, with
+    k = 1 or 255, the graph normalises itself and m360 only scales RGB to [0, k]. Otherwise m360
+    applies ``expected``. An explicit ``mean``/``std`` wins over both (the other one then
+    defaults to ``expected``'s). Read once per (file, size, mtime) and process.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The .onnx file.
+    mean, std : 3 floats, optional
+        The user's explicit normalisation.
+    expected : (mean, std)
+        The normalisation the network was trained with (a registry entry's; default ImageNet).
+    data : bytes, optional
+        The file's bytes when already in memory (e.g. the verified bytes a session is loaded
+        from): read instead of the file, so both come from the same bytes.
+
+    Returns
+    -------
+    Normalization
+    """
+    summary: _onnxgraph.Summary | str
+    if data is not None:
+        try:
+            summary = _onnxgraph.inspect(data)
+        except ModelError as exc:
+            summary = str(exc)
+    else:
+        p = Path(path)
+        try:
+            stat = p.stat()
+        except (OSError, ValueError) as exc:
+            raise ModelError(f"cannot read {os.fspath(path)!r}: {exc}") from exc
+        summary = _graph_summary(str(p.resolve()), stat.st_size, stat.st_mtime_ns)
+    found: dict[str, Any] | None = None
+    matched = None
+    g_mean = g_std = np.zeros(3)
+    if isinstance(summary, str):
+        note = f"graph not readable by m360 ({summary}): assumed not to normalise"
+    elif summary.affine is None:
+        note = "the graph's input goes straight into the network (no normalisation found)"
+    else:
+        scale, offset = np.asarray(summary.affine.scale), np.asarray(summary.affine.offset)
+        if np.any(scale == 0):
+            note = "the graph zeroes its input (scale 0)"
+        else:
+            g_mean, g_std = -offset / scale, 1.0 / scale
+            candidates = [(IMAGENET_MEAN, IMAGENET_STD), (expected[0], expected[1])]
+            matched = _match(g_mean, g_std, candidates)  # type: ignore[arg-type]
+            found = {
+                "ops": list(summary.affine.ops),
+                "mean": [round(float(v), 6) for v in g_mean],
+                "std": [round(float(v), 6) for v in g_std],
+                "matched": matched is not None,
+            }
+            note = (
+                f"the graph normalises its input ({' -> '.join(summary.affine.ops)})"
+                if matched
+                else f"the graph starts with a per-channel map ({' -> '.join(summary.affine.ops)})"
+                " that is no known normalisation: m360 normalises"
+            )
+    if mean is not None or std is not None:
+        chosen = (
+            _triple(expected[0] if mean is None else mean),
+            _triple(expected[1] if std is None else std),
+        )
+        return Normalization("m360", *chosen, 1.0, True, found, f"given explicitly (wins); {note}")
+    if matched is not None and found is not None:
+        k = matched[2]
+        return Normalization(
+            "graph", _rounded(g_mean / k), _rounded(g_std / k), k, False, found, note
+        )
+    return Normalization(
+        "m360", _triple(expected[0]), _triple(expected[1]), 1.0, False, found, note
+    )
+
+
+#: ERP width whose default layout ``check`` reports the network size for.
+CHECK_ERP_WIDTH = 2048
+
+
+def check(
+    path: str | os.PathLike[str],
+    *,
+    output_kind: str | None = None,
+    erp_width: int = CHECK_ERP_WIDTH,
+) -> dict[str, Any]:
+    """Say what m360 will do with the ONNX file at ``path`` (``m360 models check``).
+
+    The file is loaded as :func:`m360.estimators.load_estimator` would (with a registry entry's
+    settings when its sha256 matches one) and run once on one grey tangent.
+
+    Parameters
+    ----------
+    path : str or PathLike
+        The .onnx file.
+    output_kind : str, optional
+        What the model outputs, if known (wins over the registry's).
+    erp_width : int
+        ERP width of the default layout (``Layout.icosahedron(erp_width)``) whose network size
+        is reported.
+
+    Returns
+    -------
+    dict
+        ``path``, ``size_bytes``, ``sha256``, ``registry`` (matching entry name or None),
+        ``input`` (name, shape, layout, static, size), ``tangent_shape``, ``network_size``,
+        ``normalization`` (:meth:`Normalization.as_dict`), ``output_kind`` and
+        ``output_kind_source`` (``"user"``, ``"registry"`` or None: unknown), ``output_shape``.
+
+    Raises
+    ------
+    m360.ModelError
+        When the file is missing, not ONNX, corrupt, or not a model m360 can feed.
+    """
+    from .estimators import OnnxEstimator, check_output_kind
+    from .geometry import Layout
+
+    if not isinstance(path, (str, os.PathLike)):
+        raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    p = Path(path)
+    if not p.is_file():
+        raise ModelError(f"{p} does not exist (or is not a file)")
+    problem = sniff_onnx(p)
+    if problem:
+        raise ModelError(f"{p} is not an ONNX model: {problem}")
+    digest = sha256_of(p)
+    entry = next((e for e in REGISTRY.values() if e.sha256 == digest), None)
+    kind = None if output_kind is None else check_output_kind(output_kind)
+    source = "user" if kind else "registry" if entry else None
+    settings: dict[str, Any] = {}
+    if entry is not None:
+        settings = {
+            "input_size": entry.input_size,
+            "expected_normalization": (entry.mean, entry.std),
+            "multiple_of": entry.multiple_of,
+            "resize": entry.resize,
+            "name": entry.name,
+        }
+    est = OnnxEstimator(
+        p,
+        output_kind=kind or (entry.output_kind if entry else "affine_disparity"),
+        sha256=digest,
+        **settings,
+    )
+    spec = est._input
+    first = est.session.get_inputs()[0]
+    tangent = Layout.icosahedron(erp_width).tangent_shape
+    # One run on a grey tangent: the output must be one map per image (ModelError otherwise).
+    out = est._run(est.preprocess(np.full((1, *tangent, 3), 128, np.uint8)))
+    return {
+        "path": str(p),
+        "size_bytes": p.stat().st_size,
+        "sha256": digest,
+        "registry": entry.name if entry else None,
+        "input": {
+            "name": spec.name,
+            "shape": [d if isinstance(d, int) else str(d) for d in first.shape],
+            "layout": spec.layout,
+            "static": spec.size is not None,
+            "size": None if spec.size is None else list(spec.size),
+        },
+        "erp_width": erp_width,
+        "tangent_shape": list(tangent),
+        "network_size": list(est.network_size(tangent)),
+        "normalization": est.normalization.as_dict(),
+        "output_kind": kind or (entry.output_kind if entry else None),
+        "output_kind_source": source,
+        "output_shape": list(out.shape),
+        "output_finite": bool(np.isfinite(out).all()),
+    }
 
 
 def list_models() -> list[dict[str, Any]]:

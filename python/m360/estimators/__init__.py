@@ -86,8 +86,9 @@ def load_estimator(
     model : str, path or Estimator
         A registry name (``m360.models.names()``: fetched, verified and loaded with its own
         preprocessing), a path to an ``.onnx`` file (loaded with the options below; defaults:
-        affine disparity, ImageNet normalisation, 384 px) or an object with ``predict`` and
-        ``output_kind`` (returned as is; the options below are refused for it).
+        affine disparity, ImageNet normalisation unless the graph applies it, 384 px) or an
+        object with ``predict`` and ``output_kind`` (returned as is; the options below are
+        refused for it).
     providers : list of str, optional
         ONNX Runtime execution providers in order of preference.
     threads : int, optional
@@ -97,7 +98,8 @@ def load_estimator(
     output_kind : str, optional
         What the model outputs (:data:`OUTPUT_KINDS`).
     mean, std : 3 floats, optional
-        Input normalisation per RGB channel.
+        Explicit input normalisation per RGB channel (wins over what the graph holds; default:
+        the model's own, applied by m360 only if the graph does not apply it).
 
     Returns
     -------
@@ -118,10 +120,11 @@ def load_estimator(
             path = _models.ensure(text)
             return OnnxEstimator(
                 path,
-                output_kind=output_kind or entry.output_kind,
-                input_size=input_size or entry.input_size,
-                mean=entry.mean if mean is None else mean,
-                std=entry.std if std is None else std,
+                output_kind=entry.output_kind if output_kind is None else output_kind,
+                input_size=entry.input_size if input_size is None else input_size,
+                mean=mean,
+                std=std,
+                expected_normalization=(entry.mean, entry.std),
                 multiple_of=entry.multiple_of,
                 resize=entry.resize,
                 providers=providers,
@@ -132,10 +135,10 @@ def load_estimator(
         if text.endswith(".onnx") or is_file(Path(text)):
             return OnnxEstimator(
                 text,
-                output_kind=output_kind or "affine_disparity",
+                output_kind="affine_disparity" if output_kind is None else output_kind,
                 input_size=input_size,
-                mean=_models.IMAGENET_MEAN if mean is None else mean,
-                std=_models.IMAGENET_STD if std is None else std,
+                mean=mean,
+                std=std,
                 providers=providers,
                 threads=threads,
             )

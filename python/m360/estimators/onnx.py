@@ -134,8 +134,11 @@ class OnnxEstimator:
     input_size : (int, int), optional
         Network (height, width) for models whose input size is dynamic; ignored (with the
         file's size used instead) when the file fixes it. Default 384 x 384.
-    mean, std : 3 floats
-        Normalisation ``(rgb / 255 - mean) / std`` per RGB channel. Default ImageNet's.
+    mean, std : 3 floats, optional
+        Explicit normalisation ``(rgb / 255 - mean) / std`` per RGB channel; wins over what the
+        graph holds. Default: ``expected_normalization``, applied only if the graph does not
+        normalise its input itself (:func:`m360.models.input_normalization`; the finding is
+        in ``normalization`` and ``normalization_source``).
     multiple_of : int
         Round dynamic network sizes to a multiple of this (32 for CNN/DPT, 14 for ViT-14).
     resize : str
@@ -153,6 +156,8 @@ class OnnxEstimator:
         Name for reports (default: the file name).
     sha256 : str, optional
         The file's sha256 if already known (registry models); computed lazily otherwise.
+    expected_normalization : (mean, std), optional
+        The normalisation the network was trained with (default ImageNet's).
 
     Notes
     -----
@@ -169,8 +174,8 @@ class OnnxEstimator:
         *,
         output_kind: str = "affine_disparity",
         input_size: tuple[int, int] | None = None,
-        mean: Sequence[float] = _models.IMAGENET_MEAN,
-        std: Sequence[float] = _models.IMAGENET_STD,
+        mean: Sequence[float] | None = None,
+        std: Sequence[float] | None = None,
         multiple_of: int = 1,
         resize: str = "upper_bound",
         providers: Sequence[str] | None = None,
@@ -178,6 +183,7 @@ class OnnxEstimator:
         batch_size: int = 1,
         name: str | None = None,
         sha256: str | None = None,
+        expected_normalization: tuple[Sequence[float], Sequence[float]] | None = None,
     ) -> None:
         if not isinstance(path, (str, os.PathLike)):
             raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
@@ -186,10 +192,15 @@ class OnnxEstimator:
             raise ModelError(f"model file {self.path} does not exist (or is not a file)")
         self.output_kind = check_output_kind(output_kind)
         self.input_size = (
-            size_pair(input_size, "input_size", MAX_NETWORK_SIZE) if input_size else None
+            None if input_size is None else size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
         )
-        self.mean = _check_triple(mean, "mean")
-        self.std = _check_triple(std, "std")
+        expected = expected_normalization or (_models.IMAGENET_MEAN, _models.IMAGENET_STD)
+        if not isinstance(expected, (tuple, list)) or len(expected) != 2:
+            raise InputError(
+                f"expected_normalization must be (mean, std), got {expected_normalization!r}"
+            )
+        self.mean = _check_triple(expected[0] if mean is None else mean, "mean")
+        self.std = _check_triple(expected[1] if std is None else std, "std")
         if np.any(np.abs(self.mean) > _NORMALISATION_LIMIT):
             raise InputError(f"mean must be at most {_NORMALISATION_LIMIT:g} in magnitude")
         if np.any(self.std < 1 / _NORMALISATION_LIMIT) or np.any(self.std > _NORMALISATION_LIMIT):
@@ -218,6 +229,15 @@ class OnnxEstimator:
             self.threads,
         )
         self.providers = tuple(self.session.get_providers())
+        # Read from the graph, not a model card: the same file is used both ways in the wild.
+        self.normalization = _models.input_normalization(
+            self.path,
+            None if mean is None else tuple(self.mean),
+            None if std is None else tuple(self.std),
+            expected=(tuple(self.mean), tuple(self.std)),
+        )
+        self.normalization_source = self.normalization.source
+        self.mean, self.std = (np.asarray(v, dtype=np.float64) for v in self.normalization.feed())
         self._input = self._inspect_input()
         self._output_name = self.session.get_outputs()[0].name
         if self._input.batch is not None and self._input.batch != 1 and self.batch_size == 1:
