@@ -233,7 +233,7 @@ def test_erp_size_must_match_layout() -> None:
     ("kwargs", "match"),
     [
         ({"erp_width": 2047}, "even"),
-        ({"erp_width": 0}, "positive"),
+        ({"erp_width": 0}, "erp_width=0 is unusable: it must be even, at least 64"),
         ({"erp_width": 2048.0}, "integer"),
         ({"erp_width": 2048, "padding": -1.0}, "padding"),
         ({"erp_width": 2048, "padding": float("nan")}, "padding"),

@@ -16,10 +16,8 @@ import numpy as np
 from . import _core
 from .errors import AspectRatioError, InputError
 
-#: Largest ERP width m360 accepts (16K: beyond any 360° camera). A plan holds about 42 bytes per
-#: ERP pixel, so this caps one plan at ~5.6 GB; declared sizes above it are refused up front
-#: instead of failing (or aborting) in an allocation.
-MAX_ERP_WIDTH = 1 << 14
+#: Largest ERP width m360 accepts (the core's limit, see rust/m360-core/src/layout.rs).
+MAX_ERP_WIDTH = int(_core.LIMITS["max_erp_width"])
 #: Largest thread count m360 (or ONNX Runtime through it) will start: absurd counts are refused
 #: before any thread is spawned. The core's limit.
 MAX_THREADS: int = int(_core.LIMITS["max_threads"])

@@ -9,6 +9,7 @@ x = fx X_x/X_z + cx, y = fy X_y/X_z + cy, pixel centres at integer coordinates.
 from __future__ import annotations
 
 import hashlib
+import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -30,9 +31,6 @@ from ._validate import (
 from .errors import InputError
 
 __all__ = ["Layout", "TangentCamera", "clear_plan_cache", "erp_to_tangents", "tangents_to_erp"]
-
-#: Smallest ERP width for which the icosahedron tangents are still a usable size (≥ 12 px wide).
-MIN_ERP_WIDTH = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -114,21 +112,18 @@ class Layout:
         Parameters
         ----------
         erp_width : int
-            Width W of the ERP images (height W/2); even and ≥ 64.
+            Width W of the ERP images (height W/2); even, in
+            [``LIMITS["min_erp_width"]``, ``LIMITS["max_erp_width"]``] of ``m360._core``.
         padding : float
             Edge offset in gnomonic units (the paper's p = 0.3).
         tangent_width : int, optional
             Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K).
         """
-        erp_width = _positive_int(erp_width, "erp_width")
-        if erp_width % 2 or not MIN_ERP_WIDTH <= erp_width <= MAX_ERP_WIDTH:
-            raise InputError(
-                f"erp_width={erp_width} is unusable: it must be even, at least "
-                f"{MIN_ERP_WIDTH} and at most {MAX_ERP_WIDTH} (ERP images are H x 2H)"
-            )
-        padding = number(padding, "padding", low=0.0, high=2.0)  # gnomonic units
+        # Types here (machine-sized integers); the core judges the values (_core.LIMITS).
+        erp_width = integer(erp_width, "erp_width", low=0, high=sys.maxsize)
+        padding = number(padding, "padding")
         if tangent_width is not None:
-            tangent_width = integer(tangent_width, "tangent_width", low=8, high=MAX_ERP_WIDTH)
+            tangent_width = integer(tangent_width, "tangent_width", low=0, high=sys.maxsize)
         rotations, intrinsics, (h, w), faces = _core.icosahedron_cameras(
             erp_width, float(padding), tangent_width
         )

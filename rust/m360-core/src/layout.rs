@@ -8,6 +8,16 @@ use nalgebra::{Matrix3, Vector3};
 pub const REFERENCE_TANGENT_WIDTH: usize = 400;
 /// ERP width at which the paper uses 400-pixel-wide tangents.
 pub const REFERENCE_ERP_WIDTH: usize = 2048;
+/// Narrowest ERP of the icosahedron layout: below it the tangents are a handful of pixels.
+pub const MIN_ERP_WIDTH: usize = 64;
+/// Widest ERP m360 accepts (16K, beyond any 360° camera). A plan holds about 42 bytes per ERP
+/// pixel, so this caps one plan at ~5.6 GB: larger sizes are refused up front instead of failing
+/// (or aborting) in an allocation.
+pub const MAX_ERP_WIDTH: usize = 1 << 14;
+/// Largest icosahedron padding, in gnomonic units (0.3 is the paper's).
+pub const MAX_PADDING: f64 = 2.0;
+/// Narrowest tangent image of the icosahedron layout.
+pub const MIN_TANGENT_WIDTH: usize = 8;
 
 /// Cameras that together cover the sphere, for an ERP image of a given size.
 ///
@@ -97,20 +107,26 @@ impl Layout {
         padding: f64,
         tangent_width: Option<usize>,
     ) -> Result<Self> {
-        if !erp_width.is_multiple_of(2) || erp_width < 8 {
+        if !erp_width.is_multiple_of(2) || !(MIN_ERP_WIDTH..=MAX_ERP_WIDTH).contains(&erp_width) {
             return Err(CoreError::InvalidLayout(format!(
-                "ERP width {erp_width} must be even and at least 8"
+                "erp_width={erp_width} is unusable: it must be even, at least {MIN_ERP_WIDTH} and \
+                 at most {MAX_ERP_WIDTH} (ERP images are H x 2H)"
             )));
         }
-        if !(padding.is_finite() && padding >= 0.0) {
+        if !(padding.is_finite() && (0.0..=MAX_PADDING).contains(&padding)) {
             return Err(CoreError::InvalidLayout(format!(
-                "padding {padding} must be finite and >= 0"
+                "padding={padding} must be a finite number in [0, {MAX_PADDING}] (gnomonic units)"
             )));
         }
         let width = tangent_width.unwrap_or_else(|| {
             ((REFERENCE_TANGENT_WIDTH * erp_width) as f64 / REFERENCE_ERP_WIDTH as f64).round()
                 as usize
         });
+        if !(MIN_TANGENT_WIDTH..=MAX_ERP_WIDTH).contains(&width) {
+            return Err(CoreError::InvalidLayout(format!(
+                "tangent_width={width} must be an integer in [{MIN_TANGENT_WIDTH}, {MAX_ERP_WIDTH}]"
+            )));
+        }
         let mut cameras = Vec::with_capacity(20);
         let mut polygons = Vec::with_capacity(20);
         for face in icosahedron_faces() {

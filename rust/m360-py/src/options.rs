@@ -4,6 +4,7 @@
 use crate::errors::{core, input_error};
 use m360_core::align::{self, Energy, Offsets, Solver};
 use m360_core::blend::{Fidelity, Method, PoissonParams, PoissonSolver, Weighting};
+use m360_core::layout;
 use m360_core::options::{
     Choice, MAX_ITERATIONS, MAX_POLE_CAP_DEG, MAX_THREADS, MIN_POISSON_TOLERANCE,
 };
@@ -235,6 +236,10 @@ pub(crate) fn limits(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("max_iterations", MAX_ITERATIONS)?;
     d.set_item("min_poisson_tolerance", MIN_POISSON_TOLERANCE)?;
     d.set_item("max_pole_cap_deg", MAX_POLE_CAP_DEG)?;
+    d.set_item("min_erp_width", layout::MIN_ERP_WIDTH)?;
+    d.set_item("max_erp_width", layout::MAX_ERP_WIDTH)?;
+    d.set_item("max_padding", layout::MAX_PADDING)?;
+    d.set_item("min_tangent_width", layout::MIN_TANGENT_WIDTH)?;
     Ok(d)
 }
 
