@@ -123,10 +123,39 @@ def test_resize_to_the_network_and_back_keeps_a_ramp(tmp_path: Path) -> None:
 
 def test_fixed_input_size_is_read_from_the_model(tmp_path: Path) -> None:
     path = g.affine_of_mean(tmp_path / "fixed.onnx", 2.0, 0.5, input_shape=(1, 3, 24, 24))
-    est = OnnxEstimator(path, input_size=(384, 384), **NO_NORM)
-    assert est.network_size((30, 40)) == (24, 24)
+    for size in (None, (24, 24), 24):  # the file's own size, asked for or not, is fine
+        est = OnnxEstimator(path, input_size=size, **NO_NORM)
+        assert est.network_size((30, 40)) == (24, 24)
     tangents = np.full((2, 30, 40, 3), 102, np.uint8)
     np.testing.assert_allclose(est.predict(tangents), 2.0 * 0.4 + 0.5, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 24, 32), (1, 24, 32, 3)], ids=["nchw", "nhwc"])
+def test_an_input_size_a_fixed_size_model_cannot_take_is_an_input_error(
+    tmp_path: Path, shape: tuple[int, ...]
+) -> None:
+    """Asking for a size the file does not take is refused when the estimator is built (it was
+    silently ignored): by OnnxEstimator, load_estimator and m360.estimate alike."""
+    path = g.affine_of_mean(tmp_path / "fixed.onnx", input_shape=shape)
+    expected = (
+        r"input_size=\(24, 48\) but fixed.onnx takes a fixed 24x32 input; omit input_size or "
+        r"pass \(24, 32\)"
+    )
+    with pytest.raises(InputError, match=expected):
+        OnnxEstimator(path, input_size=(24, 48))
+    with pytest.raises(InputError, match=expected):
+        load_estimator(str(path), input_size=(24, 48))
+    with pytest.raises(InputError, match="takes a fixed 24x32 input"):
+        m360.estimate(np.zeros((64, 128, 3), np.uint8), path, input_size=(32, 24))
+    assert load_estimator(str(path), input_size=(24, 32)).network_size((50, 50)) == (24, 32)
+
+
+def test_a_dynamic_size_model_takes_any_input_size(tmp_path: Path) -> None:
+    path = g.affine_of_mean(tmp_path / "dynamic.onnx", input_shape=(1, 3, "H", "W"))
+    for size in [(24, 48), (64, 64), (7, 300)]:
+        est = load_estimator(str(path), input_size=size)
+        assert est.network_size(size) == size
+        assert est.predict(np.zeros((1, *size, 3), np.uint8)).shape == (1, *size)
 
 
 @pytest.mark.parametrize(

@@ -93,7 +93,8 @@ def load_estimator(
     threads : int, optional
         ONNX Runtime intra-op threads.
     input_size : (int, int), optional
-        Network (height, width) of a dynamic-size model.
+        Network (height, width) of a dynamic-size model; for a model whose file fixes its
+        input size, any other size is an :class:`m360.InputError` naming the size it takes.
     output_kind : str, optional
         What the model outputs (:data:`OUTPUT_KINDS`).
     mean, std : 3 floats, optional
@@ -116,10 +117,10 @@ def load_estimator(
         if text in _models.REGISTRY:
             entry = _models.get(text)
             path = _models.ensure(text)
-            return OnnxEstimator(
+            estimator = OnnxEstimator(
                 path,
                 output_kind=output_kind or entry.output_kind,
-                input_size=input_size or entry.input_size,
+                input_size=input_size,
                 mean=entry.mean if mean is None else mean,
                 std=entry.std if std is None else std,
                 multiple_of=entry.multiple_of,
@@ -129,6 +130,10 @@ def load_estimator(
                 name=entry.name,
                 sha256=entry.sha256,
             )
+            if input_size is None:
+                # The registry's size is a default (a file's own fixed size wins), not a request.
+                estimator.input_size = entry.input_size
+            return estimator
         if text.endswith(".onnx") or is_file(Path(text)):
             return OnnxEstimator(
                 text,
