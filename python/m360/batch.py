@@ -191,8 +191,15 @@ def collect(
     lists one input per line (blank lines and ``#`` comments skipped); a ``.csv`` manifest has
     ``input[,output]`` rows (an optional header row starting with ``input``); relative paths
     are relative to the manifest's folder and ``output`` is a stem inside OUT. Returns the jobs
-    and, as failed outcomes, the inputs that cannot become jobs (missing file, an output that
-    escapes OUT, two inputs with the same output stem).
+    and, as failed outcomes, the inputs that cannot become jobs (an output that escapes OUT,
+    two inputs with the same output stem).
+
+    Raises
+    ------
+    m360.ReadError
+        If a path in ``inputs`` itself does not exist, or a manifest cannot be read.
+    m360.InputError
+        If ``inputs`` is not a path or paths.
     """
     out = Path(out_dir)
     if isinstance(inputs, (str, os.PathLike)):
@@ -238,8 +245,9 @@ def collect(
         elif path.is_file():
             add(path, PurePath(path.stem), str(path))
         else:
-            exc = ReadError(f"input {path} does not exist (or is not a file or folder)")
-            problems.append(_failure(path, path.stem, exc))
+            # A path the user named that is not there is a usage error, found before any
+            # model work (files listed in a manifest fail one by one when they are read).
+            raise ReadError(f"input {path} does not exist (or is not a file or folder)")
     return jobs, problems
 
 
