@@ -38,6 +38,7 @@ import json
 import multiprocessing
 import os
 import pickle
+import signal
 import time
 import uuid
 from collections import deque
@@ -730,26 +731,57 @@ def _progress_bar(total: int, show: bool) -> Any:
 # Worker processes. The state lives in a module global of each worker process.
 _PROCESS_WORKER: _Worker | None = None
 _STOPPING = False  # set when Ctrl-C reached this worker: it takes no further image
+_BUSY = False  # an image is in progress in this worker
+
+
+def _on_sigint(signum: int, frame: Any) -> None:
+    """Ctrl-C in a worker: interrupt the image in progress once; otherwise only stop.
+
+    A worker may get SIGINT twice (from the terminal and forwarded by the parent): a second
+    one must not interrupt the clean-up of the first, and an idle worker (waiting for its
+    next image) must not die with a traceback.
+    """
+    global _STOPPING
+    first = not _STOPPING
+    _STOPPING = True
+    if first and _BUSY:
+        raise KeyboardInterrupt
 
 
 def _init_process(settings: _Settings, core_threads: int) -> None:
     global _PROCESS_WORKER
     from . import set_num_threads
 
+    signal.signal(signal.SIGINT, _on_sigint)
     set_num_threads(core_threads)
     _PROCESS_WORKER = _Worker(settings)
 
 
 def _process_in_worker(job: Job) -> ImageOutcome:
-    global _STOPPING
+    global _BUSY
     if _PROCESS_WORKER is None:  # pragma: no cover - the initializer always ran
         raise RuntimeError("worker not initialised")
     if not _STOPPING:
         try:
+            _BUSY = True
             return _PROCESS_WORKER.process(job)
         except KeyboardInterrupt:  # the image's files were cleaned up on the way out
-            _STOPPING = True
+            pass
+        finally:
+            _BUSY = False
     return ImageOutcome(str(job.input), job.name, "interrupted")
+
+
+def _interrupt_workers(executor: ProcessPoolExecutor) -> None:
+    """Forward Ctrl-C to the workers, which may not have got it.
+
+    A SIGINT sent to this process alone (``kill -INT PID``) used to let the images in progress
+    and the queued ones run to the end; now they stop at once.
+    """
+    processes = getattr(executor, "_processes", None) or {}  # private: {pid: Process}
+    for pid in list(processes):
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGINT)
 
 
 def _run_pool(
@@ -802,6 +834,7 @@ def _run_pool(
             # workers got the signal too), and count what did finish.
             for future in inflight:
                 future.cancel()
+            _interrupt_workers(executor)
             _record_finished(inflight, record)
             raise
         finally:
