@@ -360,3 +360,23 @@ def test_estimate_validates_its_inputs(tmp_path: Path) -> None:
 
     with pytest.raises(ModelError, match=r"estimator bad returned float32 of shape \(20, 5, 5\)"):
         m360.estimate(np.zeros((128, 256, 3), np.uint8), Bad(), align="none", blend="mean")
+
+
+def test_a_model_with_external_weights_loads_from_its_verified_bytes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The session is made from the bytes that were hashed, not the path: weights stored next
+    to the file are still found (whatever the working directory)."""
+    import onnx
+    import onnxruntime as ort
+
+    model = onnx.load(str(g.conv_net(tmp_path / "plain.onnx", size=None, width=8, layers=1)))
+    path = tmp_path / "ext" / "net.onnx"
+    path.parent.mkdir()
+    onnx.save_model(model, str(path), save_as_external_data=True, location="net.data",
+                    size_threshold=256)  # fmt: skip
+    assert (tmp_path / "ext" / "net.data").stat().st_size > 1000
+    monkeypatch.chdir(tmp_path)
+    x = np.random.default_rng(0).random((1, 3, 16, 16), dtype=np.float32)
+    expected = ort.InferenceSession(str(path)).run(None, {"x": x})[0]
+    np.testing.assert_allclose(OnnxEstimator(path)._run(x), expected, rtol=1e-6)

@@ -46,9 +46,10 @@ class _InputSpec:
     size: tuple[int, int] | None  # fixed (H, W) or None (dynamic)
 
 
-#: Sessions per (sha256 of the model bytes, providers, threads): keyed by content, so a file
-#: changed in place can never be served a session of its old bytes.
-_SESSIONS: OrderedDict[tuple[str, tuple[str, ...], int | None], Any] = OrderedDict()
+#: Sessions per (sha256 of the model bytes, folder, providers, threads): keyed by content, so a
+#: file changed in place can never be served a session of its old bytes (the folder: where
+#: external weights are looked for).
+_SESSIONS: OrderedDict[tuple[str, str, tuple[str, ...], int | None], Any] = OrderedDict()
 _SESSIONS_MAX = 4
 _SESSIONS_LOCK = threading.Lock()
 
@@ -67,7 +68,8 @@ def _session(
     """Make (or reuse) the ONNX Runtime session of ``data``, the bytes that were hashed."""
     import onnxruntime as ort
 
-    key = (digest, providers, threads)
+    folder = str(path.resolve().parent)
+    key = (digest, folder, providers, threads)
     with _SESSIONS_LOCK:
         if key in _SESSIONS:
             _SESSIONS.move_to_end(key)
@@ -79,9 +81,7 @@ def _session(
     if threads is not None:
         options.intra_op_num_threads = threads
     # Loaded from bytes, a model with external weights finds them next to its file.
-    options.add_session_config_entry(
-        "session.model_external_initializers_file_folder_path", str(path.resolve().parent)
-    )
+    options.add_session_config_entry("session.model_external_initializers_file_folder_path", folder)
     try:
         session = ort.InferenceSession(data, sess_options=options, providers=list(providers))
     except Exception as exc:  # onnxruntime raises its own exception types per failure
@@ -189,7 +189,8 @@ class OnnxEstimator:
 
     Notes
     -----
-    Sessions are cached per process by (sha256 of the bytes, providers, threads). Tangents are
+    Sessions are cached per process by (sha256 of the bytes, folder, providers, threads); the
+    file is read once per estimator, hashed, and the session made from those bytes. Tangents are
     resized to the network size with ``cv2.INTER_AREA`` when shrinking and ``cv2.INTER_LINEAR``
     when enlarging, and predictions back to the tangent size with ``cv2.INTER_LINEAR`` (no
     overshoot at depth edges). uint8 tangents are divided by 255; float tangents are taken as RGB in
@@ -248,7 +249,7 @@ class OnnxEstimator:
             raise ModelError(
                 f"model file {self.path} fails its hash check: expected sha256 {sha256}, the "
                 f"bytes read have {self._sha256} (was the file replaced?); fetch it again "
-                "(m360 models fetch NAME)"
+                f"(m360 models fetch {self.name})"
             )
         self.session = _session(
             self.path, data, self._sha256, self.requested_providers, self.threads
