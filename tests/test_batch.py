@@ -419,3 +419,25 @@ def test_every_option_that_changes_an_output_byte_redoes_the_image(
         assert status(**change) == "done", change
         assert status(**change) == "skipped", change
         assert status() == "done", change
+
+
+def test_unusable_output_folders_are_usage_errors_and_unusable_outputs_fail_alone(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found by tests/test_fuzz_cli.py's kind of inputs: an OSError or ValueError must not
+    escape (it was a traceback)."""
+    (image,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    options = ["--model", str(model), "--align", "none", "--blend", "mean", "--no-progress"]
+    with pytest.raises(m360.InputError, match="is not a valid path"):
+        m360.batch.run(image, "out\x00x", model=str(model), progress=False)
+    assert main(["run", str(image), "-o", str(image / "out"), *options]) == 2  # a file in the way
+    assert f"cannot create the output folder {image / 'out'}" in capsys.readouterr().err
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "taken").write_text("a file where a manifest wants a folder")
+    (tmp_path / "list.csv").write_text(f"{image},taken/pano\n{image},fine/pano\n")
+    assert main(["run", str(tmp_path / "list.csv"), "-o", str(out), *options]) == 1
+    err = capsys.readouterr().err
+    assert "InputError: cannot create the folder of output taken/pano" in err
+    assert "1 done, 0 already done, 1 failed" in err and "Traceback" not in err
+    assert _failures(out) == {image.name: "InputError"}

@@ -123,9 +123,24 @@ FILE = st.tuples(
         st.just(NOT_PANORAMA),
         st.binary(max_size=32).map(lambda b: b"v/1\x01" + b),  # EXR magic, junk after
         st.binary(max_size=32).map(lambda b: PANORAMA[:40] + b),  # a PNG cut short
-        st.lists(st.sampled_from(["a.png", "pano.jpg", "missing.png", "..", "/", "x,y"])).map(
-            lambda lines: "\n".join(lines).encode()
-        ),
+        st.lists(
+            st.sampled_from(
+                [
+                    "a.png",
+                    "pano.jpg",
+                    "missing.png",
+                    "..",
+                    "/",
+                    "x,y",
+                    "pano.png,pano.json/x",
+                    "a.png,sub\x00/x",
+                    "a\x00.png",
+                    "pano.png,../up",
+                    "b.png,/abs",
+                    "input,output",
+                ]
+            )
+        ).map(lambda lines: "\n".join(lines).encode()),
     ),
 )
 
@@ -177,12 +192,17 @@ def run_cli(argv: list[str]) -> tuple[int, str, str]:
     inputs=st.lists(INPUT, min_size=1, max_size=3),
     options=st.lists(OPTION, max_size=6),
     out_is_a_file=st.booleans(),
+    out_name=st.one_of(
+        st.sampled_from(["out", "out", "out", "in/a.png/out", "in/pano.png", "in"]),
+        TOKEN.filter(lambda t: "/" not in t and t not in (".", "..")),
+    ),
 )
 def test_fuzz_run_exits_0_1_or_2_and_never_with_a_traceback(
     files: list[tuple[str, str, bytes]],
     inputs: list[str],
     options: list[list[str]],
     out_is_a_file: bool,
+    out_name: str,
 ) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         root = Path(tmp)
@@ -190,8 +210,8 @@ def test_fuzz_run_exits_0_1_or_2_and_never_with_a_traceback(
         folder.mkdir()
         for stem, suffix, data in files:
             (folder / f"{stem}{suffix}").write_bytes(data)
-        out = root / "out"
-        if out_is_a_file:
+        out = root / out_name
+        if out_is_a_file and out.parent.is_dir() and not out.exists():
             out.write_bytes(b"x")
         argv = ["run", *(i.replace("{in}", str(folder)) for i in inputs), "-o", str(out)]
         argv += ["--model", str(MODEL), "--no-progress"]  # defaults; options may override them
@@ -201,8 +221,9 @@ def test_fuzz_run_exits_0_1_or_2_and_never_with_a_traceback(
         event(f"exit {code}")
         assert code in (0, 1, 2), (code, argv, stderr)
         assert "Traceback" not in stderr and "Traceback" not in stdout, (argv, stderr)
-        failures = out / "failures.jsonl" if out.is_dir() else None
-        written = sorted(out.rglob("*.json")) if out.is_dir() else []
+        usable = "\x00" not in str(out) and out.is_dir()
+        failures = out / "failures.jsonl" if usable else None
+        written = sorted(out.rglob("*.json")) if usable else []
         if code == 2:
             assert "error:" in stderr, (argv, stderr)
             assert not written, (argv, written)

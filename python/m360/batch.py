@@ -278,7 +278,8 @@ def _manifest(path: Path) -> Iterator[tuple[int, Path, PurePath]]:
 
 def _inside(out: Path, rel: PurePath, where: str) -> Path:
     """``out / rel`` if it stays inside ``out`` (no absolute path, no ``..``, no symlink out)."""
-    if rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.name in ("", "."):
+    bad = "\x00" in str(rel)  # no OS takes it (and pathlib raises ValueError on it)
+    if bad or rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.name in ("", "."):
         raise InputError(f"{where}: output {str(rel)!r} must be a relative path inside OUT")
     stem = out / rel
     root = out.resolve()
@@ -326,6 +327,11 @@ class _Worker:
         from .estimate import estimate
 
         s = self.settings
+        try:
+            job.stem.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
+            message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
+            return _failure(job.input, job.name, InputError(message))
         with _claim(job.stem) as claimed:
             if not claimed:
                 return ImageOutcome(str(job.input), job.name, "busy")
@@ -534,6 +540,8 @@ def run(
     if not isinstance(out_dir, (str, os.PathLike)):
         raise InputError(f"out_dir must be a path, got {type(out_dir).__name__}")
     out = Path(out_dir)
+    if "\x00" in str(out):  # the OS refuses such a name (ValueError deep in pathlib)
+        raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
@@ -584,6 +592,7 @@ def run(
     )
     if workers > 1:
         _check_picklable(settings)
+    _make_output_folder(out)
     failures = out / FAILURES_FILE
     order = {job: k for k, job in enumerate(jobs)}
     outcomes: dict[int, ImageOutcome] = {}
@@ -626,6 +635,16 @@ def run(
         failures_file=failures,
     )
     return report
+
+
+def _make_output_folder(out: Path) -> None:
+    """Create OUT, or tell why it cannot be written to (an InputError: exit 2, no image run)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file in the way, no permission, read-only file system
+        raise InputError(f"cannot create the output folder {out}: {exc.strerror or exc}") from exc
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"the output folder {out} is not writable")
 
 
 def fingerprint(
