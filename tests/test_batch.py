@@ -441,3 +441,42 @@ def test_unusable_output_folders_are_usage_errors_and_unusable_outputs_fail_alon
     assert "InputError: cannot create the folder of output taken/pano" in err
     assert "1 done, 0 already done, 1 failed" in err and "Traceback" not in err
     assert _failures(out) == {image.name: "InputError"}
+
+
+def test_ctrl_c_while_writing_leaves_no_partial_set(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C lands after the second image's arrays are in place, while its preview is being
+    written: those arrays are removed again, the run reports 130, a rerun does the rest."""
+    inputs = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 3)
+    out = tmp_path / "out"
+    real_save_png = m360.io.save_png
+    calls = []
+
+    def interrupted_on_the_second(path: Path, image: np.ndarray) -> Path:
+        calls.append(path)
+        if len(calls) == 2:
+            assert sorted(p.name for p in out.glob("pano_01.*")) == [
+                "pano_01.depth.npy",
+                "pano_01.disparity.npy",
+            ]  # the arrays are written: this is the worst moment
+            raise KeyboardInterrupt
+        return real_save_png(path, image)
+
+    monkeypatch.setattr(m360.io, "save_png", interrupted_on_the_second)
+    options = {"model": str(model), "align": "none", "blend": "mean", "progress": False}
+    report = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
+    assert report.interrupted and report.exit_code == 130
+    assert [o.stem for o in report.done] == ["pano_00"] and len(calls) == 2
+    assert sorted(p.name for p in out.iterdir()) == [
+        "pano_00.depth.npy",
+        "pano_00.disparity.npy",
+        "pano_00.json",
+        "pano_00.preview.png",
+    ]  # nothing of pano_01 (nor its lock), pano_02 not started
+    monkeypatch.setattr(m360.io, "save_png", real_save_png)
+    again = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
+    assert [o.stem for o in again.done] == ["pano_01", "pano_02"]
+    assert [o.stem for o in again.skipped] == ["pano_00"] and again.exit_code == 0
+    _assert_clean(out, (256, 512))
+    assert len(inputs) == 3
