@@ -6,10 +6,10 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import select
 import signal
 import subprocess
 import sys
-import time
 from pathlib import Path
 
 import batch_helpers
@@ -75,13 +75,13 @@ def _sidecar_mtimes(out: Path) -> dict[str, int]:
     return {p.name: p.stat().st_mtime_ns for p in sorted(out.rglob("*.json"))}
 
 
-def _assert_clean(out: Path) -> None:
+def _assert_clean(out: Path, shape: tuple[int, int] = (512, 1024)) -> None:
     """No temporary or lock files; every sidecar's set loads."""
     leftovers = [p.name for p in out.rglob(".*")]
     assert not leftovers, leftovers
     for sidecar in out.rglob("*.json"):
         result = m360.load(sidecar)
-        assert result.disparity.shape == (512, 1024)
+        assert result.disparity.shape == shape
 
 
 def test_a_batch_with_bad_files_records_them_and_goes_on(
@@ -168,52 +168,87 @@ def _env(tmp_path: Path) -> dict[str, str]:
     return {**os.environ, "M360_HOME": str(tmp_path / "home"), "M360_NUM_THREADS": "1"}
 
 
-def _wait_for_sidecars(out: Path, count: int, proc: subprocess.Popen[bytes]) -> None:
-    deadline = time.monotonic() + 120
-    while len(list(out.glob("*.json"))) < count:
+# `m360 run` with the gated estimator of batch_helpers (the CLI takes no estimator object).
+_GATED_RUN = """
+import sys, m360, batch_helpers
+if __name__ == "__main__":
+    gate = sys.argv[3] or None
+    report = m360.batch.run(sys.argv[1], sys.argv[2], model=batch_helpers.Gated(gate),
+                            align="none", blend="mean", workers=int(sys.argv[4]), progress=False)
+    print(report.summary(), file=sys.stderr)
+    sys.exit(report.exit_code)
+"""
+
+
+def _read_exactly(fd: int, count: int, proc: subprocess.Popen[bytes]) -> None:
+    """Read ``count`` bytes from the pipe ``fd``; fail (not hang) if the run ends or stalls."""
+    got = 0
+    while got < count:
+        ready, _, _ = select.select([fd], [], [], 120)  # only a guard against a hung run
+        assert ready, f"the run stalled after {got} of {count} image starts"
+        got += len(os.read(fd, count - got))
         assert proc.poll() is None, "the run ended before it could be stopped"
-        assert time.monotonic() < deadline
-        time.sleep(0.01)
 
 
-@pytest.mark.parametrize(("how", "workers"), [("SIGKILL", 1), ("SIGINT", 1), ("SIGINT", 2)])
+@pytest.mark.parametrize(
+    ("how", "workers"),
+    [("SIGKILL", 1), ("SIGINT", 1), ("SIGINT", 2), ("SIGINT to the parent only", 2)],
+)
 def test_a_killed_run_resumes_without_losing_or_redoing_anything(
-    how: str, workers: int, model: Path, tmp_path: Path, base_rgb: np.ndarray
+    how: str, workers: int, tmp_path: Path, base_rgb: np.ndarray
 ) -> None:
-    """Kill a run mid-way (SIGKILL: no cleanup at all; SIGINT: Ctrl-C, to the whole process
-    group as a terminal sends it), rerun: the rest completes, no file is truncated or
-    duplicated, finished images are not redone."""
-    inputs = _panoramas(tmp_path / "in", base_rgb, 12)
-    out = tmp_path / "out"
-    # Poisson blending makes each image slow enough to be caught mid-way.
-    args = ["run", str(tmp_path / "in"), "-o", str(out), "--model", str(model), "--no-progress",
-            "--align", "none", "--blend", "poisson", "--input-size", "64", "96",
-            "--workers", str(workers)]  # fmt: skip
-    proc = subprocess.Popen(
-        _cli(*args), env=_env(tmp_path), stderr=subprocess.PIPE, start_new_session=True
-    )
-    _wait_for_sidecars(out, 3, proc)
-    os.killpg(proc.pid, getattr(signal, how))
-    _, err = proc.communicate(timeout=120)
-    finished = _sidecar_mtimes(out)
-    assert 3 <= len(finished) < len(inputs), "the kill came too late to test anything"
-    if how == "SIGINT":
-        assert proc.returncode == 130, err.decode()
-        assert b"interrupted: rerun" in err
-        _assert_clean(out)  # Ctrl-C leaves no temporary file behind
-    else:
-        assert proc.returncode == -signal.SIGKILL
-    for sidecar in finished:  # whatever was finished is complete and readable
-        assert m360.load(out / sidecar).disparity.shape == (512, 1024)
+    """Stop a run with exactly 3 images done and one image in progress per worker (blocked in
+    the network on a FIFO the test controls), then rerun: the rest completes, no file is
+    truncated or duplicated, finished images are not redone.
 
-    rerun = subprocess.run(_cli(*args), env=_env(tmp_path), capture_output=True, timeout=300)
+    SIGKILL: no clean-up at all. SIGINT: Ctrl-C, to the whole process group as a terminal sends
+    it. "SIGINT to the parent only" (``kill -INT PID``): the parent must stop its workers itself;
+    it used to wait for their images, here forever."""
+    done_first = 3
+    inputs = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 12)
+    out = tmp_path / "out"
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    started, tokens = batch_helpers.make_gate(str(gate))
+    env = {**_env(tmp_path), "PYTHONPATH": str(Path(__file__).parent)}
+    cmd = [sys.executable, "-c", _GATED_RUN, str(tmp_path / "in"), str(out)]
+    proc = subprocess.Popen(
+        [*cmd, str(gate), str(workers)], env=env, stderr=subprocess.PIPE, start_new_session=True
+    )
+    try:
+        os.write(tokens, b"t" * done_first)
+        # Each worker has started one more image, which waits for a token that never comes.
+        _read_exactly(started, done_first + workers, proc)
+        finished = _sidecar_mtimes(out)
+        assert len(finished) == done_first
+        if how == "SIGINT to the parent only":
+            os.kill(proc.pid, signal.SIGINT)
+        else:
+            os.killpg(proc.pid, getattr(signal, how.split()[0]))
+        _, err = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:  # a failed test leaves no process behind
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+    if how == "SIGKILL":
+        assert proc.returncode == -signal.SIGKILL
+    else:
+        assert proc.returncode == 130, err.decode()
+        assert f"{done_first} done, 0 already done, 0 failed".encode() in err
+        assert b"interrupted: rerun" in err and b"Traceback" not in err, err.decode()
+        _assert_clean(out, (256, 512))  # Ctrl-C leaves no temporary or lock file behind
+    assert _sidecar_mtimes(out) == finished  # nothing finished or started writing after
+    for sidecar in finished:  # whatever was finished is complete and readable
+        assert m360.load(out / sidecar).disparity.shape == (256, 512)
+
+    rerun = subprocess.run([*cmd, "", "1"], env=env, capture_output=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr.decode()
-    done_now = len(inputs) - len(finished)
-    assert f"{done_now} done, {len(finished)} already done, 0 failed" in rerun.stderr.decode()
+    done_now = len(inputs) - done_first
+    assert f"{done_now} done, {done_first} already done, 0 failed" in rerun.stderr.decode()
     after = _sidecar_mtimes(out)
     assert sorted(after) == sorted(f"{p.stem}.json" for p in inputs)
     assert {k: after[k] for k in finished} == finished  # not recomputed
-    _assert_clean(out)  # stale temporaries and locks of the killed image are gone
+    _assert_clean(out, (256, 512))  # stale temporaries and locks of the killed image are gone
     names = [p.name for p in out.iterdir()]
     assert len(names) == len(set(names)) == 4 * len(inputs)  # 2 arrays + preview + sidecar
 
@@ -384,3 +419,64 @@ def test_every_option_that_changes_an_output_byte_redoes_the_image(
         assert status(**change) == "done", change
         assert status(**change) == "skipped", change
         assert status() == "done", change
+
+
+def test_unusable_output_folders_are_usage_errors_and_unusable_outputs_fail_alone(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Found by tests/test_fuzz_cli.py's kind of inputs: an OSError or ValueError must not
+    escape (it was a traceback)."""
+    (image,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    options = ["--model", str(model), "--align", "none", "--blend", "mean", "--no-progress"]
+    with pytest.raises(m360.InputError, match="is not a valid path"):
+        m360.batch.run(image, "out\x00x", model=str(model), progress=False)
+    assert main(["run", str(image), "-o", str(image / "out"), *options]) == 2  # a file in the way
+    assert f"cannot create the output folder {image / 'out'}" in capsys.readouterr().err
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "taken").write_text("a file where a manifest wants a folder")
+    (tmp_path / "list.csv").write_text(f"{image},taken/pano\n{image},fine/pano\n")
+    assert main(["run", str(tmp_path / "list.csv"), "-o", str(out), *options]) == 1
+    err = capsys.readouterr().err
+    assert "InputError: cannot create the folder of output taken/pano" in err
+    assert "1 done, 0 already done, 1 failed" in err and "Traceback" not in err
+    assert _failures(out) == {image.name: "InputError"}
+
+
+def test_ctrl_c_while_writing_leaves_no_partial_set(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Ctrl-C lands after the second image's arrays are in place, while its preview is being
+    written: those arrays are removed again, the run reports 130, a rerun does the rest."""
+    inputs = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 3)
+    out = tmp_path / "out"
+    real_save_png = m360.io.save_png
+    calls = []
+
+    def interrupted_on_the_second(path: Path, image: np.ndarray) -> Path:
+        calls.append(path)
+        if len(calls) == 2:
+            assert sorted(p.name for p in out.glob("pano_01.*")) == [
+                "pano_01.depth.npy",
+                "pano_01.disparity.npy",
+            ]  # the arrays are written: this is the worst moment
+            raise KeyboardInterrupt
+        return real_save_png(path, image)
+
+    monkeypatch.setattr(m360.io, "save_png", interrupted_on_the_second)
+    options = {"model": str(model), "align": "none", "blend": "mean", "progress": False}
+    report = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
+    assert report.interrupted and report.exit_code == 130
+    assert [o.stem for o in report.done] == ["pano_00"] and len(calls) == 2
+    assert sorted(p.name for p in out.iterdir()) == [
+        "pano_00.depth.npy",
+        "pano_00.disparity.npy",
+        "pano_00.json",
+        "pano_00.preview.png",
+    ]  # nothing of pano_01 (nor its lock), pano_02 not started
+    monkeypatch.setattr(m360.io, "save_png", real_save_png)
+    again = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
+    assert [o.stem for o in again.done] == ["pano_01", "pano_02"]
+    assert [o.stem for o in again.skipped] == ["pano_00"] and again.exit_code == 0
+    _assert_clean(out, (256, 512))
+    assert len(inputs) == 3

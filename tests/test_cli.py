@@ -78,16 +78,41 @@ def test_run_writes_arrays_preview_and_sidecar(
 def test_run_goes_on_after_a_failed_image(
     tmp_path: Path, panorama: Path, capsys: pytest.CaptureFixture[str]
 ) -> None:
+    """A file a manifest lists that is missing fails alone (a path on the command line that is
+    missing is a usage error: see the next test)."""
     model = g.affine_of_mean(tmp_path / "m.onnx")
     missing = tmp_path / "missing.jpg"
+    manifest = tmp_path / "list.txt"
+    manifest.write_text(f"{missing}\n{panorama}\n")
     out = tmp_path / "out"
-    args = ["run", str(missing), str(panorama), "-o", str(out), "--model", str(model)]
+    args = ["run", str(manifest), "-o", str(out), "--model", str(model)]
     code = main([*args, "--align", "none", "--blend", "mean"])
     err = capsys.readouterr().err
     assert code == 1
-    assert f"{missing}: ReadError: input {missing} does not exist" in err
+    assert f"{missing}: ReadError: input image {missing} does not exist" in err
     assert "1 done, 0 already done, 1 failed" in err
     assert (out / "room.json").is_file()
+
+
+@pytest.mark.parametrize("model", [None, "midas-v21-small", "model.onnx"])
+def test_run_on_a_missing_path_is_a_usage_error_before_any_model_work(
+    model: str | None,
+    tmp_path: Path,
+    panorama: Path,
+    capsys: pytest.CaptureFixture[str],
+    monkeypatch: pytest.MonkeyPatch,
+) -> None:
+    """Offline with an empty M360_HOME any model access fails (exit 1): a missing input must
+    be found first, as a usage error naming it."""
+    monkeypatch.setenv("M360_OFFLINE", "1")
+    monkeypatch.chdir(tmp_path)
+    args = ["run", "missing.jpg", str(panorama), "-o", "out"]
+    code = main([*args, *(["--model", model] if model else [])])
+    err = capsys.readouterr().err
+    assert code == 2, err
+    assert "input missing.jpg does not exist" in err
+    assert "model" not in err.lower() and "Traceback" not in err
+    assert not (tmp_path / "out").exists()
 
 
 def test_run_with_the_default_model_offline_says_where_to_put_it(
@@ -193,3 +218,23 @@ def test_run_passes_every_stitching_flag(
         "iterations": 800,
         "solver": "fused",
     }
+
+
+def test_run_with_an_input_size_the_model_cannot_take_is_a_usage_error(
+    tmp_path: Path, panorama: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """Like an unavailable provider, an impossible --input-size is refused (exit 2) when the
+    model is loaded, before any image; the model's own size runs."""
+    model = g.affine_of_mean(tmp_path / "fixed.onnx", input_shape=(1, 3, 32, 32))
+    args = ["run", str(panorama), "-o", str(tmp_path / "out"), "--model", str(model),
+            "--align", "none", "--blend", "mean", "--no-progress"]  # fmt: skip
+    assert main([*args, "--input-size", "32", "48"]) == 2
+    err = capsys.readouterr().err
+    assert "m360: error: input_size=(32, 48) but fixed.onnx takes a fixed 32x32 input" in err
+    assert "omit input_size or pass (32, 32)" in err
+    assert not (tmp_path / "out").exists()
+    assert main([*args, "--input-size", "32", "32"]) == 0, capsys.readouterr().err
+    assert json.loads((tmp_path / "out" / "room.json").read_text())["model"]["network_size"] == [
+        32,
+        32,
+    ]

@@ -123,10 +123,39 @@ def test_resize_to_the_network_and_back_keeps_a_ramp(tmp_path: Path) -> None:
 
 def test_fixed_input_size_is_read_from_the_model(tmp_path: Path) -> None:
     path = g.affine_of_mean(tmp_path / "fixed.onnx", 2.0, 0.5, input_shape=(1, 3, 24, 24))
-    est = OnnxEstimator(path, input_size=(384, 384), **NO_NORM)
-    assert est.network_size((30, 40)) == (24, 24)
+    for size in (None, (24, 24), 24):  # the file's own size, asked for or not, is fine
+        est = OnnxEstimator(path, input_size=size, **NO_NORM)
+        assert est.network_size((30, 40)) == (24, 24)
     tangents = np.full((2, 30, 40, 3), 102, np.uint8)
     np.testing.assert_allclose(est.predict(tangents), 2.0 * 0.4 + 0.5, rtol=1e-6)
+
+
+@pytest.mark.parametrize("shape", [(1, 3, 24, 32), (1, 24, 32, 3)], ids=["nchw", "nhwc"])
+def test_an_input_size_a_fixed_size_model_cannot_take_is_an_input_error(
+    tmp_path: Path, shape: tuple[int, ...]
+) -> None:
+    """Asking for a size the file does not take is refused when the estimator is built (it was
+    silently ignored): by OnnxEstimator, load_estimator and m360.estimate alike."""
+    path = g.affine_of_mean(tmp_path / "fixed.onnx", input_shape=shape)
+    expected = (
+        r"input_size=\(24, 48\) but fixed.onnx takes a fixed 24x32 input; omit input_size or "
+        r"pass \(24, 32\)"
+    )
+    with pytest.raises(InputError, match=expected):
+        OnnxEstimator(path, input_size=(24, 48))
+    with pytest.raises(InputError, match=expected):
+        load_estimator(str(path), input_size=(24, 48))
+    with pytest.raises(InputError, match="takes a fixed 24x32 input"):
+        m360.estimate(np.zeros((64, 128, 3), np.uint8), path, input_size=(32, 24))
+    assert load_estimator(str(path), input_size=(24, 32)).network_size((50, 50)) == (24, 32)
+
+
+def test_a_dynamic_size_model_takes_any_input_size(tmp_path: Path) -> None:
+    path = g.affine_of_mean(tmp_path / "dynamic.onnx", input_shape=(1, 3, "H", "W"))
+    for size in [(24, 48), (64, 64), (7, 300)]:
+        est = load_estimator(str(path), input_size=size)
+        assert est.network_size(size) == size
+        assert est.predict(np.zeros((1, *size, 3), np.uint8)).shape == (1, *size)
 
 
 @pytest.mark.parametrize(
@@ -331,3 +360,23 @@ def test_estimate_validates_its_inputs(tmp_path: Path) -> None:
 
     with pytest.raises(ModelError, match=r"estimator bad returned float32 of shape \(20, 5, 5\)"):
         m360.estimate(np.zeros((128, 256, 3), np.uint8), Bad(), align="none", blend="mean")
+
+
+def test_a_model_with_external_weights_loads_from_its_verified_bytes(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """The session is made from the bytes that were hashed, not the path: weights stored next
+    to the file are still found (whatever the working directory)."""
+    import onnx
+    import onnxruntime as ort
+
+    model = onnx.load(str(g.conv_net(tmp_path / "plain.onnx", size=None, width=8, layers=1)))
+    path = tmp_path / "ext" / "net.onnx"
+    path.parent.mkdir()
+    onnx.save_model(model, str(path), save_as_external_data=True, location="net.data",
+                    size_threshold=256)  # fmt: skip
+    assert (tmp_path / "ext" / "net.data").stat().st_size > 1000
+    monkeypatch.chdir(tmp_path)
+    x = np.random.default_rng(0).random((1, 3, 16, 16), dtype=np.float32)
+    expected = ort.InferenceSession(str(path)).run(None, {"x": x})[0]
+    np.testing.assert_allclose(OnnxEstimator(path)._run(x), expected, rtol=1e-6)

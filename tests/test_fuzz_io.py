@@ -163,14 +163,17 @@ _anything = st.one_of(
             "on_outcome": _anything,
         },
     ),
-    st.one_of(st.just("missing.jpg"), _anything),
+    st.one_of(st.just("list.txt"), _anything),
 )
 def test_fuzz_batch_arguments_raise_only_m360_errors(kwargs: dict, inputs: object) -> None:
-    """Bad arguments are refused up front; good ones run (here on a missing input, recorded as
-    a failure, so nothing is computed)."""
+    """Bad arguments are refused up front; good ones run (here on a manifest listing a missing
+    file, recorded as a failure, so nothing is computed)."""
     import batch_helpers
 
     with tempfile.TemporaryDirectory() as tmp:
+        if inputs == "list.txt":
+            inputs = Path(tmp) / "list.txt"
+            inputs.write_text("missing.jpg\n")
         try:
             report = m360.batch.run(
                 inputs,  # type: ignore[arg-type]

@@ -274,3 +274,73 @@ def test_real_model_when_available(name: str, monkeypatch: pytest.MonkeyPatch) -
     valid = np.isfinite(res.disparity)
     corr = np.corrcoef(res.disparity[valid], 1.0 / depth[valid])[0, 1]
     assert corr > 0.5, corr
+
+
+# ------------------------------------------------------------------ what is loaded is verified
+
+
+def test_a_registry_default_size_is_not_a_request(
+    monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    """The registry's input_size is a default: a file with its own fixed size runs at it, and
+    only a size the user asks for is checked against the file."""
+    data = g.affine_of_mean(isolated_cache / "tiny.onnx", input_shape=(1, 3, 24, 24)).read_bytes()
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(data), len(data))  # input_size (16, 16)
+    est = load_estimator("tiny")
+    assert est.network_size((40, 40)) == (24, 24)
+    with pytest.raises(m360.InputError, match=r"takes a fixed 24x24 input; omit input_size"):
+        load_estimator("tiny", input_size=(16, 16))
+
+
+def _swap(path: Path, data: bytes) -> None:
+    """Replace ``path``'s bytes, keeping its size and mtime (what a stat cache looks at)."""
+    before = path.stat()
+    assert len(data) == before.st_size
+    path.write_bytes(data)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+
+
+def test_a_model_swapped_between_the_check_and_the_load_is_refused(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    """The file is replaced by another valid ONNX model right after models.ensure checked it:
+    the bytes loaded are hashed, so the swap is a ModelError, never an unverified load."""
+    path = isolated_cache / "tiny.onnx"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(tiny)
+    other = g.affine_of_mean(isolated_cache.parent / "other.onnx", 5.0, 0.0).read_bytes()
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(tiny), len(tiny))
+    real_ensure = models.ensure
+
+    def ensure_then_swap(name: str, **kwargs: object) -> Path:
+        checked = real_ensure(name)
+        _swap(checked, other)  # the window between the check and the load
+        return checked
+
+    monkeypatch.setattr(models, "ensure", ensure_then_swap)
+    with pytest.raises(ModelError, match=rf"expected sha256 {sha(tiny)}, the bytes read have "
+                       rf"{sha(other)} \(was the file replaced\?\)"):  # fmt: skip
+        load_estimator("tiny")
+
+
+def test_a_stat_cache_cannot_be_fooled_by_a_same_size_same_mtime_swap(
+    tiny: bytes, monkeypatch: pytest.MonkeyPatch, isolated_cache: Path
+) -> None:
+    """After a first verified load, the file changes with its size and mtime kept: the next
+    load hashes the bytes again and refuses them, and a session is never reused for them."""
+    path = isolated_cache / "tiny.onnx"
+    path.parent.mkdir(parents=True)
+    path.write_bytes(tiny)
+    register(monkeypatch, "http://127.0.0.1:9/x", sha(tiny), len(tiny))
+    first = load_estimator("tiny")
+    assert first.sha256 == sha(tiny)
+    other = g.affine_of_mean(isolated_cache.parent / "other.onnx", 5.0, 0.0).read_bytes()
+    _swap(path, other)
+    with pytest.raises(ModelError, match="fails its hash check"):
+        load_estimator("tiny")
+    # A file given by path (no expected hash) reports the hash of the bytes it runs.
+    assert OnnxEstimator(path).sha256 == sha(other)
+    pred = OnnxEstimator(path, mean=(0, 0, 0), std=(1, 1, 1)).predict(
+        np.full((1, 8, 8, 3), 51, np.uint8)
+    )
+    np.testing.assert_allclose(pred, 5.0 * 0.2, rtol=1e-6)  # the new graph ran, not a cached one

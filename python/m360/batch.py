@@ -38,6 +38,7 @@ import json
 import multiprocessing
 import os
 import pickle
+import signal
 import time
 import uuid
 from collections import deque
@@ -191,8 +192,15 @@ def collect(
     lists one input per line (blank lines and ``#`` comments skipped); a ``.csv`` manifest has
     ``input[,output]`` rows (an optional header row starting with ``input``); relative paths
     are relative to the manifest's folder and ``output`` is a stem inside OUT. Returns the jobs
-    and, as failed outcomes, the inputs that cannot become jobs (missing file, an output that
-    escapes OUT, two inputs with the same output stem).
+    and, as failed outcomes, the inputs that cannot become jobs (an output that escapes OUT,
+    two inputs with the same output stem).
+
+    Raises
+    ------
+    m360.ReadError
+        If a path in ``inputs`` itself does not exist, or a manifest cannot be read.
+    m360.InputError
+        If ``inputs`` is not a path or paths.
     """
     out = Path(out_dir)
     if isinstance(inputs, (str, os.PathLike)):
@@ -238,8 +246,9 @@ def collect(
         elif path.is_file():
             add(path, PurePath(path.stem), str(path))
         else:
-            exc = ReadError(f"input {path} does not exist (or is not a file or folder)")
-            problems.append(_failure(path, path.stem, exc))
+            # A path the user named that is not there is a usage error, found before any
+            # model work (files listed in a manifest fail one by one when they are read).
+            raise ReadError(f"input {path} does not exist (or is not a file or folder)")
     return jobs, problems
 
 
@@ -269,7 +278,8 @@ def _manifest(path: Path) -> Iterator[tuple[int, Path, PurePath]]:
 
 def _inside(out: Path, rel: PurePath, where: str) -> Path:
     """``out / rel`` if it stays inside ``out`` (no absolute path, no ``..``, no symlink out)."""
-    if rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.name in ("", "."):
+    bad = "\x00" in str(rel)  # no OS takes it (and pathlib raises ValueError on it)
+    if bad or rel.is_absolute() or ".." in rel.parts or not rel.parts or rel.name in ("", "."):
         raise InputError(f"{where}: output {str(rel)!r} must be a relative path inside OUT")
     stem = out / rel
     root = out.resolve()
@@ -317,6 +327,11 @@ class _Worker:
         from .estimate import estimate
 
         s = self.settings
+        try:
+            job.stem.parent.mkdir(parents=True, exist_ok=True)
+        except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
+            message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
+            return _failure(job.input, job.name, InputError(message))
         with _claim(job.stem) as claimed:
             if not claimed:
                 return ImageOutcome(str(job.input), job.name, "busy")
@@ -525,6 +540,8 @@ def run(
     if not isinstance(out_dir, (str, os.PathLike)):
         raise InputError(f"out_dir must be a path, got {type(out_dir).__name__}")
     out = Path(out_dir)
+    if "\x00" in str(out):  # the OS refuses such a name (ValueError deep in pathlib)
+        raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
@@ -575,6 +592,7 @@ def run(
     )
     if workers > 1:
         _check_picklable(settings)
+    _make_output_folder(out)
     failures = out / FAILURES_FILE
     order = {job: k for k, job in enumerate(jobs)}
     outcomes: dict[int, ImageOutcome] = {}
@@ -617,6 +635,16 @@ def run(
         failures_file=failures,
     )
     return report
+
+
+def _make_output_folder(out: Path) -> None:
+    """Create OUT, or tell why it cannot be written to (an InputError: exit 2, no image run)."""
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # a file in the way, no permission, read-only file system
+        raise InputError(f"cannot create the output folder {out}: {exc.strerror or exc}") from exc
+    if not os.access(out, os.W_OK | os.X_OK):
+        raise InputError(f"the output folder {out} is not writable")
 
 
 def fingerprint(
@@ -722,26 +750,57 @@ def _progress_bar(total: int, show: bool) -> Any:
 # Worker processes. The state lives in a module global of each worker process.
 _PROCESS_WORKER: _Worker | None = None
 _STOPPING = False  # set when Ctrl-C reached this worker: it takes no further image
+_BUSY = False  # an image is in progress in this worker
+
+
+def _on_sigint(signum: int, frame: Any) -> None:
+    """Ctrl-C in a worker: interrupt the image in progress once; otherwise only stop.
+
+    A worker may get SIGINT twice (from the terminal and forwarded by the parent): a second
+    one must not interrupt the clean-up of the first, and an idle worker (waiting for its
+    next image) must not die with a traceback.
+    """
+    global _STOPPING
+    first = not _STOPPING
+    _STOPPING = True
+    if first and _BUSY:
+        raise KeyboardInterrupt
 
 
 def _init_process(settings: _Settings, core_threads: int) -> None:
     global _PROCESS_WORKER
     from . import set_num_threads
 
+    signal.signal(signal.SIGINT, _on_sigint)
     set_num_threads(core_threads)
     _PROCESS_WORKER = _Worker(settings)
 
 
 def _process_in_worker(job: Job) -> ImageOutcome:
-    global _STOPPING
+    global _BUSY
     if _PROCESS_WORKER is None:  # pragma: no cover - the initializer always ran
         raise RuntimeError("worker not initialised")
     if not _STOPPING:
         try:
+            _BUSY = True
             return _PROCESS_WORKER.process(job)
         except KeyboardInterrupt:  # the image's files were cleaned up on the way out
-            _STOPPING = True
+            pass
+        finally:
+            _BUSY = False
     return ImageOutcome(str(job.input), job.name, "interrupted")
+
+
+def _interrupt_workers(executor: ProcessPoolExecutor) -> None:
+    """Forward Ctrl-C to the workers, which may not have got it.
+
+    A SIGINT sent to this process alone (``kill -INT PID``) used to let the images in progress
+    and the queued ones run to the end; now they stop at once.
+    """
+    processes = getattr(executor, "_processes", None) or {}  # private: {pid: Process}
+    for pid in list(processes):
+        with contextlib.suppress(OSError):
+            os.kill(pid, signal.SIGINT)
 
 
 def _run_pool(
@@ -794,6 +853,7 @@ def _run_pool(
             # workers got the signal too), and count what did finish.
             for future in inflight:
                 future.cancel()
+            _interrupt_workers(executor)
             _record_finished(inflight, record)
             raise
         finally:

@@ -94,7 +94,8 @@ def load_estimator(
     threads : int, optional
         ONNX Runtime intra-op threads.
     input_size : (int, int), optional
-        Network (height, width) of a dynamic-size model.
+        Network (height, width) of a dynamic-size model; for a model whose file fixes its
+        input size, any other size is an :class:`m360.InputError` naming the size it takes.
     output_kind : str, optional
         What the model outputs (:data:`OUTPUT_KINDS`).
     mean, std : 3 floats, optional
@@ -118,10 +119,10 @@ def load_estimator(
         if text in _models.REGISTRY:
             entry = _models.get(text)
             path = _models.ensure(text)
-            return OnnxEstimator(
+            estimator = OnnxEstimator(
                 path,
                 output_kind=entry.output_kind if output_kind is None else output_kind,
-                input_size=entry.input_size if input_size is None else input_size,
+                input_size=input_size,
                 mean=mean,
                 std=std,
                 expected_normalization=(entry.mean, entry.std),
@@ -132,6 +133,10 @@ def load_estimator(
                 name=entry.name,
                 sha256=entry.sha256,
             )
+            if input_size is None:
+                # The registry's size is a default (a file's own fixed size wins), not a request.
+                estimator.input_size = entry.input_size
+            return estimator
         if text.endswith(".onnx") or is_file(Path(text)):
             return OnnxEstimator(
                 text,

@@ -7,9 +7,11 @@ model's own resize and normalisation, and resizes the prediction back to the tan
 
 from __future__ import annotations
 
-import functools
+import hashlib
 import math
 import os
+import threading
+from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
@@ -44,24 +46,53 @@ class _InputSpec:
     size: tuple[int, int] | None  # fixed (H, W) or None (dynamic)
 
 
-@functools.lru_cache(maxsize=4)
+#: Sessions per (sha256 of the model bytes, folder, providers, threads): keyed by content, so a
+#: file changed in place can never be served a session of its old bytes (the folder: where
+#: external weights are looked for).
+_SESSIONS: OrderedDict[tuple[str, str, tuple[str, ...], int | None], Any] = OrderedDict()
+_SESSIONS_MAX = 4
+_SESSIONS_LOCK = threading.Lock()
+
+
+def _read_model(path: Path) -> bytes:
+    try:
+        with open(path, "rb") as f:
+            return f.read()
+    except (OSError, ValueError) as exc:
+        raise ModelError(f"cannot read model file {path}: {exc}") from exc
+
+
 def _session(
-    path: str, size: int, mtime_ns: int, providers: tuple[str, ...], threads: int | None
+    path: Path, data: bytes, digest: str, providers: tuple[str, ...], threads: int | None
 ) -> Any:
+    """Make (or reuse) the ONNX Runtime session of ``data``, the bytes that were hashed."""
     import onnxruntime as ort
 
+    folder = str(path.resolve().parent)
+    key = (digest, folder, providers, threads)
+    with _SESSIONS_LOCK:
+        if key in _SESSIONS:
+            _SESSIONS.move_to_end(key)
+            return _SESSIONS[key]
     options = ort.SessionOptions()
     options.log_severity_level = 3
     options.execution_mode = ort.ExecutionMode.ORT_SEQUENTIAL
     options.inter_op_num_threads = 1
     if threads is not None:
         options.intra_op_num_threads = threads
+    # Loaded from bytes, a model with external weights finds them next to its file.
+    options.add_session_config_entry("session.model_external_initializers_file_folder_path", folder)
     try:
-        return ort.InferenceSession(path, sess_options=options, providers=list(providers))
+        session = ort.InferenceSession(data, sess_options=options, providers=list(providers))
     except Exception as exc:  # onnxruntime raises its own exception types per failure
         reason = _models.sniff_onnx(path)
         detail = reason if reason else f"ONNX Runtime says: {str(exc).strip()[:300]}"
         raise ModelError(f"cannot load {path} as an ONNX model: {detail}") from exc
+    with _SESSIONS_LOCK:
+        _SESSIONS[key] = session
+        while len(_SESSIONS) > _SESSIONS_MAX:
+            _SESSIONS.popitem(last=False)
+    return session
 
 
 def _pick_providers(providers: Sequence[str] | None) -> tuple[str, ...]:
@@ -132,8 +163,9 @@ class OnnxEstimator:
     output_kind : str
         What the network outputs (:data:`m360.estimators.OUTPUT_KINDS`).
     input_size : (int, int), optional
-        Network (height, width) for models whose input size is dynamic; ignored (with the
-        file's size used instead) when the file fixes it. Default 384 x 384.
+        Network (height, width) for models whose input size is dynamic. Default 384 x 384. A
+        file that fixes its input size runs at that size; another ``input_size`` is an
+        :class:`m360.InputError`.
     mean, std : 3 floats, optional
         Explicit normalisation ``(rgb / 255 - mean) / std`` per RGB channel; wins over what the
         graph holds. Default: ``expected_normalization``, applied only if the graph does not
@@ -155,13 +187,15 @@ class OnnxEstimator:
     name : str, optional
         Name for reports (default: the file name).
     sha256 : str, optional
-        The file's sha256 if already known (registry models); computed lazily otherwise.
+        The file's expected sha256 (registry models): the bytes loaded must have it, else
+        :class:`m360.ModelError`. The session is made from the bytes that were hashed.
     expected_normalization : (mean, std), optional
         The normalisation the network was trained with (default ImageNet's).
 
     Notes
     -----
-    Sessions are cached per process by (file, size, mtime, providers, threads). Tangents are
+    Sessions are cached per process by (sha256 of the bytes, folder, providers, threads); the
+    file is read once per estimator, hashed, and the session made from those bytes. Tangents are
     resized to the network size with ``cv2.INTER_AREA`` when shrinking and ``cv2.INTER_LINEAR``
     when enlarging, and predictions back to the tangent size with ``cv2.INTER_LINEAR`` (no
     overshoot at depth edges). uint8 tangents are divided by 255; float tangents are taken as RGB in
@@ -219,26 +253,33 @@ class OnnxEstimator:
         self.threads = check_threads(threads)
         self.requested_providers = _pick_providers(providers)
         self.name = name or self.path.name
-        self._sha256 = sha256
-        stat = self.path.stat()
+        # Hash the bytes that are loaded (not the file, which may change after a check).
+        data = _read_model(self.path)
+        self._sha256 = hashlib.sha256(data).hexdigest()
+        if sha256 is not None and sha256.lower() != self._sha256:
+            raise ModelError(
+                f"model file {self.path} fails its hash check: expected sha256 {sha256}, the "
+                f"bytes read have {self._sha256} (was the file replaced?); fetch it again "
+                f"(m360 models fetch {self.name})"
+            )
         self.session = _session(
-            str(self.path.resolve()),
-            stat.st_size,
-            stat.st_mtime_ns,
-            self.requested_providers,
-            self.threads,
+            self.path, data, self._sha256, self.requested_providers, self.threads
         )
         self.providers = tuple(self.session.get_providers())
-        # Read from the graph, not a model card: the same file is used both ways in the wild.
+        # Read from the graph (the bytes the session was made from), not a model card: the
+        # same file is used both ways in the wild.
         self.normalization = _models.input_normalization(
             self.path,
             None if mean is None else tuple(self.mean),
             None if std is None else tuple(self.std),
             expected=(tuple(self.mean), tuple(self.std)),
+            data=data,
         )
+        del data
         self.normalization_source = self.normalization.source
         self.mean, self.std = (np.asarray(v, dtype=np.float64) for v in self.normalization.feed())
         self._input = self._inspect_input()
+        self._check_input_size()
         self._output_name = self.session.get_outputs()[0].name
         if self._input.batch is not None and self._input.batch != 1 and self.batch_size == 1:
             raise ModelError(
@@ -281,11 +322,19 @@ class OnnxEstimator:
         size = (fixed_hw[0], fixed_hw[1]) if None not in fixed_hw else None
         return _InputSpec(first.name, layout, _fixed(shape[0]), size)  # type: ignore[arg-type]
 
+    def _check_input_size(self) -> None:
+        """Refuse an ``input_size`` the file's fixed input size cannot honour."""
+        fixed = self._input.size
+        if self.input_size is not None and fixed is not None and self.input_size != fixed:
+            h, w = fixed
+            raise InputError(
+                f"input_size={self.input_size} but {self.path.name} takes a fixed {h}x{w} "
+                f"input; omit input_size or pass ({h}, {w})"
+            )
+
     @property
     def sha256(self) -> str:
-        """sha256 of the model file (computed on first access for non-registry files)."""
-        if self._sha256 is None:
-            self._sha256 = _file_sha256(str(self.path.resolve()), *_stat_key(self.path))
+        """sha256 of the model bytes that were loaded."""
         return self._sha256
 
     @renamed(tile_shape="tangent_shape")
@@ -369,16 +418,6 @@ class OnnxEstimator:
             f"OnnxEstimator({self.name!r}, output_kind={self.output_kind!r}, "
             f"providers={list(self.providers)}, threads={self.threads})"
         )
-
-
-def _stat_key(path: Path) -> tuple[int, int]:
-    stat = path.stat()
-    return stat.st_size, stat.st_mtime_ns
-
-
-@functools.lru_cache(maxsize=16)
-def _file_sha256(path: str, size: int, mtime_ns: int) -> str:
-    return _models.sha256_of(path)
 
 
 def is_file(path: Path) -> bool:
