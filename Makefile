@@ -20,6 +20,7 @@ DEV_STAMP     := $(VENV)/.m360-dev
 # the release build otherwise (a fresh machine, CI). Either is rebuilt only when out of date.
 BUILT := $(if $(wildcard $(DEV_STAMP)),$(DEV_STAMP),$(RELEASE_STAMP))
 EXTRAS := test,lint,bench
+PYTEST_ARGS ?=
 
 .PHONY: help demo test lint format rust-test bench venv install build-dev wheel clean
 
@@ -50,8 +51,8 @@ build-dev: $(DEV_STAMP)  ## editable debug build into .venv (make test then rebu
 demo: $(BUILT)  ## the main job: m360.estimate on a synthetic panorama (simulated network), write out/
 	$(BIN)/m360 demo -o out/
 
-test: $(BUILT)  ## the test suite (pytest; -m "not wheel" skips the wheel/sdist test)
-	$(PY) -m pytest
+test: $(BUILT)  ## the test suite (pytest); make test PYTEST_ARGS='-m "not wheel"' skips the wheel test
+	$(PY) -m pytest $(PYTEST_ARGS)
 
 rust-test:  ## Rust unit tests of the core
 	cargo test --workspace
@@ -81,7 +82,8 @@ lint: $(BUILT)  ## formatting, clippy, ruff, mypy, stub check of m360._core, wor
 	cd /tmp && $(abspath $(PY)) -m mypy.stubtest m360._core
 	$(BIN)/check-jsonschema --builtin-schema vendor.github-workflows .github/workflows/*.yml
 
-format: $(BUILT)  ## rewrite: cargo fmt, ruff format, ruff check --fix
+format: venv  ## rewrite: cargo fmt, ruff format, ruff check --fix
+	$(PY) -m pip install --quiet "ruff>=0.6"
 	cargo fmt --all
 	$(BIN)/ruff format python tests benches
 	$(BIN)/ruff check --fix python tests benches

@@ -94,7 +94,9 @@ def clean_env(venv: Path | None, *, rust: bool) -> dict[str, str]:
     return env
 
 
-def run(cmd: list[str], *, env: dict[str, str], cwd: Path | None = None, timeout: float = 900):
+def run(
+    cmd: list[Any], *, env: dict[str, str], cwd: Path | None = None, timeout: float = 900
+) -> subprocess.CompletedProcess[str]:
     """Run `cmd`; on failure, fail the test with the tail of its output."""
     proc = subprocess.run(
         [str(c) for c in cmd],
