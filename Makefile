@@ -88,7 +88,7 @@ format: venv  ## rewrite: cargo fmt, ruff format, ruff check --fix
 	$(BIN)/ruff format python tests benches
 	$(BIN)/ruff check --fix python tests benches
 
-bench: $(BUILT)  ## benchmark tables (see benches/)
+bench: $(RELEASE_STAMP)  ## benchmark tables (see benches/), always on the release build
 	$(PY) benches/bench_resample.py
 	$(PY) benches/bench_align.py
 	$(PY) benches/bench_blend.py
