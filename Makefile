@@ -3,8 +3,26 @@ PYTHON ?= python3
 VENV   ?= .venv
 BIN    := $(VENV)/bin
 PY     := $(BIN)/python
+# Release tooling (make wheel): maturin 1.x cross-links with zig against an old glibc, so the
+# Linux wheel carries a manylinux tag from any build machine; auditwheel checks that tag.
+MATURIN    := maturin>=1.16,<2
+ZIGLANG    := ziglang==0.17.1
+AUDITWHEEL := auditwheel>=6.1
+MANYLINUX ?= manylinux_2_28
 
-.PHONY: help demo test lint rust-test bench venv install clean
+# What the installed m360 is built from. The release install copies python/ into site-packages,
+# so the Python sources count too; the editable dev build reads them in place.
+RUST_SRC := Cargo.toml Cargo.lock $(shell find rust -name '*.rs' -o -name Cargo.toml 2>/dev/null)
+PY_SRC   := $(shell find python -name '*.py' -o -name '*.pyi' -o -name py.typed 2>/dev/null)
+RELEASE_STAMP := $(VENV)/.m360-release
+DEV_STAMP     := $(VENV)/.m360-dev
+# `make test` uses the build the developer chose last: the dev build once `make build-dev` ran,
+# the release build otherwise (a fresh machine, CI). Either is rebuilt only when out of date.
+BUILT := $(if $(wildcard $(DEV_STAMP)),$(DEV_STAMP),$(RELEASE_STAMP))
+EXTRAS := test,lint,bench
+PYTEST_ARGS ?=
+
+.PHONY: help demo test lint format rust-test bench venv install build-dev wheel clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
@@ -15,27 +33,62 @@ $(BIN)/activate:
 
 venv: $(BIN)/activate  ## create .venv (Python virtual environment)
 
-install: venv  ## build the Rust extension (release) and install m360 with test/lint extras
-	$(PY) -m pip install --quiet ".[test,lint,bench]"
+$(RELEASE_STAMP): $(BIN)/activate pyproject.toml $(RUST_SRC) $(PY_SRC)
+	rm -f $(DEV_STAMP) python/m360/_core*.so python/m360/_core*.pyd
+	$(PY) -m pip install --quiet ".[$(EXTRAS)]"
+	touch $@
 
-demo: install  ## the main job: m360.estimate on a synthetic panorama (simulated network), write out/
+$(DEV_STAMP): $(BIN)/activate pyproject.toml $(RUST_SRC)
+	$(PY) -m pip install --quiet "$(MATURIN)"
+	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/maturin develop --quiet --extras $(EXTRAS)
+	rm -f $(RELEASE_STAMP)
+	touch $@
+
+install: $(RELEASE_STAMP)  ## build the Rust extension (release) and install m360 with test/lint extras
+
+build-dev: $(DEV_STAMP)  ## editable debug build into .venv (make test then rebuilds only what changed)
+
+demo: $(BUILT)  ## the main job: m360.estimate on a synthetic panorama (simulated network), write out/
 	$(BIN)/m360 demo -o out/
 
-test: install  ## the test suite (pytest)
-	$(PY) -m pytest
+test: $(BUILT)  ## the test suite (pytest); make test PYTEST_ARGS='-m "not wheel"' skips the wheel test
+	$(PY) -m pytest $(PYTEST_ARGS)
 
 rust-test:  ## Rust unit tests of the core
 	cargo test --workspace
 
-lint: install  ## formatting, clippy, ruff, mypy and the stub check of m360._core
+$(VENV)/.wheel-tools: $(BIN)/activate Makefile
+	$(PY) -m pip install --quiet "$(MATURIN)" "$(ZIGLANG)" "$(AUDITWHEEL)"
+	touch $@
+
+# maturin runs `python -m ziglang` from PATH: the venv's bin comes first.
+dist/.stamp: $(VENV)/.wheel-tools pyproject.toml README.md $(RUST_SRC) $(PY_SRC)
+	rm -rf dist
+	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/maturin build --release --zig \
+	  --compatibility $(MANYLINUX) --out dist
+	$(BIN)/maturin sdist --out dist
+	$(BIN)/auditwheel show dist/*.whl
+	touch $@
+
+wheel: dist/.stamp  ## release wheel (abi3, manylinux_2_28 via zig) and sdist into dist/
+	@ls -l dist/*.whl dist/*.tar.gz
+
+lint: $(BUILT)  ## formatting, clippy, ruff, mypy, stub check of m360._core, workflow schema
 	cargo fmt --all --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	$(BIN)/ruff check python tests benches
 	$(BIN)/ruff format --check python tests benches
 	$(BIN)/mypy
 	cd /tmp && $(abspath $(PY)) -m mypy.stubtest m360._core
+	$(BIN)/check-jsonschema --builtin-schema vendor.github-workflows .github/workflows/*.yml
 
-bench: install  ## benchmark tables (see benches/)
+format: venv  ## rewrite: cargo fmt, ruff format, ruff check --fix
+	$(PY) -m pip install --quiet "ruff>=0.6"
+	cargo fmt --all
+	$(BIN)/ruff format python tests benches
+	$(BIN)/ruff check --fix python tests benches
+
+bench: $(RELEASE_STAMP)  ## benchmark tables (see benches/), always on the release build
 	$(PY) benches/bench_resample.py
 	$(PY) benches/bench_align.py
 	$(PY) benches/bench_blend.py
@@ -43,4 +96,4 @@ bench: install  ## benchmark tables (see benches/)
 	$(PY) benches/bench_batch.py
 
 clean:  ## remove build products and the virtual environment
-	rm -rf target $(VENV) out
+	rm -rf target $(VENV) out dist python/m360/_core*.so
