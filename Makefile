@@ -73,14 +73,14 @@ dist/.stamp: $(VENV)/.wheel-tools pyproject.toml README.md $(RUST_SRC) $(PY_SRC)
 wheel: dist/.stamp  ## release wheel (abi3, manylinux_2_28 via zig) and sdist into dist/
 	@ls -l dist/*.whl dist/*.tar.gz
 
-lint: $(BUILT)  ## formatting, clippy, ruff, mypy, stub check of m360._core, workflow schema
+lint: $(BUILT)  ## formatting, clippy, ruff, mypy, stub check of m360._core, actionlint
 	cargo fmt --all --check
 	cargo clippy --workspace --all-targets -- -D warnings
 	$(BIN)/ruff check python tests benches
 	$(BIN)/ruff format --check python tests benches
 	$(BIN)/mypy
 	cd /tmp && $(abspath $(PY)) -m mypy.stubtest m360._core
-	$(BIN)/check-jsonschema --builtin-schema vendor.github-workflows .github/workflows/*.yml
+	$(BIN)/actionlint .github/workflows/*.yml
 
 format: venv  ## rewrite: cargo fmt, ruff format, ruff check --fix
 	$(PY) -m pip install --quiet "ruff>=0.6"
