@@ -267,7 +267,7 @@ if __name__ == "__main__":
 @pytest.fixture(scope="module")
 def smoke(tmp_path_factory: pytest.TempPathFactory) -> dict[str, Path | np.ndarray]:
     """The smoke script, its inputs and the result of this process's m360 (the source build)."""
-    from m360.estimate import SimulatedEstimator
+    from m360.estimators import SimulatedEstimator
 
     folder = tmp_path_factory.mktemp("smoke")
     layout = m360.Layout.icosahedron(SMOKE_WIDTH)

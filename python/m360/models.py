@@ -789,7 +789,6 @@ def check(
     settings: dict[str, Any] = {}
     if entry is not None:
         settings = {
-            "input_size": entry.input_size,
             "expected_normalization": (entry.mean, entry.std),
             "multiple_of": entry.multiple_of,
             "resize": entry.resize,
@@ -801,6 +800,10 @@ def check(
         sha256=digest,
         **settings,
     )
+    if entry is not None:
+        # The registry's size is a default (a file's fixed size wins), as in load_estimator:
+        # not a request that a fixed-size file would have to refuse.
+        est.input_size = entry.input_size
     spec = est._input
     first = est.session.get_inputs()[0]
     tangent = Layout.icosahedron(erp_width).tangent_shape
