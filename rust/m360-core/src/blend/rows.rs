@@ -152,7 +152,11 @@ impl RowStats {
                 .zip(&mut self.nearest[columns]);
             for ((rank, nearest), (&v, r)) in best.zip(values.iter().zip(ranks)) {
                 // Branch-free: which face is nearest varies from pixel to pixel.
-                let nearer = v.is_finite() && (r < *rank);
+                #[expect(
+                    clippy::needless_bitwise_bool,
+                    reason = "branch-free, so the loop vectorises"
+                )]
+                let nearer = v.is_finite() & (r < *rank);
                 *rank = if nearer { r } else { *rank };
                 *nearest = if nearer { v } else { *nearest };
             }
@@ -184,7 +188,12 @@ impl RowStats {
         // Branch-free, so it vectorises: an invalid sample adds zeros.
         for (((((n, shift), sum), wsum), wv), (&v, w)) in sums.zip(values.iter().zip(weights)) {
             let ok = v.is_finite();
-            *shift = if ok && (*n == 0.0) { v } else { *shift };
+            #[expect(
+                clippy::needless_bitwise_bool,
+                reason = "branch-free, so the loop vectorises"
+            )]
+            let first = ok & (*n == 0.0);
+            *shift = if first { v } else { *shift };
             let d = if ok { v - *shift } else { 0.0 };
             let (v, w) = if ok { (v, w) } else { (0.0, 0.0) };
             *n += f32::from(u8::from(ok));
