@@ -192,7 +192,12 @@ impl Plan {
                 None
             }
             Method::Frustum | Method::Radial => {
-                let weights = self.tap_weights(method.weighting().unwrap_or(Weighting::Mean));
+                let kind = if *method == Method::Radial {
+                    Weighting::Radial
+                } else {
+                    Weighting::Frustum
+                };
+                let weights = self.tap_weights(kind);
                 blend::weighted_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
