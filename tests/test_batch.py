@@ -3,6 +3,7 @@ manifests, worker crashes. Panoramas are 1024x512, the model a tiny ONNX graph."
 
 from __future__ import annotations
 
+import ctypes
 import hashlib
 import json
 import os
@@ -180,6 +181,26 @@ if __name__ == "__main__":
 """
 
 
+_LINUX = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="needs /proc and tgkill")
+
+
+def _workers(pid: int) -> list[int]:
+    """The pool's worker processes among the children of ``pid`` (Linux /proc)."""
+    tasks = Path(f"/proc/{pid}/task")
+    children = [int(c) for t in tasks.iterdir() for c in (t / "children").read_text().split()]
+    # multiprocessing also starts a resource tracker: a worker runs spawn_main
+    return [c for c in children if b"spawn_main" in Path(f"/proc/{c}/cmdline").read_bytes()]
+
+
+def _signal_a_helper_thread(pid: int, signum: int) -> None:
+    """Deliver ``signum`` to one thread of ``pid`` that is not its main thread (tgkill)."""
+    helpers = sorted(int(t.name) for t in Path(f"/proc/{pid}/task").iterdir() if t.name != str(pid))
+    assert helpers, f"process {pid} has no thread but its main thread"
+    libc = ctypes.CDLL(None, use_errno=True)
+    if libc.tgkill(pid, helpers[0], signum) != 0:
+        raise OSError(ctypes.get_errno(), f"tgkill({pid}, {helpers[0]}) failed")
+
+
 def _read_exactly(fd: int, count: int, proc: subprocess.Popen[bytes]) -> None:
     """Read ``count`` bytes from the pipe ``fd``; fail (not hang) if the run ends or stalls."""
     got = 0
@@ -192,7 +213,14 @@ def _read_exactly(fd: int, count: int, proc: subprocess.Popen[bytes]) -> None:
 
 @pytest.mark.parametrize(
     ("how", "workers"),
-    [("SIGKILL", 1), ("SIGINT", 1), ("SIGINT", 2), ("SIGINT to the parent only", 2)],
+    [
+        ("SIGKILL", 1),
+        ("SIGINT", 1),
+        ("SIGINT", 2),
+        ("SIGINT to the parent only", 2),
+        pytest.param("SIGINT to a helper thread", 1, marks=_LINUX),
+        pytest.param("SIGINT to a helper thread of each process", 2, marks=_LINUX),
+    ],
 )
 def test_a_killed_run_resumes_without_losing_or_redoing_anything(
     how: str, workers: int, tmp_path: Path, base_rgb: np.ndarray
@@ -203,7 +231,9 @@ def test_a_killed_run_resumes_without_losing_or_redoing_anything(
 
     SIGKILL: no clean-up at all. SIGINT: Ctrl-C, to the whole process group as a terminal sends
     it. "SIGINT to the parent only" (``kill -INT PID``): the parent must stop its workers itself;
-    it used to wait for their images, here forever."""
+    it used to wait for their images, here forever. "A helper thread": the kernel may hand a
+    process's SIGINT to any of its threads (rayon, BLAS, the pool's manager thread); one that
+    is not the main thread used to leave the main thread blocked, here forever."""
     done_first = 3
     inputs = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 12)
     out = tmp_path / "out"
@@ -223,6 +253,13 @@ def test_a_killed_run_resumes_without_losing_or_redoing_anything(
         assert len(finished) == done_first
         if how == "SIGINT to the parent only":
             os.kill(proc.pid, signal.SIGINT)
+        elif how.startswith("SIGINT to a helper thread"):
+            targets = [proc.pid]
+            if how.endswith("each process"):
+                targets += _workers(proc.pid)
+                assert len(targets) == 1 + workers
+            for pid in targets:
+                _signal_a_helper_thread(pid, signal.SIGINT)
         else:
             os.killpg(proc.pid, getattr(signal, how.split()[0]))
         _, err = proc.communicate(timeout=120)

@@ -39,6 +39,7 @@ import multiprocessing
 import os
 import pickle
 import signal
+import threading
 import time
 import uuid
 from collections import deque
@@ -50,6 +51,7 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from . import models as _models
+from ._interrupt import MainThreadInterrupts, install_for_process
 from ._validate import MAX_THREADS, integer
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Offsets
@@ -617,11 +619,12 @@ def run(
             record(problem, None)
         if workers == 1 or len(jobs) <= 1:
             worker = _Worker(settings, estimator)
-            for job in jobs:
-                record(worker.process(job), order[job])
+            with MainThreadInterrupts(_keyboard_interrupt_once()):
+                for job in jobs:
+                    record(worker.process(job), order[job])
         else:
             del estimator  # each worker loads its own
-            _run_pool(jobs, settings, workers, lambda job, o: record(o, order[job]))
+            interrupted = _run_pool(jobs, settings, workers, lambda job, o: record(o, order[job]))
     except KeyboardInterrupt:
         interrupted = True
     finally:
@@ -739,6 +742,23 @@ class _NoBar:
     def close(self) -> None: ...
 
 
+def _keyboard_interrupt_once() -> Callable[[int, Any], None]:
+    """SIGINT handler of an in-process run: KeyboardInterrupt once, then nothing.
+
+    Once is enough, and a second one could break the clean-up of the first (the handler may
+    run twice for one Ctrl-C: see :mod:`m360._interrupt`).
+    """
+    raised = False
+
+    def handler(signum: int, frame: Any) -> None:
+        nonlocal raised
+        if not raised:
+            raised = True
+            raise KeyboardInterrupt
+
+    return handler
+
+
 def _progress_bar(total: int, show: bool) -> Any:
     if not show:
         return _NoBar()
@@ -771,7 +791,7 @@ def _init_process(settings: _Settings, core_threads: int) -> None:
     global _PROCESS_WORKER
     from . import set_num_threads
 
-    signal.signal(signal.SIGINT, _on_sigint)
+    install_for_process(_on_sigint)
     set_num_threads(core_threads)
     _PROCESS_WORKER = _Worker(settings)
 
@@ -780,14 +800,14 @@ def _process_in_worker(job: Job) -> ImageOutcome:
     global _BUSY
     if _PROCESS_WORKER is None:  # pragma: no cover - the initializer always ran
         raise RuntimeError("worker not initialised")
-    if not _STOPPING:
-        try:
-            _BUSY = True
+    try:
+        _BUSY = True  # before the check: a Ctrl-C between the two still stops this image
+        if not _STOPPING:
             return _PROCESS_WORKER.process(job)
-        except KeyboardInterrupt:  # the image's files were cleaned up on the way out
-            pass
-        finally:
-            _BUSY = False
+    except KeyboardInterrupt:  # the image's files were cleaned up on the way out
+        pass
+    finally:
+        _BUSY = False
     return ImageOutcome(str(job.input), job.name, "interrupted")
 
 
@@ -808,11 +828,14 @@ def _run_pool(
     settings: _Settings,
     workers: int,
     record: Callable[[Job, ImageOutcome], None],
-) -> None:
+) -> bool:
     """Run ``jobs`` on ``workers`` spawned processes; survive a worker that dies.
 
     After a crash every image that was in flight is a suspect: suspects are retried one at a
     time in a fresh pool, and one that kills its worker again is recorded as ``WorkerCrashed``.
+    Ctrl-C starts nothing new and stops the images in flight (the workers clean up); returns
+    True if that happened. The handler only sets a flag and signals the workers, so no
+    KeyboardInterrupt can land inside the executor's own code.
     """
     core_threads = settings.threads or max(1, (os.cpu_count() or 1) // workers)
     # spawn, not fork: the core's thread pool does not survive fork().
@@ -820,47 +843,58 @@ def _run_pool(
     queue = deque(jobs)
     suspects: deque[Job] = deque()
     crashes: dict[Job, int] = {}
-    while queue or suspects:
-        executor = ProcessPoolExecutor(
-            workers, context, initializer=_init_process, initargs=(settings, core_threads)
-        )
-        inflight: dict[Future[ImageOutcome], Job] = {}
-        broken = False
-        try:
-            while (queue or suspects or inflight) and not broken:
-                while not broken and (suspects or queue):
-                    if suspects:
-                        if inflight:
-                            break  # a suspect runs alone
-                        job = suspects.popleft()
-                    elif len(inflight) < 2 * workers:
-                        job = queue.popleft()
-                    else:
-                        break
-                    inflight[executor.submit(_process_in_worker, job)] = job
-                finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
-                for future in finished:
-                    job = inflight.pop(future)
-                    try:
-                        outcome = future.result()
-                    except BrokenProcessPool:
-                        broken = True
-                        _suspect(job, crashes, suspects, record)
-                        continue
-                    record(job, outcome)
-        except KeyboardInterrupt:
-            # Ctrl-C: start nothing new, let the images in flight finish or clean up (the
-            # workers got the signal too), and count what did finish.
-            for future in inflight:
-                future.cancel()
-            _interrupt_workers(executor)
-            _record_finished(inflight, record)
-            raise
-        finally:
-            executor.shutdown(wait=True, cancel_futures=True)
-        # The pool broke: the others in flight finished or broke too.
-        for job in _record_finished(inflight, record):
-            _suspect(job, crashes, suspects, record)
+    stopping = threading.Event()
+    pools: list[ProcessPoolExecutor] = []
+
+    def on_sigint(signum: int, frame: Any) -> None:
+        stopping.set()
+        for pool in pools:
+            _interrupt_workers(pool)
+
+    with MainThreadInterrupts(on_sigint):
+        while (queue or suspects) and not stopping.is_set():
+            executor = ProcessPoolExecutor(
+                workers, context, initializer=_init_process, initargs=(settings, core_threads)
+            )
+            pools[:] = [executor]
+            inflight: dict[Future[ImageOutcome], Job] = {}
+            broken = False
+            try:
+                while (queue or suspects or inflight) and not broken and not stopping.is_set():
+                    while not broken and not stopping.is_set() and (suspects or queue):
+                        if suspects:
+                            if inflight:
+                                break  # a suspect runs alone
+                            job = suspects.popleft()
+                        elif len(inflight) < 2 * workers:
+                            job = queue.popleft()
+                        else:
+                            break
+                        inflight[executor.submit(_process_in_worker, job)] = job
+                    finished, _ = wait(inflight, return_when=FIRST_COMPLETED)
+                    for future in finished:
+                        job = inflight.pop(future)
+                        try:
+                            outcome = future.result()
+                        except BrokenProcessPool:
+                            broken = True
+                            _suspect(job, crashes, suspects, record)
+                            continue
+                        record(job, outcome)
+                if stopping.is_set():
+                    # Queued images never start; a worker spawned after the signal gets it now.
+                    for future in inflight:
+                        future.cancel()
+                    _interrupt_workers(executor)
+                # Count what finished; after a crash the others in flight finished or broke too.
+                lost = _record_finished(inflight, record)
+            finally:
+                executor.shutdown(wait=True, cancel_futures=True)
+                pools.clear()
+            if not stopping.is_set():
+                for job in lost:
+                    _suspect(job, crashes, suspects, record)
+    return stopping.is_set()
 
 
 def _record_finished(
