@@ -38,8 +38,8 @@ if guard is None:
     signal.signal(signal.SIGINT, handler)
 else:
     guard.__enter__()
-print(tid[0], flush=True)
-try:
+try:  # the test signals once it reads the id: the handler may run before os.read starts
+    print(tid[0], flush=True)
     os.read(os.pipe()[0], 1)
 except KeyboardInterrupt:
     print("interrupted", flush=True)
