@@ -32,6 +32,8 @@ from __future__ import annotations
 
 import contextlib
 import math
+import os
+import re
 import time
 from collections import deque
 from collections.abc import Callable, Sequence
@@ -42,11 +44,13 @@ import ray as _ray
 
 from . import batch as _batch
 from .batch import ImageOutcome, Job, _Settings
+from .errors import ModelError
 from .io import remove_stale_temporaries
 
 # Ray's annotations are partial (untyped functions, ObjectRef not unpackable): use it untyped.
 ray: Any = _ray
 
+_ANSI = re.compile(r"\x1b\[[0-9;]*m")
 #: How many times an image may lose its worker (process, actor or node) before it fails.
 MAX_CRASHES = 2
 CRASH_MESSAGE = "the Ray worker (process, actor or node) died while processing this image (twice)"
@@ -100,17 +104,21 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
         t_project = time.perf_counter()
     except Exception as exc:
         return _batch._error_outcome(job, exc), None
-    timings = {"read": t_read - t0, "load": 0.0, "project": t_project - t_read}
+    timings = {"read": t_read - t0, "project": t_project - t_read}
     return (source, (rgb.shape[0], rgb.shape[1]), timings), tangents
 
 
 class _Network:
     """Stage 2: one estimator (ONNX Runtime session) per actor, loaded once."""
 
-    def __init__(self, settings: _Settings, threads: int) -> None:
+    def __init__(self, settings: _Settings, threads: int | None) -> None:
         from .estimators import load_estimator
 
         self.estimator = load_estimator(settings.model, threads=threads, **settings.model_options)
+
+    def ready(self) -> bool:
+        """Tell the driver the model loaded (a failure is the constructor's exception)."""
+        return True
 
     def predict(self, tangents: Any, width: int) -> tuple[Any, Any]:
         """(meta, raw): meta is (model info, seconds) or the exception the network raised."""
@@ -145,15 +153,10 @@ def _stitch_write(
     info, kind, network_seconds = network_meta
     try:
         layout = _layout(erp_shape[1])
-        result = _from_network(
-            raw,
-            kind,
-            layout,
-            settings.options,
-            erp_shape,
-            info,
-            {**timings, "network": network_seconds},
-        )
+        # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
+        before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
+        result = _from_network(raw, kind, layout, settings.options, erp_shape, info, before)
+        result.timings["total"] = sum(result.timings.values())  # time at work, not waiting
         t_write = time.perf_counter()
         # An earlier attempt at this image lost its worker mid-write; the claim is still ours.
         remove_stale_temporaries(job.stem)
@@ -161,9 +164,9 @@ def _stitch_write(
         write = time.perf_counter() - t_write
     except Exception as exc:
         return _batch._error_outcome(job, exc)
-    return ImageOutcome(
-        str(job.input), job.name, "done", timings={**result.timings, "write": write}
-    )
+    stages = {"read": timings["read"], **result.timings, "write": write}
+    stages.pop("total")
+    return ImageOutcome(str(job.input), job.name, "done", timings=stages)
 
 
 # --------------------------------------------------------------------------------------------
@@ -212,7 +215,9 @@ class _Driver:
         self.record = record
         self.res = resources
         self.stitch_threads = max(1, math.ceil(resources.cpus_per_stitch))
-        model_threads = settings.threads or max(1, math.ceil(resources.cpus_per_model))
+        model_threads = settings.threads
+        if model_threads is None and isinstance(settings.model, (str, os.PathLike)):
+            model_threads = max(1, math.ceil(resources.cpus_per_model))  # its reserved CPUs
         cpus = int(ray.cluster_resources().get("CPU", 1))
         # Enough images in flight to keep every CPU and actor busy, and no more.
         self.window = resources.window or max(2, 2 * cpus + resources.model_actors)
@@ -220,24 +225,37 @@ class _Driver:
         self.stitch_task = ray.remote(_stitch_write).options(
             num_cpus=resources.cpus_per_stitch, max_retries=0
         )
-        actor_class = ray.remote(_Network).options(
+        self.actor_class = ray.remote(_Network).options(
             num_cpus=resources.cpus_per_model,
             num_gpus=resources.gpus_per_model,
             max_restarts=-1,
             max_task_retries=0,
         )
+        self.model_threads = model_threads
         self.actors = [
-            actor_class.remote(settings, model_threads) for _ in range(resources.model_actors)
+            self.actor_class.remote(settings, model_threads) for _ in range(resources.model_actors)
         ]
+        self._check_actors()
         self.idle: deque[Any] = deque(self.actors)
         self.waiting_for_network: deque[_Image] = deque()
-        # Ray object reference → (stage, image, actor).
-        self.pending: dict[Any, tuple[str, _Image, Any]] = {}
+        # Ray object reference → (stage, image, actor); no image for an actor's restart.
+        self.pending: dict[Any, tuple[str, _Image | None, Any]] = {}
         self.in_flight = 0
+
+    def _check_actors(self) -> None:
+        """Wait for the model actors: a model that cannot load fails the run, not each image."""
+        try:
+            ray.get([actor.ready.remote() for actor in self.actors])
+        except ray.exceptions.RayActorError as exc:
+            for actor in self.actors:
+                with contextlib.suppress(Exception):
+                    ray.kill(actor)
+            cause = _ANSI.sub("", str(exc)).strip()
+            raise ModelError(f"the model actors could not load the model: {cause}") from exc
 
     def run(self) -> None:
         try:
-            while self.queue or self.pending or self.waiting_for_network:
+            while self.queue or self.waiting_for_network or self._images_pending():
                 self._admit()
                 self._dispatch_network()
                 if not self.pending:
@@ -260,8 +278,11 @@ class _Driver:
                 with contextlib.suppress(Exception):
                     ray.kill(actor)
 
+    def _images_pending(self) -> bool:
+        return any(image is not None for _, image, _ in self.pending.values())
+
     def _held(self) -> list[_Image]:
-        held = {id(i): i for _, i, _ in self.pending.values()}
+        held = {id(i): i for _, i, _ in self.pending.values() if i is not None}
         held.update((id(i), i) for i in self.waiting_for_network)
         return list(held.values())
 
@@ -308,10 +329,27 @@ class _Driver:
     def _finish(self, ref: Any) -> None:
         stage, image, actor = self.pending.pop(ref)
         if stage == "network":
-            # The actor is free again (it restarts by itself if it died); the image's fate is
-            # told by its stitch task, which gets the network's error as its own.
-            self.idle.append(actor)
+            # The image's fate is told by its stitch task, which gets the network's error as
+            # its own. The actor is free again, or, if it died, once it has restarted.
+            try:
+                ray.get(ref)
+            except ray.exceptions.RayError:
+                self._await_restart(actor)
+            else:
+                self.idle.append(actor)
             return
+        if stage == "restarted":
+            try:
+                ray.get(ref)
+            except ray.exceptions.RayError:  # dead for good (its restarts ran out): replace it
+                self.actors.remove(actor)
+                actor = self.actor_class.remote(self.settings, self.model_threads)
+                self.actors.append(actor)
+                self._await_restart(actor)
+            else:
+                self.idle.append(actor)
+            return
+        assert image is not None
         try:
             value = ray.get(ref)
         except ray.exceptions.RayError as exc:
@@ -326,13 +364,19 @@ class _Driver:
             return
         self._done(image, value)
 
+    def _await_restart(self, actor: Any) -> None:
+        """Give ``actor`` no image until it is alive again (Ray restarts it, on another node
+        if its node is gone): an image sent to a restarting actor would fail unseen."""
+        ready = actor.ready.options(max_task_retries=-1).remote()
+        self.pending[ready] = ("restarted", None, actor)
+
     def _crashed(self, image: _Image, exc: BaseException) -> None:
         image.crashes += 1
         if image.crashes >= MAX_CRASHES:
             job = image.job
-            outcome = ImageOutcome(
-                str(job.input), job.name, "failed", "WorkerCrashed", CRASH_MESSAGE
-            )
+            last = _ANSI.sub("", str(exc)).strip().partition("\n")[0]
+            message = f"{CRASH_MESSAGE}; last: {type(exc).__name__}: {last[:200]}"
+            outcome = ImageOutcome(str(job.input), job.name, "failed", "WorkerCrashed", message)
             self._done(image, outcome)
             return
         image.read_meta = image.tangents = None
