@@ -48,7 +48,6 @@ def driver(photos: str, out: str, gate: str) -> None:
         engine="ray",
         align="none",
         blend="frustum",
-        threads=1,
         progress=False,
         on_outcome=lambda o: _print({"outcome": o.status, "input": o.input}),
     )

@@ -44,7 +44,7 @@ import ray as _ray
 
 from . import batch as _batch
 from .batch import ImageOutcome, Job, _Settings
-from .errors import ModelError
+from .errors import InputError, ModelError
 from .io import remove_stale_temporaries
 
 # Ray's annotations are partial (untyped functions, ObjectRef not unpackable): use it untyped.
@@ -202,6 +202,30 @@ def run_jobs(
             ray.shutdown()
 
 
+def _check_cluster(res: RayResources) -> int:
+    """The cluster's CPUs; an InputError if the actors would leave no room for the tasks.
+
+    Ray queues what does not fit forever, so a run that cannot progress must not start. The
+    check sees the cluster as it is now (an autoscaler may add nodes later).
+    """
+    total = ray.cluster_resources()
+    cpus, gpus = float(total.get("CPU", 0)), float(total.get("GPU", 0))
+    stitch = max(1.0, res.cpus_per_stitch)  # the read task takes 1 CPU
+    needed = res.model_actors * res.cpus_per_model + stitch
+    if cpus < needed:
+        raise InputError(
+            f"the Ray cluster has {cpus:g} CPUs: {res.model_actors} model actor(s) of "
+            f"{res.cpus_per_model:g} CPU and a stitch task of {stitch:g} need {needed:g}; use "
+            "fewer workers (model actors) or a smaller cpus_per_stitch"
+        )
+    if gpus < res.model_actors * res.gpus_per_model:
+        raise InputError(
+            f"the Ray cluster has {gpus:g} GPUs: {res.model_actors} model actor(s) of "
+            f"{res.gpus_per_model:g} GPU do not fit; use fewer workers or gpus_per_model 0"
+        )
+    return int(cpus)
+
+
 class _Driver:
     def __init__(
         self,
@@ -218,7 +242,7 @@ class _Driver:
         model_threads = settings.threads
         if model_threads is None and isinstance(settings.model, (str, os.PathLike)):
             model_threads = max(1, math.ceil(resources.cpus_per_model))  # its reserved CPUs
-        cpus = int(ray.cluster_resources().get("CPU", 1))
+        cpus = _check_cluster(resources)
         # Enough images in flight to keep every CPU and actor busy, and no more.
         self.window = resources.window or max(2, 2 * cpus + resources.model_actors)
         self.read_task = ray.remote(_read_project).options(num_cpus=1, num_returns=2, max_retries=0)
