@@ -154,11 +154,13 @@ def _driver(address: str, photos: Path, out: Path, gate: Path) -> subprocess.Pop
 def _read_line(proc: subprocess.Popen[str]) -> dict[str, Any]:
     """The next JSON line the driver prints (the watchdog fails the test if none comes)."""
     assert proc.stdout is not None
-    ready, _, _ = select.select([proc.stdout], [], [], WATCHDOG_S)
-    assert ready, "the Ray driver printed nothing for a long time"
-    line = proc.stdout.readline()
-    assert line, f"the Ray driver ended early (exit {proc.wait()})"
-    return dict(json.loads(line))
+    while True:
+        ready, _, _ = select.select([proc.stdout], [], [], WATCHDOG_S)
+        assert ready, "the Ray driver printed nothing for a long time"
+        line = proc.stdout.readline()
+        assert line, f"the Ray driver ended early (exit {proc.wait()})"
+        if line.startswith("{"):  # Ray prints messages of its own to stdout too
+            return dict(json.loads(line))
 
 
 def _stop(driver: subprocess.Popen[str], *fds: int) -> None:

@@ -32,7 +32,9 @@ def test_a_node_lost_mid_run_costs_only_its_images_which_are_redone(tmp_path: Pa
         [*job, str(faults), model], capture_output=True, text=True, timeout=600, check=False
     )
     assert done.returncode == 0, done.stderr[-4000:]
-    result = json.loads(done.stdout.strip().splitlines()[-1])
+    # Ray writes its own messages to stdout too.
+    (line,) = [x for x in done.stdout.splitlines() if x.startswith('{"report"')]
+    result = json.loads(line)
     assert len(result["removed"]) == 1  # the node running the network, while it held an image
     assert result["outcomes_per_input"] == [1]  # nothing lost, nothing twice
     report = result["report"]
