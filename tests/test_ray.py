@@ -144,33 +144,45 @@ def test_import_m360_does_not_import_ray() -> None:
     subprocess.run([sys.executable, "-c", code], check=True, timeout=WATCHDOG_S)
 
 
-def _driver(address: str, photos: Path, out: Path, gate: Path) -> subprocess.Popen[str]:
-    """A Ray run in another process (a driver of the module's Ray) with the Gated estimator."""
-    env = {**os.environ, "RAY_ADDRESS": address}
-    script = [sys.executable, str(HERE / "ray_jobs.py"), "driver", str(photos), str(out), str(gate)]
-    return subprocess.Popen(script, env=env, stdout=subprocess.PIPE, text=True)
+class _Driver:
+    """A Ray run in another process (a driver of the module's Ray) with the Gated estimator,
+    whose JSON lines are read as they come (a watchdog fails the test if none comes)."""
 
+    def __init__(self, address: str, photos: Path, out: Path, gate: Path) -> None:
+        env = {**os.environ, "RAY_ADDRESS": address}
+        job = [
+            sys.executable,
+            str(HERE / "ray_jobs.py"),
+            "driver",
+            str(photos),
+            str(out),
+            str(gate),
+        ]
+        self.proc = subprocess.Popen(job, env=env, stdout=subprocess.PIPE)
+        assert self.proc.stdout is not None
+        self.fd = self.proc.stdout.fileno()
+        self.buffer = b""
 
-def _read_line(proc: subprocess.Popen[str]) -> dict[str, Any]:
-    """The next JSON line the driver prints (the watchdog fails the test if none comes)."""
-    assert proc.stdout is not None
-    while True:
-        ready, _, _ = select.select([proc.stdout], [], [], WATCHDOG_S)
-        assert ready, "the Ray driver printed nothing for a long time"
-        line = proc.stdout.readline()
-        assert line, f"the Ray driver ended early (exit {proc.wait()})"
-        if line.startswith("{"):  # Ray prints messages of its own to stdout too
-            return dict(json.loads(line))
+    def line(self) -> dict[str, Any]:
+        while True:
+            while b"\n" not in self.buffer:
+                ready, _, _ = select.select([self.fd], [], [], WATCHDOG_S)
+                assert ready, "the Ray driver printed nothing for a long time"
+                chunk = os.read(self.fd, 65536)
+                assert chunk, f"the Ray driver ended early (exit {self.proc.wait()})"
+                self.buffer += chunk
+            line, _, self.buffer = self.buffer.partition(b"\n")
+            if line.startswith(b"{"):  # Ray prints messages of its own to stdout too
+                return dict(json.loads(line))
 
-
-def _stop(driver: subprocess.Popen[str], *fds: int) -> None:
-    if driver.poll() is None:
-        driver.kill()
-    driver.wait(WATCHDOG_S)
-    assert driver.stdout is not None
-    driver.stdout.close()
-    for fd in fds:
-        os.close(fd)
+    def stop(self, *fds: int) -> None:
+        if self.proc.poll() is None:
+            self.proc.kill()
+        self.proc.wait(WATCHDOG_S)
+        assert self.proc.stdout is not None
+        self.proc.stdout.close()
+        for fd in fds:
+            os.close(fd)
 
 
 def _read_byte(fd: int) -> None:
@@ -186,15 +198,15 @@ def test_rerun_after_sigkill_of_the_driver_does_only_the_rest(
     gate.mkdir()
     started, tokens = batch_helpers.make_gate(str(gate))
     out = tmp_path / "out"
-    driver = _driver(local_ray, ten, out, gate)
+    driver = _Driver(local_ray, ten, out, gate)
     try:
         os.write(tokens, b"ttt")  # three images may pass the network, the fourth waits
-        done = [_read_line(driver) for _ in range(3)]
+        done = [driver.line() for _ in range(3)]
         assert [d["outcome"] for d in done] == ["done"] * 3
-        driver.send_signal(signal.SIGKILL)  # no image is being written: the fourth waits
-        driver.wait(WATCHDOG_S)
+        driver.proc.send_signal(signal.SIGKILL)  # no image is being written: the fourth waits
+        driver.proc.wait(WATCHDOG_S)
     finally:
-        _stop(driver, started, tokens)
+        driver.stop(started, tokens)
     finished = {p.name: p.stat().st_mtime_ns for p in out.glob("*.json")}
     assert sorted(finished) == sorted(f"{Path(d['input']).stem}.json" for d in done)
     report = m360.batch.run([ten], out, model=batch_helpers.Gated(None), engine="ray", **GATED)
@@ -213,16 +225,16 @@ def test_a_local_run_and_a_ray_run_share_a_folder(
     gate.mkdir()
     started, tokens = batch_helpers.make_gate(str(gate))
     out = tmp_path / "out"
-    driver = _driver(local_ray, ten, out, gate)
+    driver = _Driver(local_ray, ten, out, gate)
     try:
         # The Ray run has claimed its first images and waits in the network on the first.
         _read_byte(started)
         local = m360.batch.run([ten], out, model=batch_helpers.Gated(None), **GATED)
         os.write(tokens, b"t" * 10)
-        lines = [_read_line(driver) for _ in range(11)]
-        assert driver.wait(WATCHDOG_S) == 0
+        lines = [driver.line() for _ in range(11)]
+        assert driver.proc.wait(WATCHDOG_S) == 0
     finally:
-        _stop(driver, started, tokens)
+        driver.stop(started, tokens)
     counts = lines[-1]["report"]
     assert local.exit_code == 0 and counts["exit_code"] == 0
     assert len(local.busy) >= 1 and len(local.done) >= 1
