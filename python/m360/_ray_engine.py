@@ -256,6 +256,7 @@ class _Driver:
             max_task_retries=0,
         )
         self.model_threads = model_threads
+        self.shared_settings = ray.put(settings)  # stored once, not pickled with every task
         self.actors = [
             self.actor_class.remote(settings, model_threads) for _ in range(resources.model_actors)
         ]
@@ -333,7 +334,7 @@ class _Driver:
             self._submit_read(_Image(job, claim))
 
     def _submit_read(self, image: _Image) -> None:
-        meta, tangents = self.read_task.remote(image.job, self.settings, self.stitch_threads)
+        meta, tangents = self.read_task.remote(image.job, self.shared_settings, self.stitch_threads)
         image.tangents = tangents
         self.pending[meta] = ("read", image, None)
 
@@ -345,7 +346,7 @@ class _Driver:
             meta, raw = actor.predict.options(num_returns=2).remote(image.tangents, width)
             image.tangents = None  # the actor has the reference; free it when it is done
             done = self.stitch_task.remote(
-                image.job, self.settings, self.stitch_threads, image.read_meta, meta, raw
+                image.job, self.shared_settings, self.stitch_threads, image.read_meta, meta, raw
             )
             self.pending[meta] = ("network", image, actor)
             self.pending[done] = ("stitch", image, None)
