@@ -33,8 +33,9 @@ engine in the same process, runs interleaved:
    its start-up is printed apart).
 5. seconds per image and stage in the Ray runs (one thread each: the costs an N-node estimate
    starts from; docs/architecture.md, "The Ray engine").
-6. the driver's ceiling: tiny 128x64 panoramas with a tiny network, so that nearly all the time
-   is the engine's own (scheduling, claims, sidecars): images per second of each engine.
+6. the engines' ceiling: tiny 128x64 panoramas with a tiny network, so that nearly all the time
+   is the engine's own (scheduling, claims, sidecars): images per second of each engine, and
+   the Ray driver's own CPU time per image (what bounds one driver however big the cluster).
 
 Run: ``.venv/bin/python benches/bench_batch.py [--images 8] [--repeats 3] [--layers 33]
 [--engine ray]``.
@@ -174,19 +175,27 @@ def ray_tables(args: object, tmp: Path, model: Path, meta: dict) -> list[dict]:
         cv2.imwrite(str(tiny_in / f"t{k:04d}.png"), np.roll(rgb, k, axis=1)[:, :, ::-1])
     tiny = {"align": "none", "blend": "frustum", "input_size": (64, 96)}
     ceiling: dict[str, list[float]] = {"local": [], "ray": []}
+    driver_ms: list[float] = []  # CPU time of this process (the Ray driver) per image
     for _ in range(repeats):
         for engine in ceiling:
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             engine_run(tiny_in, fresh(), tiny_model, engine, 1, **tiny)
             ceiling[engine].append(args.tiny / (time.perf_counter() - start))  # type: ignore[attr-defined]
+            if engine == "ray":
+                driver_ms.append((time.process_time() - cpu) * 1000 / args.tiny)  # type: ignore[attr-defined]
     h.print_table(
         f"engine ceiling: {args.tiny} tiny 128x64 panoramas, tiny network, median of {repeats}",  # type: ignore[attr-defined]
-        ["engine", "images/s", "ms/image"],
-        [[e, statistics.median(v), 1000 / statistics.median(v)] for e, v in ceiling.items()],
-    )
+        ["engine", "images/s", "ms/image", "driver CPU ms/image"],
+        [
+            [e, statistics.median(v), 1000 / statistics.median(v),
+             statistics.median(driver_ms) if e == "ray" else "-"]
+            for e, v in ceiling.items()
+        ],
+    )  # fmt: skip
     ray.shutdown()
-    return [*rows, {"ray_stage_seconds_per_image": per_stage, "ray_startup_s": startup,
-                    "ceiling_images_per_s": ceiling}]  # fmt: skip
+    summary = {"ray_stage_seconds_per_image": per_stage, "ray_startup_s": startup,
+               "ceiling_images_per_s": ceiling, "driver_cpu_ms_per_image": driver_ms}  # fmt: skip
+    return [*rows, summary]
 
 
 def main() -> None:
