@@ -242,3 +242,25 @@ def test_a_local_run_and_a_ray_run_share_a_folder(
     assert len(list(out.glob("*.json"))) == 10
     assert not (out / "failures.jsonl").exists()
     h.assert_clean(out)
+
+
+def test_ctrl_c_of_the_driver_stops_cleanly_and_a_rerun_finishes(
+    local_ray: str, ten: Path, tmp_path: Path
+) -> None:
+    gate = tmp_path / "gate"
+    gate.mkdir()
+    started, tokens = batch_helpers.make_gate(str(gate))
+    out = tmp_path / "out"
+    driver = _Driver(local_ray, ten, out, gate)
+    try:
+        os.write(tokens, b"tt")
+        assert [driver.line()["outcome"] for _ in range(2)] == ["done", "done"]
+        driver.proc.send_signal(signal.SIGINT)  # the third image waits in the network
+        report = driver.line()["report"]
+        assert driver.proc.wait(WATCHDOG_S) == 0
+    finally:
+        driver.stop(started, tokens)
+    assert (report["done"], report["exit_code"]) == (2, 130)
+    h.assert_clean(out)  # no claim left, no partial file
+    again = m360.batch.run([ten], out, model=batch_helpers.Gated(None), engine="ray", **GATED)
+    assert (len(again.done), len(again.skipped), again.exit_code) == (8, 2, 0)
