@@ -266,6 +266,7 @@ class _Driver:
         # Ray object reference → (stage, image, actor); no image for an actor's restart.
         self.pending: dict[Any, tuple[str, _Image | None, Any]] = {}
         self.in_flight = 0
+        self.claims: set[contextlib.ExitStack] = set()  # every claim this driver holds
 
     def _check_actors(self) -> None:
         """Wait for the model actors: a model that cannot load fails the run, not each image."""
@@ -295,8 +296,8 @@ class _Driver:
                 if stage != "network":
                     with contextlib.suppress(Exception):
                         ray.cancel(ref)
-            for image in self._held():
-                image.claim.close()
+            for claim in list(self.claims):
+                self._release(claim)
             raise
         finally:
             for actor in self.actors:
@@ -306,10 +307,9 @@ class _Driver:
     def _images_pending(self) -> bool:
         return any(image is not None for _, image, _ in self.pending.values())
 
-    def _held(self) -> list[_Image]:
-        held = {id(i): i for _, i, _ in self.pending.values() if i is not None}
-        held.update((id(i), i) for i in self.waiting_for_network)
-        return list(held.values())
+    def _release(self, claim: contextlib.ExitStack) -> None:
+        self.claims.discard(claim)
+        claim.close()
 
     def _admit(self) -> None:
         """Claim and submit images while fewer than ``window`` are in flight."""
@@ -321,12 +321,13 @@ class _Driver:
                 self.record(job, unusable)
                 continue
             claim = contextlib.ExitStack()
+            self.claims.add(claim)  # first: Ctrl-C from here on still releases it
             if not claim.enter_context(_batch._claim(job.stem)):
-                claim.close()
+                self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "busy"))
                 continue
             if s.resume and _batch.is_done(job, s.fingerprint):
-                claim.close()
+                self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "skipped"))
                 continue
             remove_stale_temporaries(job.stem)
@@ -408,6 +409,6 @@ class _Driver:
         self._submit_read(image)  # redo it from the start, still under its claim
 
     def _done(self, image: _Image, outcome: ImageOutcome) -> None:
-        image.claim.close()
+        self._release(image.claim)
         self.in_flight -= 1
         self.record(image.job, outcome)
