@@ -19,7 +19,7 @@ PAUSE = 99
 #: The options of the Ray tests: the method's default stitching.
 OPTIONS: dict[str, Any] = {"progress": False}
 BAD = {
-    "black.png": "WorkerCrashed",
+    "z_black.png": "WorkerCrashed",
     "truncated.jpg": "ReadError",
     "zero.jpg": "ReadError",
     "three_two.png": "AspectRatioError",
@@ -92,10 +92,11 @@ def make_photos(folder: Path, good: int = 34) -> Path:
     for k in range(good):
         image = np.roll(rgb, 3 * k, axis=1)[:, :, ::-1]
         assert cv2.imwrite(str(folder / f"pano_{k:02d}.{'jpg' if k % 2 else 'png'}"), image)
-    for value in (CRASH_ONCE, PAUSE):
-        clipped = np.minimum(rgb, value)[:, :, ::-1]
-        assert cv2.imwrite(str(folder / f"clipped_{value}.png"), clipped)
-    assert cv2.imwrite(str(folder / "black.png"), np.zeros((64, 128, 3), np.uint8))
+    # Sorted, the paused image comes first and the crashing ones late: when a test removes a
+    # node at the pause, no image that has already lost a worker is in flight.
+    for value, name in ((PAUSE, "a_clipped_99.png"), (CRASH_ONCE, "z_clipped_77.png")):
+        assert cv2.imwrite(str(folder / name), np.minimum(rgb, value)[:, :, ::-1])
+    assert cv2.imwrite(str(folder / "z_black.png"), np.zeros((64, 128, 3), np.uint8))
     _, jpeg = cv2.imencode(".jpg", rgb)
     (folder / "truncated.jpg").write_bytes(jpeg.tobytes()[: len(jpeg) // 2])
     (folder / "zero.jpg").write_bytes(b"")

@@ -95,8 +95,8 @@ def test_ray_equals_the_local_engine_records_the_bad_inputs_and_survives_a_kille
     assert sorted(seen) == sorted(str(p) for p in photos.iterdir())  # each image once
     # The image that killed its worker once was redone.
     assert (faults / "crashed-once").exists()
-    assert (out / "clipped_77.json").exists()
-    assert h.assert_same_outputs(reference, out, skip=frozenset({"black"})) == 36
+    assert (out / "z_clipped_77.json").exists()
+    assert h.assert_same_outputs(reference, out, skip=frozenset({"z_black"})) == 36
     h.assert_clean(out)
     stages = report.stage_seconds()
     assert all(stages[s] > 0 for s in ("read", "project", "network", "align", "blend", "write"))
