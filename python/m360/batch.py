@@ -26,6 +26,9 @@ What it guarantees (docs/architecture.md, batch guarantees):
 With ``workers > 1`` images run in separate processes (``spawn``), each loading the model and
 building the per-resolution plan once; as with any spawned process, a script that calls
 :func:`run` must keep its top level under ``if __name__ == "__main__":``.
+
+With ``engine="ray"`` (``pip install "m360[ray]"``) the same images run on a Ray cluster, with
+the same guarantees (docs/architecture.md, "The Ray engine").
 """
 
 from __future__ import annotations

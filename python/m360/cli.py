@@ -81,7 +81,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
-    run.add_argument("--workers", type=int, default=1, help="processes working at once")
+    run.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes working at once (--engine ray: model actors, one network session each)",
+    )
     run.add_argument(
         "--threads",
         type=int,
