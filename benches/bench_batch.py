@@ -24,7 +24,21 @@ Tables:
    in the per-image stages (read, m360.estimate's stages, write), which are the loop's work.
    Target ≤ 3 %.
 
-Run: ``.venv/bin/python benches/bench_batch.py [--images 8] [--repeats 3] [--layers 33]``.
+With ``--engine ray`` (needs ``m360[ray]``) it measures the Ray engine instead, against the local
+engine in the same process, runs interleaved:
+
+4. images per hour, local engine (1 worker x 2 threads; 2 workers x 1 thread) vs Ray engine on a
+   local Ray of 2 CPUs (one model actor of 1 CPU, align + blend tasks of 1 CPU), median of
+   ``--repeats``; each Ray run includes starting its model actor (Ray itself is started once,
+   its start-up is printed apart).
+5. seconds per image and stage in the Ray runs (one thread each: the costs an N-node estimate
+   starts from; docs/architecture.md, "The Ray engine").
+6. the engines' ceiling: tiny 128x64 panoramas with a tiny network, so that nearly all the time
+   is the engine's own (scheduling, claims, sidecars): images per second of each engine, and
+   the Ray driver's own CPU time per image (what bounds one driver however big the cluster).
+
+Run: ``.venv/bin/python benches/bench_batch.py [--images 8] [--repeats 3] [--layers 33]
+[--engine ray]``.
 """
 
 from __future__ import annotations
@@ -89,14 +103,125 @@ def loop_seconds(paths: list[Path], out: Path, model: Path, blend: str, save: bo
     return time.perf_counter() - start
 
 
+def engine_run(
+    inputs: Path, out: Path, model: Path | str, engine: str, workers: int, **options: object
+) -> m360.batch.BatchReport:
+    threads = None if engine == "ray" else max(1, 2 // workers)
+    report = m360.batch.run(
+        inputs, out, model=str(model), engine=engine, workers=workers, threads=threads,
+        progress=False, **options,  # type: ignore[arg-type]
+    )  # fmt: skip
+    if report.exit_code != 0:
+        raise RuntimeError(report.summary())
+    return report
+
+
+def ray_tables(args: object, tmp: Path, model: Path, meta: dict) -> list[dict]:
+    import ray
+
+    started = time.perf_counter()
+    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    startup = time.perf_counter() - started
+    images: int = args.images  # type: ignore[attr-defined]
+    repeats: int = args.repeats  # type: ignore[attr-defined]
+    setups = [("local", 1), ("local", 2), ("ray", 1)]
+    runs = 0
+
+    def fresh() -> Path:
+        nonlocal runs
+        runs += 1
+        return tmp / f"ray_out{runs}"
+
+    walls: dict[tuple[str, int], list[float]] = {s: [] for s in setups}
+    stages: list[dict[str, float]] = []
+    engine_run(tmp / "in", fresh(), model, "ray", 1)  # warm the workers' imports
+    for _ in range(repeats):  # interleaved
+        for engine, workers in setups:
+            start = time.perf_counter()
+            report = engine_run(tmp / "in", fresh(), model, engine, workers)
+            walls[(engine, workers)].append(time.perf_counter() - start)
+            if engine == "ray":
+                stages.append({k: v / images for k, v in report.stage_seconds().items()})
+    rows = [
+        {"engine": e, "workers": w, "seconds": statistics.median(walls[(e, w)]),
+         "per_hour": images / statistics.median(walls[(e, w)]) * 3600, "runs": walls[(e, w)]}
+        for e, w in setups
+    ]  # fmt: skip
+    h.print_table(
+        f"local engine vs Ray engine, {images} panoramas {args.width}x{args.width // 2}, "  # type: ignore[attr-defined]
+        f"poisson, median of {repeats} (Ray start-up {startup:.1f} s, not included)",
+        ["engine", "setup", "seconds", "s/image", "images/hour", "vs local 1x2"],
+        [
+            [r["engine"], "1 model actor (1 CPU) + tasks (1 CPU)" if r["engine"] == "ray"
+             else f"{r['workers']} x {max(1, 2 // r['workers'])}", r["seconds"],
+             r["seconds"] / images, f"{r['per_hour']:.0f}",
+             f"{100 * (rows[0]['seconds'] / r['seconds'] - 1):+.1f} %"]
+            for r in rows
+        ],
+    )  # fmt: skip
+    per_stage = {k: statistics.median(s[k] for s in stages) for k in stages[0]}
+    cpu = sum(v for k, v in per_stage.items() if k != "network")
+    h.print_table(
+        "Ray engine: seconds per image and stage (1 thread each), median over the Ray runs",
+        [*per_stage, "CPU stages"],
+        [[*per_stage.values(), cpu]],
+    )
+    # The driver's ceiling: everything but the engine made nearly free.
+    tiny_model = onnx_graphs.affine_of_mean(tmp / "tiny.onnx", 1.0, 0.1)
+    tiny_in = tmp / "tiny_in"
+    tiny_in.mkdir()
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(1), 128)
+    for k in range(args.tiny):  # type: ignore[attr-defined]
+        cv2.imwrite(str(tiny_in / f"t{k:04d}.png"), np.roll(rgb, k, axis=1)[:, :, ::-1])
+    tiny = {"align": "none", "blend": "frustum", "input_size": (64, 96)}
+    ceiling: dict[str, list[float]] = {"local": [], "ray": []}
+    driver_ms: list[float] = []  # CPU time of this process (the Ray driver) per image
+    for _ in range(repeats):
+        for engine in ceiling:
+            start, cpu = time.perf_counter(), time.process_time()
+            engine_run(tiny_in, fresh(), tiny_model, engine, 1, **tiny)
+            ceiling[engine].append(args.tiny / (time.perf_counter() - start))  # type: ignore[attr-defined]
+            if engine == "ray":
+                driver_ms.append((time.process_time() - cpu) * 1000 / args.tiny)  # type: ignore[attr-defined]
+    h.print_table(
+        f"engine ceiling: {args.tiny} tiny 128x64 panoramas, tiny network, median of {repeats}",  # type: ignore[attr-defined]
+        ["engine", "images/s", "ms/image", "driver CPU ms/image"],
+        [
+            [e, statistics.median(v), 1000 / statistics.median(v),
+             statistics.median(driver_ms) if e == "ray" else "-"]
+            for e, v in ceiling.items()
+        ],
+    )  # fmt: skip
+    ray.shutdown()
+    summary = {"ray_stage_seconds_per_image": per_stage, "ray_startup_s": startup,
+               "ceiling_images_per_s": ceiling, "driver_cpu_ms_per_image": driver_ms}  # fmt: skip
+    return [*rows, summary]
+
+
 def main() -> None:
     parser = h.bench_argparser(__doc__.splitlines()[0])
     parser.add_argument("--images", type=int, default=8, help="panoramas per run")
     parser.add_argument("--width", type=int, default=2048, help="ERP width")
     parser.add_argument("--layers", type=int, default=33, help="conv blocks of the stand-in")
+    parser.add_argument(
+        "--engine", choices=("local", "ray"), default="local", help="ray: tables 4-6 instead"
+    )
+    parser.add_argument("--tiny", type=int, default=200, help="tiny panoramas of table 6")
     parser.set_defaults(repeats=3)
     args = parser.parse_args()
     meta = h.metadata()
+    if args.engine == "ray":
+        with tempfile.TemporaryDirectory() as tmp_name:
+            tmp = Path(tmp_name)
+            model = onnx_graphs.conv_net(tmp / "midas_small_sized.onnx", size=256, width=32,
+                                         layers=args.layers)  # fmt: skip
+            (tmp / "in").mkdir()
+            make_panoramas(tmp / "in", args.images, args.width)
+            rows = ray_tables(args, tmp, model, meta)
+        print(f"\n{meta['cpu_model']}, {meta['cpu_count']} cores, commit {meta['git_commit']}")
+        if args.json:
+            h.write_json(args.json, rows, meta)
+        return
     rows: list[dict] = []
     with tempfile.TemporaryDirectory() as tmp_name:
         tmp = Path(tmp_name)

@@ -6,6 +6,7 @@ from __future__ import annotations
 import importlib
 import json
 import pickle
+import sys
 import typing
 from pathlib import Path
 
@@ -248,14 +249,15 @@ def test_cli_help_shows_the_cores_defaults(capsys: pytest.CaptureFixture[str]) -
     assert f"default {blend['method']}" in text
 
 
-def test_cli_engine_ray_is_a_usage_error(
-    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+def test_cli_engine_ray_without_ray_is_a_usage_error(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch
 ) -> None:
     from m360.cli import main
 
+    monkeypatch.setitem(sys.modules, "ray", None)  # what `import ray` does when not installed
     code = main(["run", str(tmp_path), "-o", str(tmp_path / "out"), "--engine", "ray"])
     assert code == 2
-    assert "--engine ray is not available yet" in capsys.readouterr().err
+    assert 'pip install "m360[ray]"' in capsys.readouterr().err
     assert not (tmp_path / "out").exists()
 
 

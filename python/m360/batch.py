@@ -26,6 +26,9 @@ What it guarantees (docs/architecture.md, batch guarantees):
 With ``workers > 1`` images run in separate processes (``spawn``), each loading the model and
 building the per-resolution plan once; as with any spawned process, a script that calls
 :func:`run` must keep its top level under ``if __name__ == "__main__":``.
+
+With ``engine="ray"`` (``pip install "m360[ray]"``) the same images run on a Ray cluster, with
+the same guarantees (docs/architecture.md, "The Ray engine").
 """
 
 from __future__ import annotations
@@ -66,6 +69,8 @@ __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_d
 
 MANIFEST_SUFFIXES = (".txt", ".csv")
 FAILURES_FILE = "failures.jsonl"
+#: Where :func:`run` runs images: local processes (default) or a Ray cluster (``m360[ray]``).
+ENGINES = ("local", "ray")
 #: Stages reported per image: reading the file, m360.estimate's stages, writing the outputs.
 STAGES = ("read", "load", "project", "network", "convert", "align", "blend", "write")
 
@@ -329,11 +334,9 @@ class _Worker:
         from .estimate import estimate
 
         s = self.settings
-        try:
-            job.stem.parent.mkdir(parents=True, exist_ok=True)
-        except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
-            message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
-            return _failure(job.input, job.name, InputError(message))
+        unusable = _make_job_folder(job)
+        if unusable is not None:
+            return unusable
         with _claim(job.stem) as claimed:
             if not claimed:
                 return ImageOutcome(str(job.input), job.name, "busy")
@@ -342,41 +345,70 @@ class _Worker:
             remove_stale_temporaries(job.stem)
             try:
                 t0 = time.perf_counter()
-                data = read_input_bytes(job.input)
-                stat = job.input.stat()
-                rgb = decode_image(data, job.input)
-                original = rgb.shape[:2]
-                rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+                rgb, source = _read_job(job, s)
                 t_read = time.perf_counter()
                 result = estimate(rgb, self.estimator, options=s.options)
                 t_estimate = time.perf_counter()
-                source = {
-                    "path": str(job.input),
-                    "sha256": hashlib.sha256(data).hexdigest(),
-                    "size": stat.st_size,
-                    "mtime_ns": stat.st_mtime_ns,
-                    "shape": list(original),
-                    "aspect_fixed": tuple(original) != rgb.shape[:2],
-                    "exif_orientation": "ignored",
-                }
-                batch = {"fingerprint": s.fingerprint, "run": s.run_id}
-                save(
-                    result,
-                    job.stem,
-                    formats=s.formats,
-                    preview=s.preview,
-                    extra={"input": source, "batch": batch},
-                )
+                _write_job(job, result, source, s)
                 t_write = time.perf_counter()
-            except M360Error as exc:
-                return _failure(job.input, job.name, exc)
-            except Exception as exc:  # a bug or a library error: still only this image fails
-                outcome = _failure(job.input, job.name, exc)
-                outcome.message = f"{exc} (unexpected; please report it)"
-                return outcome
+            except Exception as exc:
+                return _error_outcome(job, exc)
         timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
         timings.pop("total", None)
         return ImageOutcome(str(job.input), job.name, "done", timings=timings)
+
+
+# The pieces of one image, shared by the local engine (_Worker.process) and the Ray engine
+# (m360._ray_engine), which runs them in different processes: the same bytes either way.
+
+
+def _make_job_folder(job: Job) -> ImageOutcome | None:
+    """Create the folder of ``job``'s outputs; a failed outcome if that is impossible."""
+    try:
+        job.stem.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
+        message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
+        return _failure(job.input, job.name, InputError(message))
+    return None
+
+
+def _read_job(job: Job, s: _Settings) -> tuple[Any, dict[str, Any]]:
+    """Read and decode ``job``'s image: the RGB panorama and the sidecar's ``input`` record."""
+    data = read_input_bytes(job.input)
+    stat = job.input.stat()
+    rgb = decode_image(data, job.input)
+    original = rgb.shape[:2]
+    rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+    source = {
+        "path": str(job.input),
+        "sha256": hashlib.sha256(data).hexdigest(),
+        "size": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+        "shape": list(original),
+        "aspect_fixed": tuple(original) != rgb.shape[:2],
+        "exif_orientation": "ignored",
+    }
+    return rgb, source
+
+
+def _write_job(job: Job, result: Any, source: dict[str, Any], s: _Settings) -> None:
+    """Write ``job``'s outputs atomically, the sidecar (with input and fingerprint) last."""
+    batch = {"fingerprint": s.fingerprint, "run": s.run_id}
+    save(
+        result,
+        job.stem,
+        formats=s.formats,
+        preview=s.preview,
+        extra={"input": source, "batch": batch},
+    )
+
+
+def _error_outcome(job: Job, exc: Exception) -> ImageOutcome:
+    """Make the failed outcome of ``job`` for an exception raised while processing it."""
+    outcome = _failure(job.input, job.name, exc)
+    if not isinstance(exc, M360Error):  # a bug or a library error: still only this image fails
+        outcome.message = f"{exc} (unexpected; please report it)"
+    return outcome
 
 
 def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
@@ -495,6 +527,9 @@ def run(
     providers: Sequence[str] | None = None,
     input_size: tuple[int, int] | None = None,
     output_kind: str | None = None,
+    engine: str = "local",
+    gpus_per_model: float | None = None,
+    cpus_per_stitch: float = 1.0,
 ) -> BatchReport:
     """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
 
@@ -514,7 +549,8 @@ def run(
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
     workers : int
-        Processes working on images at once (1 = in this process).
+        Processes working on images at once (1 = in this process); with ``engine="ray"`` the
+        number of model actors (one network session each).
     threads : int, optional
         ONNX Runtime intra-op threads per worker; with ``workers > 1`` also the core's threads
         per worker (default: the CPU count divided among the workers).
@@ -530,6 +566,14 @@ def run(
         Called in this process with each :class:`ImageOutcome` as it arrives.
     providers, input_size, output_kind : optional
         ONNX model options, as for :func:`m360.estimate`.
+    engine : {"local", "ray"}
+        Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
+        cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
+        and exit codes either way.
+    gpus_per_model : float, optional
+        Ray only: GPUs per model actor (default 1 if ``providers`` asks for CUDA, else 0).
+    cpus_per_stitch : float
+        Ray only: CPUs per align + blend task (also the core's threads in it).
 
     Returns
     -------
@@ -547,6 +591,7 @@ def run(
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
+    ray_resources = _ray_resources(engine, workers, gpus_per_model, cpus_per_stitch, providers)
     threads = check_threads(threads)
     chosen = check_formats(formats)
     opts = build(
@@ -592,7 +637,7 @@ def run(
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
     )
-    if workers > 1:
+    if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)
     failures = out / FAILURES_FILE
@@ -617,7 +662,12 @@ def run(
     try:
         for problem in problems:
             record(problem, None)
-        if workers == 1 or len(jobs) <= 1:
+        if ray_resources is not None:
+            from ._ray_engine import run_jobs
+
+            del estimator  # each model actor loads its own
+            run_jobs(jobs, settings, lambda job, o: record(o, order[job]), ray_resources)
+        elif workers == 1 or len(jobs) <= 1:
             worker = _Worker(settings, estimator)
             with MainThreadInterrupts(_keyboard_interrupt_once()):
                 for job in jobs:
@@ -638,6 +688,47 @@ def run(
         failures_file=failures,
     )
     return report
+
+
+def _ray_resources(
+    engine: Any,
+    workers: int,
+    gpus_per_model: float | None,
+    cpus_per_stitch: float,
+    providers: Sequence[str] | None,
+) -> Any:
+    """Check the engine options; the Ray resources of a Ray run, None for the local engine."""
+    if engine not in ENGINES:
+        raise InputError(f"engine must be one of {', '.join(ENGINES)}, got {engine!r}")
+    if engine == "local":
+        if gpus_per_model is not None or cpus_per_stitch != 1.0:
+            raise InputError("gpus_per_model and cpus_per_stitch apply to engine='ray' only")
+        return None
+    try:
+        import ray  # noqa: F401  (the engine's module imports it again, at no cost)
+    except ImportError as exc:
+        raise InputError(
+            f'the Ray engine needs Ray, which cannot be imported ({exc}): pip install "m360[ray]"'
+        ) from exc
+    cpus = _positive(cpus_per_stitch, "cpus_per_stitch")
+    if gpus_per_model is None:
+        cuda = any("CUDA" in str(p) for p in providers or ())
+        gpus = 1.0 if cuda else 0.0
+    else:
+        gpus = _positive(gpus_per_model, "gpus_per_model", zero=True)
+    from ._ray_engine import RayResources
+
+    return RayResources(
+        model_actors=workers, gpus_per_model=gpus, cpus_per_model=1.0, cpus_per_stitch=cpus
+    )
+
+
+def _positive(value: Any, name: str, *, zero: bool = False) -> float:
+    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    if not ok or not (value >= 0 if zero else value > 0) or value != value or value > 1024:
+        bound = ">= 0" if zero else "> 0"
+        raise InputError(f"{name} must be a number {bound} (and at most 1024), got {value!r}")
+    return float(value)
 
 
 def _make_output_folder(out: Path) -> None:

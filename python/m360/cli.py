@@ -28,9 +28,7 @@ from .io import SAVE_FORMATS, load, output_stem, read_array, save, save_npy, sav
 from .options import AlignSpec, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
-ENGINES = ("local", "ray")
-#: Engines parsed but not built yet (exit 2 naming them).
-_PLANNED_ENGINES = ("ray",)
+ENGINES = batch.ENGINES
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -83,7 +81,12 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
-    run.add_argument("--workers", type=int, default=1, help="processes working at once")
+    run.add_argument(
+        "--workers",
+        type=int,
+        default=1,
+        help="processes working at once (--engine ray: model actors, one network session each)",
+    )
     run.add_argument(
         "--threads",
         type=int,
@@ -110,7 +113,20 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--engine",
         choices=ENGINES,
         default=ENGINES[0],
-        help="where images run: local processes (default); ray is not available yet",
+        help='where images run: local processes (default) or ray (pip install "m360[ray]"; '
+        "the cluster in RAY_ADDRESS, else a local one)",
+    )
+    run.add_argument(
+        "--gpus-per-model",
+        type=float,
+        default=None,
+        help="--engine ray: GPUs per model actor (default 1 with a CUDA provider, else 0)",
+    )
+    run.add_argument(
+        "--cpus-per-stitch",
+        type=float,
+        default=1.0,
+        help="--engine ray: CPUs per align + blend task (default 1)",
     )
     run.add_argument(
         "--input-size",
@@ -382,10 +398,6 @@ def _run(args: argparse.Namespace) -> int:
         if outcome.status == "failed":
             _log(f"m360: {outcome.input}: {outcome.error}: {outcome.message}")
 
-    if args.engine in _PLANNED_ENGINES:
-        raise InputError(
-            f"--engine {args.engine} is not available yet; use --engine {ENGINES[0]} (the default)"
-        )
     report = batch.run(
         args.inputs,
         args.output,
@@ -403,6 +415,9 @@ def _run(args: argparse.Namespace) -> int:
         providers=args.providers.split(",") if args.providers else None,
         input_size=tuple(args.input_size) if args.input_size else None,
         output_kind=args.output_kind,
+        engine=args.engine,
+        gpus_per_model=args.gpus_per_model,
+        cpus_per_stitch=args.cpus_per_stitch,
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code

@@ -202,10 +202,32 @@ def estimate(
         mean=mean,
         std=std,
     )
-    kind = estimator.output_kind
     t_load = time.perf_counter()
     tangents = erp_to_tangents(rgb, layout)
     t_project = time.perf_counter()
+    raw = _predict(estimator, tangents, layout)
+    t_network = time.perf_counter()
+    timings = {
+        "load": t_load - t_start,
+        "project": t_project - t_load,
+        "network": t_network - t_project,
+    }
+    result = _from_network(
+        raw,
+        estimator.output_kind,
+        layout,
+        opts,
+        (height, width),
+        _model_info(estimator, layout),
+        timings,
+        mask=mask,
+    )
+    result.timings["total"] = time.perf_counter() - t_start
+    return result
+
+
+def _predict(estimator: Any, tangents: np.ndarray, layout: Layout) -> np.ndarray:
+    """Run the network on the tangents; any failure or a wrong output is a ModelError."""
     try:
         raw = estimator.predict(tangents)
     except M360Error:
@@ -213,7 +235,6 @@ def estimate(
     except Exception as exc:  # a user estimator may raise anything; a batch loop needs M360Error
         name = getattr(estimator, "name", type(estimator).__name__)
         raise ModelError(f"estimator {name} failed: {type(exc).__name__}: {exc}") from exc
-    t_network = time.perf_counter()
     h, w = layout.tangent_shape
     raw_array = np.asarray(raw)
     if raw_array.shape != (len(layout), h, w) or raw_array.dtype.kind != "f":
@@ -222,30 +243,47 @@ def estimate(
             f"{raw_array.dtype} of shape {raw_array.shape}; expected float (N, h, w) = "
             f"{(len(layout), h, w)}"
         )
-    perspective = _estimators.to_perspective_disparity(raw_array, kind, layout)
+    return raw_array
+
+
+def _from_network(
+    raw: np.ndarray,
+    kind: str,
+    layout: Layout,
+    opts: StitchOptions,
+    erp_shape: tuple[int, int],
+    model_info: dict[str, Any],
+    timings: dict[str, float],
+    *,
+    mask: np.ndarray | None = None,
+) -> EstimateResult:
+    """Do the rest of :func:`estimate` after the network: convert, stitch, depth.
+
+    Split out so that an engine running the network elsewhere (m360.batch's Ray engine) makes
+    the same bytes. ``timings`` holds the earlier stages; ``total`` is left to the caller.
+    """
+    t_network = time.perf_counter()
+    perspective = _estimators.to_perspective_disparity(raw, kind, layout)
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
     disparity = details.disparity
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
-    t_end = time.perf_counter()
     st = details.timings
     metric = kind != "affine_disparity" and opts.align is None
+    height, width = erp_shape
     return EstimateResult(
         disparity=disparity,
         depth=depth,
         confidence=details.confidence,
         tangents=perspective,
         timings={
-            "load": t_load - t_start,
-            "project": t_project - t_load,
-            "network": t_network - t_project,
+            **timings,
             "convert": t_convert - t_network + st.get("convert", 0.0),
             "align": st.get("align", 0.0),
             "blend": st.get("blend", 0.0),
-            "total": t_end - t_start,
         },
-        model=_model_info(estimator, layout),
+        model=model_info,
         units="metres" if metric else "relative",
         options={**opts.as_dict(), "layout": repr(layout), "erp_shape": [height, width]},
         layout=layout,
