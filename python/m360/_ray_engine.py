@@ -31,6 +31,7 @@ enters the pipeline fit it; the three stages above are what its streaming execut
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -194,7 +195,8 @@ def run_jobs(
     started_here = not ray.is_initialized()
     if started_here:
         # RAY_ADDRESS, when set, names the cluster; otherwise this starts a local one.
-        ray.init(include_dashboard=False, log_to_driver=False)
+        # Ray's INFO lines would tear the progress bar; its warnings still show.
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
     try:
         _Driver(jobs, settings, record, resources).run()
     finally:
