@@ -268,6 +268,7 @@ class _Driver:
         # Ray object reference → (stage, image, actor); no image for an actor's restart.
         self.pending: dict[Any, tuple[str, _Image | None, Any]] = {}
         self.in_flight = 0
+        self.replaced = 0  # model actors replaced after dying for good
         self.claims: set[contextlib.ExitStack] = set()  # every claim this driver holds
 
     def _check_actors(self) -> None:
@@ -369,7 +370,11 @@ class _Driver:
         if stage == "restarted":
             try:
                 ray.get(ref)
-            except ray.exceptions.RayError:  # dead for good (its restarts ran out): replace it
+            except ray.exceptions.RayError as exc:  # dead for good: replace it, a few times
+                self.replaced += 1
+                if self.replaced > 3 * len(self.actors):
+                    cause = _ANSI.sub("", str(exc)).strip().partition("\n")[0]
+                    raise ModelError(f"the model actors keep dying for good: {cause}") from exc
                 self.actors.remove(actor)
                 actor = self.actor_class.remote(self.settings, self.model_threads)
                 self.actors.append(actor)
