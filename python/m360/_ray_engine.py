@@ -31,6 +31,7 @@ enters the pipeline fit it; the three stages above are what its streaming execut
 from __future__ import annotations
 
 import contextlib
+import logging
 import math
 import os
 import re
@@ -194,7 +195,8 @@ def run_jobs(
     started_here = not ray.is_initialized()
     if started_here:
         # RAY_ADDRESS, when set, names the cluster; otherwise this starts a local one.
-        ray.init(include_dashboard=False, log_to_driver=False)
+        # Ray's INFO lines would tear the progress bar; its warnings still show.
+        ray.init(include_dashboard=False, log_to_driver=False, logging_level=logging.WARNING)
     try:
         _Driver(jobs, settings, record, resources).run()
     finally:
@@ -266,6 +268,7 @@ class _Driver:
         # Ray object reference → (stage, image, actor); no image for an actor's restart.
         self.pending: dict[Any, tuple[str, _Image | None, Any]] = {}
         self.in_flight = 0
+        self.replaced = 0  # model actors replaced after dying for good
         self.claims: set[contextlib.ExitStack] = set()  # every claim this driver holds
 
     def _check_actors(self) -> None:
@@ -367,7 +370,11 @@ class _Driver:
         if stage == "restarted":
             try:
                 ray.get(ref)
-            except ray.exceptions.RayError:  # dead for good (its restarts ran out): replace it
+            except ray.exceptions.RayError as exc:  # dead for good: replace it, a few times
+                self.replaced += 1
+                if self.replaced > 3 * len(self.actors):
+                    cause = _ANSI.sub("", str(exc)).strip().partition("\n")[0]
+                    raise ModelError(f"the model actors keep dying for good: {cause}") from exc
                 self.actors.remove(actor)
                 actor = self.actor_class.remote(self.settings, self.model_threads)
                 self.actors.append(actor)
