@@ -666,7 +666,8 @@ def run(
             from ._ray_engine import run_jobs
 
             del estimator  # each model actor loads its own
-            run_jobs(jobs, settings, lambda job, o: record(o, order[job]), ray_resources)
+            with MainThreadInterrupts(_keyboard_interrupt_once()):  # the driver has many threads
+                run_jobs(jobs, settings, lambda job, o: record(o, order[job]), ray_resources)
         elif workers == 1 or len(jobs) <= 1:
             worker = _Worker(settings, estimator)
             with MainThreadInterrupts(_keyboard_interrupt_once()):
