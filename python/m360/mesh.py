@@ -1,0 +1,424 @@
+"""Point clouds and meshes from ERP depth, and their PLY/GLB files.
+
+Every 3D output is built in m360's world frame (docs/conventions.md: x right, y down, z forward,
+camera at the origin): ERP pixel (i, j) with radial depth r becomes the point r·d(i, j). The mesh
+lives on the ERP grid:
+
+- columns W − 1 and 0 are neighbours, so the mesh is closed across the 0/360° seam;
+- the first and last rows close with a fan of triangles to one vertex at each pole (its depth is
+  the median of that row's depths);
+- each grid quad is split along its shorter diagonal in 3D;
+- a triangle is dropped when one of its depths is NaN (or ≤ 0) or when its largest depth exceeds
+  its smallest by more than ``max_depth_ratio`` (an occlusion edge, not a surface).
+
+Everything is vectorised numpy: index arrays over the whole grid, no Python list per vertex.
+The writers (:func:`write_ply`, :func:`write_glb`) use ``trimesh`` from the optional extra
+``m360[3d]``; glTF is y-up, so :func:`write_glb` rotates the frame at the writer (see
+:data:`FRAMES`).
+"""
+
+from __future__ import annotations
+
+import io as _bytes_io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._validate import as_array, flag, integer, number
+from .errors import InputError
+
+__all__ = [
+    "DEFAULT_MAX_DEPTH_RATIO",
+    "FRAMES",
+    "Mesh",
+    "PointCloud",
+    "erp_ray_grid",
+    "to_mesh",
+    "to_points",
+    "write_glb",
+    "write_ply",
+]
+
+#: Default cut of :func:`to_mesh`: a triangle whose depths differ by more than this ratio is
+#: dropped. Measured on m360.synthetic rooms (benches/measure_depth_ratio.py, docs/method.md):
+#: at 2K, 99.99 % of the grid triangles lying on one continuous surface have a ratio below
+#: 1.06 (1.12 at 1K), while the triangles across an occlusion edge start at ~1.2.
+DEFAULT_MAX_DEPTH_RATIO = 1.1
+
+#: The frame each writer stores its coordinates in (also recorded in the sidecar's ``frame``).
+FRAMES = {
+    "ply": "m360 world frame: x right, y down, z forward (camera at the origin)",
+    "glb": "glTF frame: x right, y up, z backward = (x, -y, -z) of the m360 frame",
+}
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points of an ERP depth map (see :func:`to_points`).
+
+    Attributes
+    ----------
+    xyz : (N, 3) float32
+        Positions in the m360 world frame (x right, y down, z forward), in the depth's units.
+    rgb : (N, 3) uint8 or None
+        Colours from the panorama.
+    pixels : (N,) int64
+        Flat ERP index ``i * W + j`` of each point's pixel (in the full-resolution map).
+    units : str
+        Units of ``xyz`` (``"metres"`` or ``"relative"``).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray | None
+    pixels: np.ndarray
+    units: str = "relative"
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh on the ERP grid (see :func:`to_mesh`).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32
+        Positions in the m360 world frame; only vertices used by a face are kept.
+    faces : (F, 3) int32 (int64 beyond 2**31 vertices)
+        Vertex indices; counter-clockwise seen from the camera (normals face the origin).
+    rgb : (V, 3) uint8 or None
+        Vertex colours from the panorama (pole vertices: the mean colour of their row).
+    units : str
+        Units of ``vertices``.
+    max_depth_ratio : float
+        The cut used.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rgb: np.ndarray | None
+    units: str = "relative"
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO
+
+
+# -------------------------------------------------------------------------------- inputs
+
+
+def _depth_of(source: Any, quantity: str | None) -> tuple[np.ndarray, str]:
+    """(H, W) float32 radial depth (NaN = invalid) and its units, from any accepted source."""
+    if isinstance(source, (str, os.PathLike)):
+        from .io import load
+
+        source = load(source)
+    units = str(getattr(source, "units", "relative"))
+    if hasattr(source, "depth") and hasattr(source, "disparity"):
+        if quantity is not None:
+            raise InputError("quantity applies to plain arrays only, not to a result")
+        values = source.depth
+        name = "result.depth"
+    else:
+        values = source
+        name = "depth" if quantity in (None, "depth") else "disparity"
+        if quantity not in (None, "depth", "disparity"):
+            raise InputError(f"quantity must be 'depth' or 'disparity', got {quantity!r}")
+    array = as_array(values, name)
+    if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
+        raise InputError(f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}")
+    if array.dtype.kind != "f":
+        raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        depth = array.astype(np.float32)
+        if name == "disparity":
+            depth = np.where(depth > 0, 1.0 / depth, np.nan).astype(np.float32)
+        depth[~(np.isfinite(depth) & (depth > 0))] = np.nan
+    return depth, units
+
+
+def _rgb_of(rgb: Any, shape: tuple[int, int]) -> np.ndarray | None:
+    if rgb is None:
+        return None
+    array = as_array(rgb, "rgb")
+    if array.shape != (*shape, 3):
+        raise InputError(
+            f"rgb must be the panorama of the depth map, shape {(*shape, 3)}, got {array.shape}"
+        )
+    if array.dtype == np.uint8:
+        return array
+    if array.dtype.kind == "f":
+        if not np.all(np.isfinite(array)) or array.min() < 0 or array.max() > 1:
+            raise InputError("a float rgb must be in [0, 1] without NaN (uint8 is usual)")
+        return np.rint(array * 255).astype(np.uint8)  # type: ignore[no-any-return]
+    raise InputError(f"rgb has dtype {array.dtype}; use uint8 (or float in [0, 1])")
+
+
+def erp_ray_grid(height: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and unit directions of a strided ERP pixel grid, float32, without a per-pixel loop.
+
+    Returns ``rows`` (h,) int64 and ``directions`` (h, w, 3) float32 for the pixel centres
+    ``(i, j)`` with ``i, j`` multiples of ``stride`` (docs/conventions.md).
+    """
+    rows = np.arange(0, height, stride)
+    cols = np.arange(0, width, stride)
+    lat = (np.pi / 2 - np.pi * (rows + 0.5) / height).astype(np.float32)
+    lon = (2 * np.pi * (cols + 0.5) / width - np.pi).astype(np.float32)
+    cos_lat = np.cos(lat)[:, None]
+    dirs = np.empty((rows.size, cols.size, 3), np.float32)
+    dirs[..., 0] = cos_lat * np.sin(lon)[None, :]
+    dirs[..., 1] = -np.sin(lat)[:, None]
+    dirs[..., 2] = cos_lat * np.cos(lon)[None, :]
+    return rows, dirs
+
+
+def _stride(stride: Any) -> int:
+    return integer(stride, "stride", low=1, high=1 << 16)
+
+
+# -------------------------------------------------------------------------------- points
+
+
+def to_points(
+    source: Any,
+    *,
+    rgb: Any = None,
+    stride: int = 1,
+    quantity: str | None = None,
+) -> PointCloud:
+    """Turn an ERP depth map into a point cloud: each valid pixel's ray times its depth.
+
+    Parameters
+    ----------
+    source : EstimateResult, SavedResult, path or (H, W) float array
+        A result of :func:`m360.estimate`, one read by :func:`m360.load`, an output stem or file
+        (read with :func:`m360.load`), or a plain ERP map (W == 2H, docs/conventions.md) of
+        radial depth (or disparity with ``quantity="disparity"``); NaN / ≤ 0 = invalid.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: colours of the points.
+    stride : int
+        Keep every ``stride``-th row and column (pixel centres ``i, j ≡ 0 mod stride``).
+    quantity : {"depth", "disparity"}, optional
+        What a plain array holds (default depth).
+
+    Returns
+    -------
+    PointCloud
+        ``xyz`` (N, 3) float32 in the m360 frame (x right, y down, z forward), ``rgb`` (N, 3)
+        uint8 or None, ``pixels`` (N,) flat ERP indices.
+
+    Raises
+    ------
+    InputError
+        Not an ERP map, shapes differ, or no valid depth at all.
+    """
+    depth, units = _depth_of(source, quantity)
+    height, width = depth.shape
+    colours = _rgb_of(rgb, (height, width))
+    step = _stride(stride)
+    rows, dirs = erp_ray_grid(height, width, step)
+    sub = depth[::step, ::step]
+    valid = np.isfinite(sub)
+    if not valid.any():
+        raise InputError("the depth map has no valid (finite, > 0) value: no points to make")
+    flat_index = (rows[:, None] * width + np.arange(0, width, step)[None, :])[valid]
+    xyz = dirs[valid] * sub[valid][:, None]
+    colour = None if colours is None else colours[::step, ::step][valid]
+    return PointCloud(xyz=xyz, rgb=colour, pixels=flat_index.astype(np.int64), units=units)
+
+
+# -------------------------------------------------------------------------------- mesh
+
+
+def to_mesh(
+    source: Any,
+    *,
+    rgb: Any = None,
+    stride: int = 1,
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
+    poles: bool = True,
+    quantity: str | None = None,
+) -> Mesh:
+    """Triangulate an ERP depth map on its pixel grid (closed at the seam, fans at the poles).
+
+    Parameters
+    ----------
+    source : EstimateResult, SavedResult, path or (H, W) float array
+        As for :func:`to_points`.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: vertex colours.
+    stride : int
+        Mesh every ``stride``-th row and column (column wrap and pole fans included).
+    max_depth_ratio : float
+        Drop a triangle whose largest depth exceeds its smallest by more than this factor
+        (> 1; ``inf`` keeps every triangle with finite depths). Default
+        :data:`DEFAULT_MAX_DEPTH_RATIO`, measured on synthetic rooms (docs/method.md).
+    poles : bool
+        Close the first and last grid rows with a fan to a pole vertex.
+    quantity : {"depth", "disparity"}, optional
+        What a plain array holds (default depth).
+
+    Returns
+    -------
+    Mesh
+        Vertices in the m360 frame, faces counter-clockwise seen from the camera.
+
+    Raises
+    ------
+    InputError
+        Not an ERP map, shapes differ, no valid depth, or no triangle survives the cut.
+    """
+    depth, units = _depth_of(source, quantity)
+    height, width = depth.shape
+    colours = _rgb_of(rgb, (height, width))
+    step = _stride(stride)
+    ratio = number(max_depth_ratio, "max_depth_ratio", low=1.0) if np.isfinite(
+        max_depth_ratio
+    ) else float("inf")
+    if not ratio > 1.0:
+        raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
+    closed = flag(poles, "poles")
+    _, dirs = erp_ray_grid(height, width, step)
+    grid = np.ascontiguousarray(depth[::step, ::step])
+    rows, cols = grid.shape
+    if not np.isfinite(grid).any():
+        raise InputError("the depth map has no valid (finite, > 0) value: no mesh to make")
+    if rows < 2 or cols < 3:
+        raise InputError(f"stride {step} leaves a {rows}x{cols} grid; a mesh needs at least 2x3")
+
+    n_grid = rows * cols
+    verts = (dirs * grid[..., None]).reshape(n_grid, 3)
+    r = grid.reshape(n_grid)
+    idx = np.arange(n_grid, dtype=np.int64).reshape(rows, cols)
+    a = idx[:-1, :].ravel()
+    b = np.roll(idx, -1, axis=1)[:-1, :].ravel()  # column j + 1, wrapping W − 1 → 0
+    c = idx[1:, :].ravel()
+    d = np.roll(idx, -1, axis=1)[1:, :].ravel()
+    # Shorter 3D diagonal; a NaN diagonal counts as infinitely long so the other one is used.
+    diag_ad = np.linalg.norm(verts[a] - verts[d], axis=1)
+    diag_bc = np.linalg.norm(verts[b] - verts[c], axis=1)
+    use_ad = np.nan_to_num(diag_ad, nan=np.inf) <= np.nan_to_num(diag_bc, nan=np.inf)
+    tri1 = np.where(use_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1))
+    tri2 = np.where(use_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1))
+    parts = [tri1, tri2]
+
+    all_verts = verts
+    all_r = r
+    all_rgb = None if colours is None else colours[::step, ::step].reshape(n_grid, 3)
+    if closed:
+        extra_verts, extra_r, extra_rgb = [], [], []
+        for k, (row, sign) in enumerate(((0, -1.0), (rows - 1, 1.0))):
+            row_r = grid[row]
+            finite = np.isfinite(row_r)
+            pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
+            pole = n_grid + k
+            extra_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
+            extra_r.append(pole_r)
+            if all_rgb is not None:
+                extra_rgb.append(np.rint(all_rgb[idx[row]].mean(axis=0)).astype(np.uint8))
+            ring = idx[row]
+            nxt = np.roll(ring, -1)
+            apex = np.full(cols, pole, np.int64)
+            # top: (pole, ring[j], ring[j+1]); bottom: (ring[j], pole, ring[j+1]) — both CCW
+            # seen from the camera, like the grid's triangles.
+            fan = np.stack([apex, ring, nxt], 1) if k == 0 else np.stack([ring, apex, nxt], 1)
+            parts.append(fan)
+        all_verts = np.concatenate([verts, np.stack(extra_verts)])
+        all_r = np.concatenate([r, np.asarray(extra_r, np.float32)])
+        if all_rgb is not None:
+            all_rgb = np.concatenate([all_rgb, np.stack(extra_rgb)])
+
+    faces = np.concatenate(parts)
+    tri_r = all_r[faces]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        keep = np.isfinite(tri_r).all(axis=1)
+        keep &= tri_r.max(axis=1) <= ratio * tri_r.min(axis=1)
+    faces = faces[keep]
+    if faces.shape[0] == 0:
+        raise InputError(
+            f"no triangle survives: every one touches NaN or spans a depth ratio above "
+            f"{ratio:g}"
+        )
+    used = np.zeros(all_verts.shape[0], bool)
+    used[faces.ravel()] = True
+    remap = np.cumsum(used) - 1
+    index_type = np.int32 if used.sum() < np.iinfo(np.int32).max else np.int64
+    return Mesh(
+        vertices=np.ascontiguousarray(all_verts[used], np.float32),
+        faces=remap[faces].astype(index_type),
+        rgb=None if all_rgb is None else all_rgb[used],
+        units=units,
+        max_depth_ratio=ratio,
+    )
+
+
+# -------------------------------------------------------------------------------- writers
+
+
+def _trimesh() -> Any:
+    try:
+        import trimesh
+    except ImportError as exc:  # the optional extra
+        raise InputError(
+            "writing PLY/GLB needs the optional extra: pip install 'm360[3d]' (trimesh)"
+        ) from exc
+    return trimesh
+
+
+def _geometry(item: Any) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    if isinstance(item, Mesh):
+        return item.vertices, item.faces, item.rgb
+    if isinstance(item, PointCloud):
+        return item.xyz, None, item.rgb
+    raise InputError(f"expected an m360 Mesh or PointCloud, got {type(item).__name__}")
+
+
+def _encode(item: Any, file_type: str, to_gltf: bool) -> bytes:
+    trimesh = _trimesh()
+    vertices, faces, rgb = _geometry(item)
+    if to_gltf:  # rotation by π about x: y up, camera looking along −z as glTF cameras do
+        vertices = vertices * np.array([1.0, -1.0, -1.0], np.float32)
+    colours = None
+    if rgb is not None:
+        colours = np.concatenate([rgb, np.full((rgb.shape[0], 1), 255, np.uint8)], axis=1)
+    if faces is None:
+        geometry = trimesh.PointCloud(vertices, colors=colours)
+    else:
+        geometry = trimesh.Trimesh(
+            vertices=vertices, faces=faces, vertex_colors=colours, process=False, validate=False
+        )
+    data = geometry.export(file_type=file_type)
+    return data if isinstance(data, bytes) else data.encode()
+
+
+def write_ply(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
+    """Write a mesh or point cloud as binary PLY (m360 frame, colours as RGBA), atomically."""
+    from .io import _write_bytes
+
+    return _write_bytes(path, _encode(item, "ply", to_gltf=False))
+
+
+def write_glb(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
+    """Write a mesh or point cloud as binary glTF (GLB, y-up: see :data:`FRAMES`), atomically."""
+    from .io import _write_bytes
+
+    return _write_bytes(path, _encode(item, "glb", to_gltf=True))
+
+
+def read_geometry(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (in the m360 frame) and faces (or None) of a PLY/GLB file written by m360."""
+    trimesh = _trimesh()
+    p = Path(path)
+    from .decode import read_bytes
+
+    data = read_bytes(p, "3D file")
+    loaded = trimesh.load(_bytes_io.BytesIO(data), file_type=p.suffix[1:].lower(), process=False)
+    if hasattr(loaded, "dump"):  # a glTF scene
+        geoms = list(loaded.geometry.values())
+        loaded = geoms[0] if len(geoms) == 1 else loaded.dump(concatenate=True)
+    vertices = np.asarray(loaded.vertices, np.float32)
+    if p.suffix.lower() == ".glb":
+        vertices = vertices * np.array([1.0, -1.0, -1.0], np.float32)
+    faces = getattr(loaded, "faces", None)
+    return vertices, None if faces is None else np.asarray(faces)
