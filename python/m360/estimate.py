@@ -78,6 +78,9 @@ class EstimateResult:
     layout : Layout
     stitch : StitchResult
         The stitcher's full report.
+    scale : dict or None
+        How the metric scale was found (:meth:`m360.scale.ScaleFit.as_dict`), when ``scale=``
+        was given.
     """
 
     disparity: np.ndarray
@@ -90,6 +93,7 @@ class EstimateResult:
     options: dict[str, Any]
     layout: Layout
     stitch: StitchResult = field(repr=False)
+    scale: dict[str, Any] | None = None
 
 
 def _check_erp_rgb(erp: Any) -> np.ndarray:
@@ -137,6 +141,7 @@ def estimate(
     output_kind: str | None = None,
     mean: Sequence[float] | None = None,
     std: Sequence[float] | None = None,
+    scale: Any = None,
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -164,6 +169,10 @@ def estimate(
         ONNX Runtime execution providers and intra-op threads (ONNX models only).
     input_size, output_kind, mean, std : optional
         Override the model's preprocessing / declared output (ONNX models).
+    scale : scaler, optional
+        Metric scale (:mod:`m360.scale`: ``camera_height(1.6)``, ``points(...)``,
+        ``metric_map(...)``), fitted on the final disparity; the result is then in metres and
+        records the fit in ``scale``. A failed fit raises :class:`m360.ScaleError`.
 
     Returns
     -------
@@ -231,6 +240,14 @@ def estimate(
     t_end = time.perf_counter()
     st = details.timings
     metric = kind != "affine_disparity" and opts.align is None
+    scale_fit = None
+    if scale is not None:
+        from .scale import scale_disparity
+
+        disparity, fit = scale_disparity(disparity, scale, affine=kind == "affine_disparity")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
+        metric, scale_fit = True, fit.as_dict()
     return EstimateResult(
         disparity=disparity,
         depth=depth,
@@ -250,6 +267,7 @@ def estimate(
         options={**opts.as_dict(), "layout": repr(layout), "erp_shape": [height, width]},
         layout=layout,
         stitch=details,
+        scale=scale_fit,
     )
 
 

@@ -451,6 +451,8 @@ def _sidecar(
     }
     if png16:
         sidecar["png16"] = png16
+    if getattr(result, "scale", None) is not None:
+        sidecar["scale"] = result.scale
     return sidecar
 
 
