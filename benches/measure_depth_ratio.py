@@ -14,9 +14,8 @@ from __future__ import annotations
 
 import argparse
 
-import numpy as np
-
 import m360
+import numpy as np
 from m360 import synthetic
 
 SUBSTEPS = 8

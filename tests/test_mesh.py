@@ -156,10 +156,15 @@ def test_mesh_never_touches_nan():
 
 
 def test_mesh_colours_and_result_inputs(tmp_path):
-    rgb, depth = empty_room(256)
-    result = m360.estimate(rgb, m360.estimators.SimulatedEstimator(
-        syn.Scene(room_min=ROOM_MIN, room_max=ROOM_MAX), m360.Layout.icosahedron(256), shift=0
-    ), align="none", blend="mean")
+    rgb, _ = empty_room(256)
+    result = m360.estimate(
+        rgb,
+        m360.estimators.SimulatedEstimator(
+            syn.Scene(room_min=ROOM_MIN, room_max=ROOM_MAX), m360.Layout.icosahedron(256), shift=0
+        ),
+        align="none",
+        blend="mean",
+    )
     pc = m360.to_points(result, rgb=rgb)
     mesh = m360.to_mesh(result, rgb=rgb)
     assert mesh.rgb is not None and mesh.rgb.shape == mesh.vertices.shape
@@ -169,7 +174,7 @@ def test_mesh_colours_and_result_inputs(tmp_path):
 
 
 def read_glb(path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Independent GLB reader (glTF 2.0 binary: JSON chunk + BIN chunk): positions, faces, colours."""
+    """Independent GLB reader (glTF 2.0: JSON chunk + BIN chunk): positions, faces, colours."""
     data = path.read_bytes()
     magic, version, _ = struct.unpack_from("<4sII", data, 0)
     assert magic == b"glTF" and version == 2

@@ -86,7 +86,7 @@ def test_camera_height_after_affine_distortion_and_alignment(seed):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_points_with_noise_and_outliers(seed):
-    scene, _, depth = rendered(seed)
+    _, _, depth = rendered(seed)
     dirs, dist = noisy_points(seed, depth)
     # scale only (a metric-up-to-scale map)
     fit = scale.points(dirs, dist, affine=False).fit(0.25 / depth)

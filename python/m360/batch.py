@@ -310,6 +310,7 @@ class _Settings:
     fingerprint: dict[str, Any]
     run_id: str
     threads: int | None
+    scale: Any = None
 
 
 class _Worker:
@@ -346,7 +347,7 @@ class _Worker:
                 original = rgb.shape[:2]
                 rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
                 t_read = time.perf_counter()
-                result = estimate(rgb, self.estimator, options=s.options)
+                result = estimate(rgb, self.estimator, options=s.options, scale=s.scale)
                 t_estimate = time.perf_counter()
                 source = {
                     "path": str(job.input),
@@ -364,6 +365,7 @@ class _Worker:
                     formats=s.formats,
                     preview=s.preview,
                     extra={"input": source, "batch": batch},
+                    rgb=rgb,
                 )
                 t_write = time.perf_counter()
             except M360Error as exc:
@@ -493,6 +495,7 @@ def run(
     providers: Sequence[str] | None = None,
     input_size: tuple[int, int] | None = None,
     output_kind: str | None = None,
+    scale: Any = None,
 ) -> BatchReport:
     """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
 
@@ -528,6 +531,9 @@ def run(
         Called in this process with each :class:`ImageOutcome` as it arrives.
     providers, input_size, output_kind : optional
         ONNX model options, as for :func:`m360.estimate`.
+    scale : scaler, optional
+        Metric scale per image (:mod:`m360.scale`, e.g. ``camera_height(1.6)``); an image whose
+        fit fails is a failure (``ScaleError``), nothing of it is written in metres.
 
     Returns
     -------
@@ -589,7 +595,12 @@ def run(
         ),
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
+        scale=scale,
     )
+    if scale is not None:  # a rerun with another scale must not be skipped
+        from .scale import describe
+
+        settings.fingerprint["scale"] = describe(scale)
     if workers > 1:
         _check_picklable(settings)
     _make_output_folder(out)

@@ -18,13 +18,23 @@ import cv2
 import numpy as np
 
 from . import __version__, _core, batch, models, synthetic
+from . import scale as m360_scale
 from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
 from .eval import depth_metrics, format_metrics
 from .geometry import Layout
-from .io import SAVE_FORMATS, load, output_stem, read_array, save, save_npy, save_png
+from .io import (
+    GEOMETRY_FORMATS,
+    SAVE_FORMATS,
+    load,
+    output_stem,
+    read_array,
+    save,
+    save_npy,
+    save_png,
+)
 from .options import AlignSpec, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -80,7 +90,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--formats",
         type=_formats,
         default=("npy",),
-        help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
+        help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
+        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument("--workers", type=int, default=1, help="processes working at once")
@@ -131,6 +142,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=None,
         help="ONNX Runtime providers, comma-separated (e.g. CUDAExecutionProvider,"
         "CPUExecutionProvider); default CPU",
+    )
+    run.add_argument(
+        "--camera-height",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="metric depth: the camera is METRES above the floor (floor plane fit; images "
+        "without a visible floor fail with ScaleError)",
     )
     _stitch_options(run)
 
@@ -200,11 +219,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
-    unknown = [f for f in chosen if f not in SAVE_FORMATS]
+    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    unknown = [f for f in chosen if f not in known]
     if unknown or not chosen:
         raise argparse.ArgumentTypeError(
-            f"unknown format(s) {', '.join(unknown) or '(none)'}; "
-            f"choose from {', '.join(SAVE_FORMATS)}"
+            f"unknown format(s) {', '.join(unknown) or '(none)'}; choose from {', '.join(known)}"
         )
     return chosen
 
@@ -403,6 +422,7 @@ def _run(args: argparse.Namespace) -> int:
         providers=args.providers.split(",") if args.providers else None,
         input_size=tuple(args.input_size) if args.input_size else None,
         output_kind=args.output_kind,
+        scale=None if args.camera_height is None else m360_scale.camera_height(args.camera_height),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code

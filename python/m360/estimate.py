@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from . import estimators as _estimators
+from . import masks as _masks
 from . import models as _models
 from ._compat import moved
-from ._validate import as_array, check_erp_shape
+from ._validate import as_array, check_erp_shape, one_of
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
@@ -142,6 +143,7 @@ def estimate(
     mean: Sequence[float] | None = None,
     std: Sequence[float] | None = None,
     scale: Any = None,
+    sky: str = "keep",
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -163,8 +165,11 @@ def estimate(
         All stitching options at once (then leave their keywords at their defaults).
     layout : Layout, optional
         Tangent layout; default ``Layout.icosahedron(W)``.
-    mask : (N, h, w) bool, optional
-        False marks tangent pixels without an estimate (passed to :func:`m360.stitch`).
+    mask : optional
+        ERP pixels to leave out (:mod:`m360.masks`): an (H, W) bool array (True = use),
+        ``m360.masks.nadir(deg)`` / ``zenith(deg)``, or a list of them. Masked pixels take no
+        part in alignment or blending and are NaN in the outputs. An (N, h, w) bool array is a
+        tangent mask, passed to :func:`m360.stitch` as it is.
     providers, threads : optional
         ONNX Runtime execution providers and intra-op threads (ONNX models only).
     input_size, output_kind, mean, std : optional
@@ -173,6 +178,9 @@ def estimate(
         Metric scale (:mod:`m360.scale`: ``camera_height(1.6)``, ``points(...)``,
         ``metric_map(...)``), fitted on the final disparity; the result is then in metres and
         records the fit in ``scale``. A failed fit raises :class:`m360.ScaleError`.
+    sky : {"keep", "nan"}
+        ``"nan"``: pixels whose disparity is at or below ``m360.masks.SKY_THRESHOLD`` times its
+        90th percentile (the sky, or beyond) become NaN instead of a huge fake distance.
 
     Returns
     -------
@@ -202,6 +210,11 @@ def estimate(
         layout = Layout.icosahedron(width)
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    sky_mode = one_of(sky, "sky", _masks.SKY_MODES)
+    erp_valid = None
+    if mask is not None and (isinstance(mask, (_masks.Cap, list, tuple)) or np.ndim(mask) == 2):
+        erp_valid = _masks.erp_mask(mask, height, width)
+        mask = _masks.tangent_mask(erp_valid, layout)
     estimator = _estimators.load_estimator(
         model,
         providers=providers,
@@ -235,6 +248,10 @@ def estimate(
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
     disparity = details.disparity
+    if erp_valid is not None:
+        disparity[~erp_valid] = np.nan
+    if sky_mode == "nan":
+        disparity[_masks.sky(disparity)] = np.nan
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     t_end = time.perf_counter()
@@ -264,7 +281,13 @@ def estimate(
         },
         model=_model_info(estimator, layout),
         units="metres" if metric else "relative",
-        options={**opts.as_dict(), "layout": repr(layout), "erp_shape": [height, width]},
+        options={
+            **opts.as_dict(),
+            "layout": repr(layout),
+            "erp_shape": [height, width],
+            **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
+            **({"sky": "nan"} if sky_mode == "nan" else {}),
+        },
         layout=layout,
         stitch=details,
         scale=scale_fit,

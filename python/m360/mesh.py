@@ -127,7 +127,9 @@ def _depth_of(source: Any, quantity: str | None) -> tuple[np.ndarray, str]:
             raise InputError(f"quantity must be 'depth' or 'disparity', got {quantity!r}")
     array = as_array(values, name)
     if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
-        raise InputError(f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}")
+        raise InputError(
+            f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}"
+        )
     if array.dtype.kind != "f":
         raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
@@ -273,9 +275,11 @@ def to_mesh(
     height, width = depth.shape
     colours = _rgb_of(rgb, (height, width))
     step = _stride(stride)
-    ratio = number(max_depth_ratio, "max_depth_ratio", low=1.0) if np.isfinite(
-        max_depth_ratio
-    ) else float("inf")
+    ratio = (
+        number(max_depth_ratio, "max_depth_ratio", low=1.0)
+        if np.isfinite(max_depth_ratio)
+        else float("inf")
+    )
     if not ratio > 1.0:
         raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
     closed = flag(poles, "poles")
@@ -337,8 +341,7 @@ def to_mesh(
     faces = faces[keep]
     if faces.shape[0] == 0:
         raise InputError(
-            f"no triangle survives: every one touches NaN or spans a depth ratio above "
-            f"{ratio:g}"
+            f"no triangle survives: every one touches NaN or spans a depth ratio above {ratio:g}"
         )
     used = np.zeros(all_verts.shape[0], bool)
     used[faces.ravel()] = True

@@ -32,12 +32,12 @@ from .errors import InputError, ScaleError
 
 __all__ = [
     "CameraHeight",
-    "MetricMap",
     "Points",
     "ScaleFit",
     "Scaler",
     "apply",
     "camera_height",
+    "describe",
     "metric_map",
     "points",
 ]
@@ -126,7 +126,8 @@ class CameraHeight:
 
         With ``affine`` the floor also fixes the shift: on a plane ``n · P = h`` the true
         disparity is ``(n · d) / h``, so the relative disparity of the floor pixels is a line
-        ``α (n · d) + o`` in ``n · d``; the plane is refitted after removing ``o`` (until ``o`` settles, at most 10 rounds).
+        ``α (n · d) + o`` in ``n · d``; the plane is refitted after removing ``o`` (until ``o``
+        settles, at most 10 rounds).
         """
         disp = _check_disparity(disparity)
         height, width = disp.shape
@@ -422,9 +423,7 @@ class Points:
         )
 
 
-def points(
-    directions: Any, distances: Any = None, *, affine: bool | None = None
-) -> Points:
+def points(directions: Any, distances: Any = None, *, affine: bool | None = None) -> Points:
     """Scaler from sparse points of known distance (LiDAR, SfM, measured spots).
 
     Parameters
@@ -536,3 +535,19 @@ def scale_disparity(
         np.float32
     )
     return metric, fit
+
+
+def describe(scaler: Any) -> dict[str, Any]:
+    """Describe a scaler as JSON (its kind and parameters; arrays by sha256)."""
+    import hashlib
+
+    if not dataclasses.is_dataclass(scaler) or isinstance(scaler, type):
+        return {"kind": type(scaler).__name__, "repr": repr(scaler)}
+    out: dict[str, Any] = {"kind": type(scaler).__name__}
+    for f in dataclasses.fields(scaler):
+        value = getattr(scaler, f.name)
+        if isinstance(value, np.ndarray):
+            out[f.name] = hashlib.sha256(np.ascontiguousarray(value).tobytes()).hexdigest()
+        else:
+            out[f.name] = value
+    return out
