@@ -121,8 +121,10 @@ def erp_mask(mask: Any, height: int, width: int) -> np.ndarray:
 
 
 def tangent_mask(mask: np.ndarray, layout: Any) -> np.ndarray:
-    """ERP mask → (N, h, w) tangent mask: a tangent pixel is used when its whole bilinear
-    footprint in the ERP is used."""
+    """Map an ERP mask onto the tangents: (N, h, w) bool, True = use.
+
+    A tangent pixel is used when its whole bilinear footprint in the ERP is used.
+    """
     from .geometry import erp_to_tangents
 
     sampled = erp_to_tangents(mask.astype(np.float32), layout)
