@@ -50,6 +50,8 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from . import models as _models
+from ._gpano import place as place_crop
+from ._gpano import read_gpano
 from ._validate import MAX_THREADS, integer
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Offsets
@@ -345,9 +347,18 @@ class _Worker:
                 stat = job.input.stat()
                 rgb = decode_image(data, job.input)
                 original = rgb.shape[:2]
-                rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+                # A partial panorama with GPano crop metadata goes into its full canvas, the
+                # rest masked; without metadata W != 2H is refused (or resized) as before.
+                crop = read_gpano(data, str(job.input))
+                captured = None
+                if crop is not None:
+                    rgb, captured = place_crop(rgb, crop, str(job.input))
+                else:
+                    rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
                 t_read = time.perf_counter()
-                result = estimate(rgb, self.estimator, options=s.options, scale=s.scale)
+                result = estimate(
+                    rgb, self.estimator, options=s.options, scale=s.scale, mask=captured
+                )
                 t_estimate = time.perf_counter()
                 source = {
                     "path": str(job.input),
@@ -355,7 +366,7 @@ class _Worker:
                     "size": stat.st_size,
                     "mtime_ns": stat.st_mtime_ns,
                     "shape": list(original),
-                    "aspect_fixed": tuple(original) != rgb.shape[:2],
+                    "aspect_fixed": crop is None and tuple(original) != rgb.shape[:2],
                     "exif_orientation": "ignored",
                 }
                 batch = {"fingerprint": s.fingerprint, "run": s.run_id}
@@ -364,7 +375,8 @@ class _Worker:
                     job.stem,
                     formats=s.formats,
                     preview=s.preview,
-                    extra={"input": source, "batch": batch},
+                    extra={"input": source, "batch": batch}
+                    | ({} if crop is None else {"crop": crop.as_dict()}),
                     rgb=rgb,
                 )
                 t_write = time.perf_counter()

@@ -19,6 +19,7 @@ may be sky.
 
 from __future__ import annotations
 
+import os
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -154,3 +155,55 @@ def sky(disparity: np.ndarray, threshold: float = SKY_THRESHOLD) -> np.ndarray:
     near = float(np.percentile(values[finite], _SKY_PERCENTILE))
     with np.errstate(invalid="ignore"):
         return finite & (values <= limit * near)  # type: ignore[no-any-return]
+
+
+@dataclass(frozen=True)
+class PartialPanorama:
+    """A cropped capture placed in its full ERP canvas (see :func:`partial_panorama`).
+
+    Attributes
+    ----------
+    rgb : (H, W, 3) uint8
+        The full canvas, black outside the capture.
+    mask : (H, W) bool
+        True on the captured pixels (pass it as ``mask=`` to :func:`m360.estimate`).
+    crop : dict
+        Full size, cropped size and offset (the sidecar's ``crop``).
+    """
+
+    rgb: np.ndarray
+    mask: np.ndarray
+    crop: dict[str, Any]
+
+
+def partial_panorama(path: str | os.PathLike[str]) -> PartialPanorama | None:
+    """Read an image with GPano XMP crop metadata and place it in its full ERP canvas.
+
+    Only the GPano fields that place the crop are read (full panorama width/height, cropped
+    area size and offset); columns wrap across the 0/360° seam.
+
+    Parameters
+    ----------
+    path : path
+        The image file.
+
+    Returns
+    -------
+    PartialPanorama or None
+        None when the file carries no GPano crop.
+
+    Raises
+    ------
+    ReadError
+        Unreadable file, or metadata that is incomplete, not equirectangular or contradicts the
+        image's pixel size.
+    """
+    from ._gpano import place, read_gpano
+    from .decode import decode_image, read_input_bytes
+
+    data = read_input_bytes(path)
+    crop = read_gpano(data, str(path))
+    if crop is None:
+        return None
+    canvas, mask = place(decode_image(data, path), crop, str(path))
+    return PartialPanorama(canvas, mask, crop.as_dict())
