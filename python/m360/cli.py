@@ -194,6 +194,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--width", type=int, default=models.CHECK_ERP_WIDTH, help="ERP width of the layout"
     )
 
+    view = commands.add_parser(
+        "view",
+        help="show a result's point cloud or mesh in the browser (extra m360[3d])",
+        description=(
+            "Serve a local page (viser) on 127.0.0.1 showing the point cloud of an output "
+            "(STEM.points.ply with the panorama's colours, else the depth map's points coloured "
+            "by distance) or, with --mesh, its mesh. Prints the address and opens it in the "
+            "browser when there is one. Large clouds are subsampled for display only."
+        ),
+    )
+    view.add_argument("path", type=Path, help="output stem (or one of its files), .ply or .glb")
+    view.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
+    view.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    view.add_argument("--colour", choices=("rgb", "depth"), default="rgb", help="point colours")
+    view.add_argument("--max-points", type=int, default=2_000_000, help="most points displayed")
+    view.add_argument("--no-browser", action="store_true", help="do not open a browser")
+
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage error (2) or --help/--version (0)
@@ -205,6 +222,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args)
         if args.command == "eval":
             return _eval(args)
+        if args.command == "view":
+            return _view(args)
         return _models_command(args)
     except ModelError as exc:
         print(f"m360: error: {exc}", file=sys.stderr)
@@ -393,6 +412,29 @@ def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions
     written["rgb"] = save_png(out / "demo_rgb.png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
     written["gt_depth"] = save_npy(out / "demo_gt_depth.npy", gt_depth)
     print("  wrote " + ", ".join(str(p) for p in written.values()))
+    return 0
+
+
+def _view(args: argparse.Namespace) -> int:
+    import threading
+
+    from .viewer import serve
+
+    server = serve(
+        args.path,
+        port=args.port,
+        mesh=args.mesh,
+        colour=args.colour,
+        max_points=args.max_points,
+        open_browser=not args.no_browser,
+        announce=lambda line: print(line, flush=True),
+    )
+    try:
+        threading.Event().wait()  # until Ctrl-C / SIGTERM
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
     return 0
 
 
