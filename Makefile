@@ -19,7 +19,7 @@ DEV_STAMP     := $(VENV)/.m360-dev
 # `make test` uses the build the developer chose last: the dev build once `make build-dev` ran,
 # the release build otherwise (a fresh machine, CI). Either is rebuilt only when out of date.
 BUILT := $(if $(wildcard $(DEV_STAMP)),$(DEV_STAMP),$(RELEASE_STAMP))
-EXTRAS := test,lint,bench
+EXTRAS := test,lint,bench,3d
 PYTEST_ARGS ?=
 
 .PHONY: help demo test lint format rust-test bench venv install build-dev wheel clean

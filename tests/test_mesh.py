@@ -39,10 +39,12 @@ def plane_distance(xyz: np.ndarray) -> np.ndarray:
 
 def edge_counts(faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Undirected edges and how often each appears; directed edges for the winding check."""
-    directed = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    f = faces.astype(np.int64)
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    n = int(f.max()) + 1
     undirected = np.sort(directed, axis=1)
-    _, counts = np.unique(undirected, axis=0, return_counts=True)
-    return counts, directed
+    _, counts = np.unique(undirected[:, 0] * n + undirected[:, 1], return_counts=True)
+    return counts, directed[:, 0] * n + directed[:, 1]
 
 
 def test_points_lie_on_the_analytic_walls_at_2k():
@@ -89,7 +91,7 @@ def test_mesh_of_a_closed_room_is_watertight(stride):
     counts, directed = edge_counts(mesh.faces)
     assert (counts == 2).all()  # seam joined, poles fanned, no hole
     # consistently wound: each directed edge appears once (the neighbour runs it backwards)
-    assert np.unique(directed, axis=0).shape[0] == directed.shape[0]
+    assert np.unique(directed).shape[0] == directed.shape[0]
     # normals face the camera, and the enclosed volume is the room's
     tri = mesh.vertices[mesh.faces].astype(np.float64)
     normals = np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0])

@@ -292,64 +292,91 @@ def to_mesh(
         raise InputError(f"stride {step} leaves a {rows}x{cols} grid; a mesh needs at least 2x3")
 
     n_grid = rows * cols
-    verts = (dirs * grid[..., None]).reshape(n_grid, 3)
-    r = grid.reshape(n_grid)
-    idx = np.arange(n_grid, dtype=np.int64).reshape(rows, cols)
-    a = idx[:-1, :].ravel()
-    b = np.roll(idx, -1, axis=1)[:-1, :].ravel()  # column j + 1, wrapping W − 1 → 0
-    c = idx[1:, :].ravel()
-    d = np.roll(idx, -1, axis=1)[1:, :].ravel()
+    verts = dirs * grid[..., None]  # (rows, cols, 3)
+
+    def right(a: np.ndarray) -> np.ndarray:  # column j + 1, wrapping W − 1 → 0
+        return np.concatenate([a[:, 1:], a[:, :1]], axis=1)
+
+    # Corners of every grid quad as whole-array slices (no per-index gathers):
+    # a = (i, j), b = (i, j+1), c = (i+1, j), d = (i+1, j+1).
+    r_a, r_c = grid[:-1], grid[1:]
+    r_b, r_d = right(grid)[:-1], right(grid)[1:]
+    v_right = right(verts)
+    diff_ad = verts[:-1] - v_right[1:]
+    diff_bc = v_right[:-1] - verts[1:]
     # Shorter 3D diagonal; a NaN diagonal counts as infinitely long so the other one is used.
-    diag_ad = np.linalg.norm(verts[a] - verts[d], axis=1)
-    diag_bc = np.linalg.norm(verts[b] - verts[c], axis=1)
-    use_ad = np.nan_to_num(diag_ad, nan=np.inf) <= np.nan_to_num(diag_bc, nan=np.inf)
-    tri1 = np.where(use_ad[:, None], np.stack([a, c, d], 1), np.stack([a, c, b], 1))
-    tri2 = np.where(use_ad[:, None], np.stack([a, d, b], 1), np.stack([b, c, d], 1))
+    len_ad = np.einsum("ijk,ijk->ij", diff_ad, diff_ad)
+    len_bc = np.einsum("ijk,ijk->ij", diff_bc, diff_bc)
+    del diff_ad, diff_bc, v_right
+    use_ad = np.nan_to_num(len_ad, nan=np.inf) <= np.nan_to_num(len_bc, nan=np.inf)
+    del len_ad, len_bc
+
+    def kept(r0: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+        # NaN anywhere makes both sides NaN and the comparison False: dropped.
+        with np.errstate(invalid="ignore"):
+            top = np.maximum(np.maximum(r0, r1), r2)
+            low = np.minimum(np.minimum(r0, r1), r2)
+            return top <= ratio * low  # type: ignore[no-any-return]
+
+    # tri1 = (a, c, d) or (a, c, b); tri2 = (a, d, b) or (b, c, d): all CCW seen from the camera.
+    keep1 = kept(r_a, r_c, np.where(use_ad, r_d, r_b))
+    keep2 = np.where(use_ad, kept(r_a, r_d, r_b), kept(r_b, r_c, r_d))
+    index_type = np.int32 if n_grid + 2 < np.iinfo(np.int32).max else np.int64
+
+    def corners(keep: np.ndarray) -> tuple[np.ndarray, ...]:
+        q = np.flatnonzero(keep).astype(index_type)
+        i, j = np.divmod(q, index_type(cols))
+        jn = j + 1
+        jn[jn == cols] = 0
+        a, b = i * cols + j, i * cols + jn
+        return a, b, a + cols, b + cols, use_ad.ravel()[q]
+
+    a, b, c, d, ad = corners(keep1)
+    tri1 = np.stack([a, c, np.where(ad, d, b)], axis=1)
+    a, b, c, d, ad = corners(keep2)
+    tri2 = np.stack([np.where(ad, a, b), np.where(ad, d, c), np.where(ad, b, d)], axis=1)
+    del a, b, c, d, ad, keep1, keep2, use_ad
     parts = [tri1, tri2]
 
-    all_verts = verts
-    all_r = r
+    all_verts = verts.reshape(n_grid, 3)
     all_rgb = None if colours is None else colours[::step, ::step].reshape(n_grid, 3)
     if closed:
-        extra_verts, extra_r, extra_rgb = [], [], []
+        idx = np.arange(n_grid, dtype=index_type).reshape(rows, cols)
+        extra_verts, extra_rgb = [], []
         for k, (row, sign) in enumerate(((0, -1.0), (rows - 1, 1.0))):
             row_r = grid[row]
             finite = np.isfinite(row_r)
             pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
-            pole = n_grid + k
             extra_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
-            extra_r.append(pole_r)
             if all_rgb is not None:
                 extra_rgb.append(np.rint(all_rgb[idx[row]].mean(axis=0)).astype(np.uint8))
             ring = idx[row]
             nxt = np.roll(ring, -1)
-            apex = np.full(cols, pole, np.int64)
+            ok = kept(row_r, np.roll(row_r, -1), np.full(cols, pole_r, np.float32))
+            apex = np.full(int(ok.sum()), n_grid + k, index_type)
             # top: (pole, ring[j], ring[j+1]); bottom: (ring[j], pole, ring[j+1]) — both CCW
             # seen from the camera, like the grid's triangles.
-            fan = np.stack([apex, ring, nxt], 1) if k == 0 else np.stack([ring, apex, nxt], 1)
+            fan = (
+                np.stack([apex, ring[ok], nxt[ok]], 1)
+                if k == 0
+                else np.stack([ring[ok], apex, nxt[ok]], 1)
+            )
             parts.append(fan)
-        all_verts = np.concatenate([verts, np.stack(extra_verts)])
-        all_r = np.concatenate([r, np.asarray(extra_r, np.float32)])
+        all_verts = np.concatenate([all_verts, np.stack(extra_verts)])
         if all_rgb is not None:
             all_rgb = np.concatenate([all_rgb, np.stack(extra_rgb)])
 
     faces = np.concatenate(parts)
-    tri_r = all_r[faces]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        keep = np.isfinite(tri_r).all(axis=1)
-        keep &= tri_r.max(axis=1) <= ratio * tri_r.min(axis=1)
-    faces = faces[keep]
     if faces.shape[0] == 0:
         raise InputError(
             f"no triangle survives: every one touches NaN or spans a depth ratio above {ratio:g}"
         )
     used = np.zeros(all_verts.shape[0], bool)
     used[faces.ravel()] = True
-    remap = np.cumsum(used) - 1
-    index_type = np.int32 if used.sum() < np.iinfo(np.int32).max else np.int64
+    remap = (np.cumsum(used, dtype=np.int64) - 1).astype(index_type)
     return Mesh(
         vertices=np.ascontiguousarray(all_verts[used], np.float32),
-        faces=remap[faces].astype(index_type),
+        faces=remap[faces],
         rgb=None if all_rgb is None else all_rgb[used],
         units=units,
         max_depth_ratio=ratio,

@@ -1,0 +1,145 @@
+"""3D outputs: m360.to_points, m360.to_mesh and the GLB/PLY writers at 2K, 4K and 8K.
+
+Per ERP width, in a fresh subprocess each (so peak RSS belongs to the one operation): seconds
+(median of --repeat runs), peak RSS (ru_maxrss of the subprocess) and its growth over the input
+alone, and the file size for the writers. Compared in the same run with
+
+- the numpy floor: the same points written out as plain numpy (directions from a lon/lat
+  meshgrid, times depth, NaN dropped) — what any implementation must at least do;
+- Open3D's ``PointCloud.create_from_depth_image`` is for pinhole cameras only; the comparable
+  Open3D step for an ERP map is building ``o3d.geometry.PointCloud`` from the numpy points
+  (reported when open3d imports, with ``--open3d-python`` naming an interpreter that has it).
+
+The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
+not depend on the content beyond the share of cut triangles.
+
+    .venv/bin/python benches/bench_3d.py [--widths 2048 4096 8192] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+OPS = ("numpy_floor", "to_points", "to_mesh", "to_mesh+glb", "to_points+ply", "open3d")
+
+
+def depth_map(width: int, cache: Path) -> Path:
+    path = cache / f"depth_{width}.npy"
+    if not path.exists():
+        import cv2
+
+        from m360 import synthetic
+
+        base = cache / "depth_2048.npy"
+        if not base.exists():
+            np.save(base, synthetic.render(synthetic.room(0), 2048)[1])
+        depth = np.load(base)
+        if width != 2048:
+            depth = cv2.resize(depth, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+        np.save(path, depth)
+    return path
+
+
+def numpy_floor(depth: np.ndarray) -> np.ndarray:
+    h, w = depth.shape
+    lat = np.pi / 2 - np.pi * (np.arange(h, dtype=np.float32) + 0.5) / h
+    lon = 2 * np.pi * (np.arange(w, dtype=np.float32) + 0.5) / w - np.pi
+    lon_g, lat_g = np.meshgrid(lon, lat)
+    c = np.cos(lat_g)
+    xyz = np.stack([c * np.sin(lon_g), -np.sin(lat_g), c * np.cos(lon_g)], -1) * depth[..., None]
+    return xyz[np.isfinite(depth)]
+
+
+def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
+    import m360
+    from m360 import mesh
+
+    depth = np.load(path)
+    rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times = []
+    size = 0
+    for k in range(repeat):
+        t0 = time.perf_counter()
+        if op == "numpy_floor":
+            numpy_floor(depth)
+        elif op == "to_points":
+            m360.to_points(depth)
+        elif op == "to_mesh":
+            m360.to_mesh(depth)
+        elif op == "to_mesh+glb":
+            target = Path(out_dir) / f"m{k}.glb"
+            mesh.write_glb(target, m360.to_mesh(depth))
+            size = target.stat().st_size
+            target.unlink()
+        elif op == "to_points+ply":
+            target = Path(out_dir) / f"p{k}.ply"
+            mesh.write_ply(target, m360.to_points(depth))
+            size = target.stat().st_size
+            target.unlink()
+        elif op == "open3d":
+            import open3d as o3d
+
+            pts = numpy_floor(depth).astype(np.float64)
+            t0 = time.perf_counter()
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        times.append(time.perf_counter() - t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "seconds": float(np.median(times)),
+        "peak_rss_mb": peak / 1024,
+        "growth_mb": (peak - rss_input) / 1024,
+        "file_mb": size / 1e6,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--widths", type=int, nargs="+", default=[2048, 4096, 8192])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--open3d-python", default=None, help="python with open3d installed")
+    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        op, path, repeat, out_dir = args.child
+        print(json.dumps(child(op, path, int(repeat), out_dir)))
+        return
+    import m360
+
+    print(f"m360 {m360.__version__}, {os.cpu_count()} CPUs (machine shared: timings noisy)")
+    print(f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
+          f"{'growth MB':>9} {'file MB':>8}")
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = Path(tmp)
+        for width in args.widths:
+            path = depth_map(width, cache)
+            for op in OPS:
+                python = sys.executable
+                if op == "open3d":
+                    if args.open3d_python is None:
+                        continue
+                    python = args.open3d_python
+                cmd = [python, __file__, "--child", op, str(path), str(args.repeat), tmp]
+                run = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if run.returncode != 0:
+                    print(f"{width:>6} {op:<14} failed: {run.stderr.strip().splitlines()[-1]}")
+                    continue
+                r = json.loads(run.stdout.strip().splitlines()[-1])
+                print(
+                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['peak_rss_mb']:>11.0f} "
+                    f"{r['growth_mb']:>9.0f} {r['file_mb']:>8.1f}",
+                    flush=True,
+                )
+
+
+if __name__ == "__main__":
+    main()
