@@ -6,9 +6,10 @@ alone, and the file size for the writers. Compared in the same run with
 
 - the numpy floor: the same points written out as plain numpy (directions from a lon/lat
   meshgrid, times depth, NaN dropped) — what any implementation must at least do;
-- Open3D's ``PointCloud.create_from_depth_image`` is for pinhole cameras only; the comparable
-  Open3D step for an ERP map is building ``o3d.geometry.PointCloud`` from the numpy points
-  (reported when open3d imports, with ``--open3d-python`` naming an interpreter that has it).
+- Open3D (with ``--open3d-python`` naming an interpreter that has open3d; it need not have
+  m360): ``PointCloud.create_from_depth_image`` is pinhole-only, so it is timed on the same
+  number of pixels read as a pinhole depth image (a cost reference), and
+  ``o3d_from_numpy`` times building an ``o3d.geometry.PointCloud`` from the numpy points.
 
 The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
 not depend on the content beyond the share of cut triangles.
@@ -30,14 +31,21 @@ from pathlib import Path
 
 import numpy as np
 
-OPS = ("numpy_floor", "to_points", "to_mesh", "to_mesh+glb", "to_points+ply", "open3d")
+OPS = (
+    "numpy_floor",
+    "to_points",
+    "to_mesh",
+    "to_mesh+glb",
+    "to_points+ply",
+    "o3d_from_depth",
+    "o3d_from_numpy",
+)
 
 
 def depth_map(width: int, cache: Path) -> Path:
     path = cache / f"depth_{width}.npy"
     if not path.exists():
         import cv2
-
         from m360 import synthetic
 
         base = cache / "depth_2048.npy"
@@ -61,9 +69,9 @@ def numpy_floor(depth: np.ndarray) -> np.ndarray:
 
 
 def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
-    import m360
-    from m360 import mesh
-
+    if not op.startswith("o3d"):
+        import m360
+        from m360 import mesh
     depth = np.load(path)
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times = []
@@ -86,7 +94,19 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
             mesh.write_ply(target, m360.to_points(depth))
             size = target.stat().st_size
             target.unlink()
-        elif op == "open3d":
+        elif op == "o3d_from_depth":
+            # Open3D's depth-to-points is pinhole only: the same number of pixels read as a
+            # pinhole depth image (a cost reference, not the ERP geometry).
+            import open3d as o3d
+
+            h, w = depth.shape
+            image = o3d.geometry.Image(np.nan_to_num(depth, nan=0.0))
+            intr = o3d.camera.PinholeCameraIntrinsic(w, h, w / 2, w / 2, w / 2, h / 2)
+            t0 = time.perf_counter()
+            o3d.geometry.PointCloud.create_from_depth_image(
+                image, intr, depth_scale=1.0, depth_trunc=1e9
+            )
+        elif op == "o3d_from_numpy":
             import open3d as o3d
 
             pts = numpy_floor(depth).astype(np.float64)
@@ -116,15 +136,17 @@ def main() -> None:
     import m360
 
     print(f"m360 {m360.__version__}, {os.cpu_count()} CPUs (machine shared: timings noisy)")
-    print(f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
-          f"{'growth MB':>9} {'file MB':>8}")
+    print(
+        f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
+        f"{'growth MB':>9} {'file MB':>8}"
+    )
     with tempfile.TemporaryDirectory() as tmp:
         cache = Path(tmp)
         for width in args.widths:
             path = depth_map(width, cache)
             for op in OPS:
                 python = sys.executable
-                if op == "open3d":
+                if op.startswith("o3d"):
                     if args.open3d_python is None:
                         continue
                     python = args.open3d_python

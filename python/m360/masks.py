@@ -59,7 +59,7 @@ class Cap:
         lat = np.pi / 2 - np.pi * (np.arange(height) + 0.5) / height
         edge = np.pi / 2 - np.radians(self.degrees)
         rows = lat > -edge if self.pole == "nadir" else lat < edge
-        return np.repeat(rows[:, None], width, axis=1)  # type: ignore[no-any-return]
+        return np.repeat(rows[:, None], width, axis=1)
 
 
 def _cap(pole: str, degrees: Any) -> Cap:
@@ -129,7 +129,7 @@ def tangent_mask(mask: np.ndarray, layout: Any) -> np.ndarray:
     from .geometry import erp_to_tangents
 
     sampled = erp_to_tangents(mask.astype(np.float32), layout)
-    return sampled >= 1.0 - 1e-6  # type: ignore[no-any-return]
+    return sampled >= 1.0 - 1e-6
 
 
 def sky(disparity: np.ndarray, threshold: float = SKY_THRESHOLD) -> np.ndarray:

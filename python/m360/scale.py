@@ -306,7 +306,7 @@ def _tukey(res: np.ndarray) -> np.ndarray:
     mad = float(np.median(np.abs(res - np.median(res)))) * 1.4826
     c = 4.685 * max(mad, 1e-4)
     u = res / c
-    return np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)  # type: ignore[no-any-return]
+    return np.where(np.abs(u) < 1, (1 - u**2) ** 2, 0.0)
 
 
 def _fit_points(
