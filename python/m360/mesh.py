@@ -323,17 +323,17 @@ def to_mesh(
     keep2 = np.where(use_ad, kept(r_a, r_d, r_b), kept(r_b, r_c, r_d))
     index_type = np.int32 if n_grid + 2 < np.iinfo(np.int32).max else np.int64
 
-    def corners(keep: np.ndarray) -> tuple[np.ndarray, ...]:
+    def corners(keep: np.ndarray, split: np.ndarray) -> tuple[np.ndarray, ...]:
         q = np.flatnonzero(keep).astype(index_type)
         i, j = np.divmod(q, index_type(cols))
         jn = j + 1
         jn[jn == cols] = 0
         a, b = i * cols + j, i * cols + jn
-        return a, b, a + cols, b + cols, use_ad.ravel()[q]
+        return a, b, a + cols, b + cols, split.ravel()[q]
 
-    a, b, c, d, ad = corners(keep1)
+    a, b, c, d, ad = corners(keep1, use_ad)
     tri1 = np.stack([a, c, np.where(ad, d, b)], axis=1)
-    a, b, c, d, ad = corners(keep2)
+    a, b, c, d, ad = corners(keep2, use_ad)
     tri2 = np.stack([np.where(ad, a, b), np.where(ad, d, c), np.where(ad, b, d)], axis=1)
     del a, b, c, d, ad, keep1, keep2, use_ad
     parts = [tri1, tri2]

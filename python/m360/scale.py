@@ -183,7 +183,7 @@ class CameraHeight:
             shifted = d - shift
             pos = shifted > 0
             pts = dirs[pos] / shifted[pos][:, None]
-            offset = float(np.median(pts[inliers] @ normal)) if inliers.size else offset
+            normal, offset, inliers, rms = self._refine(pts, normal, offset)
         value = self.height / offset
         tilt = float(np.degrees(np.arccos(np.clip(normal[1], -1, 1))))
         return ScaleFit(
