@@ -2,7 +2,11 @@
 
 Per ERP width, in a fresh subprocess each (so peak RSS belongs to the one operation): seconds
 (median of --repeat runs), peak RSS (ru_maxrss of the subprocess) and its growth over the input
-alone, and the file size for the writers. Compared in the same run with
+alone (0 when the operation stays below the peak of importing m360), and the file size for the
+writers. Compared in the same run with
+
+- trimesh's exporters writing the same mesh/points (``trimesh_glb`` times the export of the
+  mesh built by to_mesh, ``trimesh_ply`` of the points; m360 streams numpy arrays instead);
 
 - the numpy floor: the same points written out as plain numpy (directions from a lon/lat
   meshgrid, times depth, NaN dropped) — what any implementation must at least do;
@@ -37,6 +41,8 @@ OPS = (
     "to_mesh",
     "to_mesh+glb",
     "to_points+ply",
+    "trimesh_glb",
+    "trimesh_ply",
     "o3d_from_depth",
     "o3d_from_numpy",
 )
@@ -94,6 +100,20 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
             mesh.write_ply(target, m360.to_points(depth))
             size = target.stat().st_size
             target.unlink()
+        elif op in ("trimesh_glb", "trimesh_ply"):
+            # the same files through trimesh's exporters (what m360 used first)
+            import trimesh
+
+            geometry = m360.to_mesh(depth) if op == "trimesh_glb" else m360.to_points(depth)
+            t0 = time.perf_counter()
+            if op == "trimesh_glb":
+                data = trimesh.Trimesh(
+                    geometry.vertices, geometry.faces, process=False, validate=False
+                ).export(file_type="glb")
+            else:
+                data = trimesh.PointCloud(geometry.xyz).export(file_type="ply")
+            size = len(data)
+            del data
         elif op == "o3d_from_depth":
             # Open3D's depth-to-points is pinhole only: the same number of pixels read as a
             # pinhole depth image (a cost reference, not the ERP geometry).

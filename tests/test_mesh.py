@@ -220,8 +220,16 @@ def test_ply_and_glb_reread_with_independent_readers(tmp_path):
     np.testing.assert_array_equal(gfaces, mesh.faces)
     np.testing.assert_array_equal(colours[:, :3], mesh.rgb)
 
+    # trimesh reads both back as well (the viewer's reader)
+    for name in ("m.ply", "m.glb"):
+        vertices, faces = mesh_mod.read_geometry(tmp_path / name)
+        np.testing.assert_array_equal(vertices, mesh.vertices)
+        np.testing.assert_array_equal(faces, mesh.faces)
+
     pc = m360.to_points(depth, rgb=rgb, stride=4)
     mesh_mod.write_ply(tmp_path / "p.ply", pc)
+    mesh_mod.write_glb(tmp_path / "p.glb", pc)
+    np.testing.assert_array_equal(mesh_mod.read_geometry(tmp_path / "p.glb")[0], pc.xyz)
     v = plyfile.PlyData.read(str(tmp_path / "p.ply"))["vertex"]
     np.testing.assert_array_equal(np.stack([v["x"], v["y"], v["z"]], 1), pc.xyz)
 
