@@ -95,6 +95,7 @@ bench: $(RELEASE_STAMP)  ## benchmark tables (see benches/), always on the relea
 	$(PY) benches/bench_estimate.py
 	$(PY) benches/bench_batch.py
 	$(PY) benches/bench_threads.py
+	$(PY) benches/bench_3d.py
 
 clean:  ## remove build products and the virtual environment
 	rm -rf target $(VENV) out dist python/m360/_core*.so

@@ -112,7 +112,10 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
                 ).export(file_type="glb")
             else:
                 data = trimesh.PointCloud(geometry.xyz).export(file_type="ply")
-            size = len(data)
+            target = Path(out_dir) / f"t{k}.{op[-3:]}"
+            target.write_bytes(data)  # to disk, as m360's writers do
+            size = target.stat().st_size
+            target.unlink()
             del data
         elif op == "o3d_from_depth":
             # Open3D's depth-to-points is pinhole only: the same number of pixels read as a
