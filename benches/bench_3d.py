@@ -150,6 +150,14 @@ def main() -> None:
     parser.add_argument("--widths", type=int, nargs="+", default=[2048, 4096, 8192])
     parser.add_argument("--repeat", type=int, default=3)
     parser.add_argument("--open3d-python", default=None, help="python with open3d installed")
+    parser.add_argument("--ops", nargs="+", choices=OPS, default=list(OPS))
+    parser.add_argument(
+        "--trimesh-max-width",
+        type=int,
+        default=4096,
+        help="skip trimesh's exporters beyond this width (its GLB export of an 8K mesh peaks "
+        "above 7 GB)",
+    )
     parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
     args = parser.parse_args()
     if args.child:
@@ -167,7 +175,10 @@ def main() -> None:
         cache = Path(tmp)
         for width in args.widths:
             path = depth_map(width, cache)
-            for op in OPS:
+            for op in args.ops:
+                if op.startswith("trimesh") and width > args.trimesh_max_width:
+                    print(f"{width:>6} {op:<14} skipped (--trimesh-max-width)")
+                    continue
                 python = sys.executable
                 if op.startswith("o3d"):
                     if args.open3d_python is None:
@@ -176,7 +187,8 @@ def main() -> None:
                 cmd = [python, __file__, "--child", op, str(path), str(args.repeat), tmp]
                 run = subprocess.run(cmd, capture_output=True, text=True, check=False)
                 if run.returncode != 0:
-                    print(f"{width:>6} {op:<14} failed: {run.stderr.strip().splitlines()[-1]}")
+                    why = (run.stderr.strip().splitlines() or [f"exit {run.returncode}"])[-1]
+                    print(f"{width:>6} {op:<14} failed: {why}")
                     continue
                 r = json.loads(run.stdout.strip().splitlines()[-1])
                 print(
