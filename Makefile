@@ -19,7 +19,7 @@ DEV_STAMP     := $(VENV)/.m360-dev
 # `make test` uses the build the developer chose last: the dev build once `make build-dev` ran,
 # the release build otherwise (a fresh machine, CI). Either is rebuilt only when out of date.
 BUILT := $(if $(wildcard $(DEV_STAMP)),$(DEV_STAMP),$(RELEASE_STAMP))
-EXTRAS := test,lint,bench,ray
+EXTRAS := test,lint,bench,ray,3d
 PYTEST_ARGS ?=
 
 .PHONY: help demo test lint format rust-test bench venv install build-dev wheel clean
@@ -95,6 +95,7 @@ bench: $(RELEASE_STAMP)  ## benchmark tables (see benches/), always on the relea
 	$(PY) benches/bench_estimate.py
 	$(PY) benches/bench_batch.py
 	$(PY) benches/bench_threads.py
+	$(PY) benches/bench_3d.py
 
 clean:  ## remove build products and the virtual environment
 	rm -rf target $(VENV) out dist python/m360/_core*.so

@@ -16,12 +16,21 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 
 from __future__ import annotations
 
-from . import align, batch, blend, decode, estimators, eval, io, models, synthetic
+from . import align, batch, blend, decode, estimators, eval, io, masks, models, scale, synthetic
 from ._core import __version__, get_num_threads, set_num_threads
-from .errors import AspectRatioError, InputError, M360Error, ModelError, ReadError, SolverError
+from .errors import (
+    AspectRatioError,
+    InputError,
+    M360Error,
+    ModelError,
+    ReadError,
+    ScaleError,
+    SolverError,
+)
 from .estimate import EstimateResult, estimate
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
 from .io import SavedResult, load, save
+from .mesh import Mesh, PointCloud, to_mesh, to_points
 from .options import StitchOptions
 from .stitch import StitchResult, stitch
 
@@ -31,9 +40,12 @@ __all__ = [
     "InputError",
     "Layout",
     "M360Error",
+    "Mesh",
     "ModelError",
+    "PointCloud",
     "ReadError",
     "SavedResult",
+    "ScaleError",
     "SolverError",
     "StitchOptions",
     "StitchResult",
@@ -51,10 +63,14 @@ __all__ = [
     "get_num_threads",
     "io",
     "load",
+    "masks",
     "models",
     "save",
+    "scale",
     "set_num_threads",
     "stitch",
     "synthetic",
     "tangents_to_erp",
+    "to_mesh",
+    "to_points",
 ]

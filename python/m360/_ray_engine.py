@@ -91,22 +91,24 @@ def _use_threads(threads: int) -> None:
 
 
 def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any]:
-    """Stage 1: (meta, tangents); meta is a failed ImageOutcome or (source, width, timings)."""
+    """Stage 1: (meta, tangents); meta is a failed ImageOutcome or a :class:`_Read` whose
+    ``rgb`` is kept only when the 3D formats need its colours, with the ERP shape and timings."""
     from .estimate import _check_erp_rgb
     from .geometry import erp_to_tangents
 
     _use_threads(threads)
     try:
         t0 = time.perf_counter()
-        rgb, source = _batch._read_job(job, settings)
-        rgb = _check_erp_rgb(rgb)
+        read = _batch._read_job(job, settings)
+        rgb = _check_erp_rgb(read.rgb)
         t_read = time.perf_counter()
         tangents = erp_to_tangents(rgb, _layout(rgb.shape[1]))
         t_project = time.perf_counter()
     except Exception as exc:
         return _batch._error_outcome(job, exc), None
     timings = {"read": t_read - t0, "project": t_project - t_read}
-    return (source, (rgb.shape[0], rgb.shape[1]), timings), tangents
+    read.rgb = rgb if _batch._needs_rgb(settings) else None  # only the tangents travel on
+    return (read, (rgb.shape[0], rgb.shape[1]), timings), tangents
 
 
 class _Network:
@@ -145,23 +147,35 @@ def _stitch_write(
     raw: Any,
 ) -> ImageOutcome:
     """Stage 3: the rest of m360.estimate, then the atomic write (the driver holds the claim)."""
-    from .estimate import _from_network
+    from .estimate import _from_network, _split_mask
 
     _use_threads(threads)
     if isinstance(network_meta, Exception):
         return _batch._error_outcome(job, network_meta)
-    source, erp_shape, timings = read_meta
+    read, erp_shape, timings = read_meta
     info, kind, network_seconds = network_meta
     try:
         layout = _layout(erp_shape[1])
+        mask, erp_valid = _split_mask(read.captured, layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
-        result = _from_network(raw, kind, layout, settings.options, erp_shape, info, before)
+        result = _from_network(
+            raw,
+            kind,
+            layout,
+            settings.options,
+            erp_shape,
+            info,
+            before,
+            mask=mask,
+            erp_valid=erp_valid,
+            scale=settings.scale,
+        )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting
         t_write = time.perf_counter()
         # An earlier attempt at this image lost its worker mid-write; the claim is still ours.
         remove_stale_temporaries(job.stem)
-        _batch._write_job(job, result, source, settings)
+        _batch._write_job(job, result, read.records, settings, read.rgb)
         write = time.perf_counter() - t_write
     except Exception as exc:
         return _batch._error_outcome(job, exc)

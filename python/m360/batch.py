@@ -54,6 +54,8 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from . import models as _models
+from ._gpano import place as place_crop
+from ._gpano import read_gpano
 from ._interrupt import MainThreadInterrupts, install_for_process
 from ._validate import MAX_THREADS, integer
 from ._validate import threads as check_threads
@@ -62,7 +64,14 @@ from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
 from .estimators import OnnxEstimator
-from .io import check_formats, listed_files, read_sidecar, remove_stale_temporaries, save
+from .io import (
+    GEOMETRY_FORMATS,
+    check_formats,
+    listed_files,
+    read_sidecar,
+    remove_stale_temporaries,
+    save,
+)
 from .options import AlignSpec, StitchOptions, build
 
 __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
@@ -317,6 +326,7 @@ class _Settings:
     fingerprint: dict[str, Any]
     run_id: str
     threads: int | None
+    scale: Any = None
 
 
 class _Worker:
@@ -345,11 +355,13 @@ class _Worker:
             remove_stale_temporaries(job.stem)
             try:
                 t0 = time.perf_counter()
-                rgb, source = _read_job(job, s)
+                read = _read_job(job, s)
                 t_read = time.perf_counter()
-                result = estimate(rgb, self.estimator, options=s.options)
+                result = estimate(
+                    read.rgb, self.estimator, options=s.options, scale=s.scale, mask=read.captured
+                )
                 t_estimate = time.perf_counter()
-                _write_job(job, result, source, s)
+                _write_job(job, result, read.records, s, read.rgb)
                 t_write = time.perf_counter()
             except Exception as exc:
                 return _error_outcome(job, exc)
@@ -372,34 +384,63 @@ def _make_job_folder(job: Job) -> ImageOutcome | None:
     return None
 
 
-def _read_job(job: Job, s: _Settings) -> tuple[Any, dict[str, Any]]:
-    """Read and decode ``job``'s image: the RGB panorama and the sidecar's ``input`` record."""
+@dataclass
+class _Read:
+    """An input image as the stages need it."""
+
+    rgb: Any  # (H, W, 3) uint8 ERP: a partial panorama is placed in its full canvas
+    captured: Any  # (H, W) bool, the captured part of a partial panorama; None: all of it
+    records: dict[str, Any]  # the sidecar's "input" record, and "crop" for a partial panorama
+
+
+def _read_job(job: Job, s: _Settings) -> _Read:
+    """Read and decode ``job``'s image.
+
+    A partial panorama with GPano crop metadata goes into its full canvas, the rest masked;
+    without metadata W != 2H is refused (or resized, ``fix_aspect``) as before.
+    """
     data = read_input_bytes(job.input)
     stat = job.input.stat()
     rgb = decode_image(data, job.input)
     original = rgb.shape[:2]
-    rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+    crop = read_gpano(data, str(job.input))
+    captured = None
+    if crop is not None:
+        rgb, captured = place_crop(rgb, crop, str(job.input))
+    else:
+        rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
     source = {
         "path": str(job.input),
         "sha256": hashlib.sha256(data).hexdigest(),
         "size": stat.st_size,
         "mtime_ns": stat.st_mtime_ns,
         "shape": list(original),
-        "aspect_fixed": tuple(original) != rgb.shape[:2],
+        "aspect_fixed": crop is None and tuple(original) != rgb.shape[:2],
         "exif_orientation": "ignored",
     }
-    return rgb, source
+    records = {"input": source} | ({} if crop is None else {"crop": crop.as_dict()})
+    return _Read(rgb, captured, records)
 
 
-def _write_job(job: Job, result: Any, source: dict[str, Any], s: _Settings) -> None:
-    """Write ``job``'s outputs atomically, the sidecar (with input and fingerprint) last."""
-    batch = {"fingerprint": s.fingerprint, "run": s.run_id}
+def _needs_rgb(s: _Settings) -> bool:
+    """Whether writing needs the panorama's colours (the 3D formats)."""
+    return any(fmt in GEOMETRY_FORMATS for fmt in s.formats)
+
+
+def _write_job(
+    job: Job, result: Any, records: dict[str, Any], s: _Settings, rgb: Any | None
+) -> None:
+    """Write ``job``'s outputs atomically, the sidecar (with input and fingerprint) last.
+
+    ``rgb`` colours the 3D formats; it may be None when :func:`_needs_rgb` is False.
+    """
     save(
         result,
         job.stem,
         formats=s.formats,
         preview=s.preview,
-        extra={"input": source, "batch": batch},
+        extra={**records, "batch": {"fingerprint": s.fingerprint, "run": s.run_id}},
+        rgb=rgb,
     )
 
 
@@ -527,6 +568,7 @@ def run(
     providers: Sequence[str] | None = None,
     input_size: tuple[int, int] | None = None,
     output_kind: str | None = None,
+    scale: Any = None,
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
@@ -566,6 +608,9 @@ def run(
         Called in this process with each :class:`ImageOutcome` as it arrives.
     providers, input_size, output_kind : optional
         ONNX model options, as for :func:`m360.estimate`.
+    scale : scaler, optional
+        Metric scale per image (:mod:`m360.scale`, e.g. ``camera_height(1.6)``); an image whose
+        fit fails is a failure (``ScaleError``), nothing of it is written in metres.
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -636,7 +681,12 @@ def run(
         ),
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
+        scale=scale,
     )
+    if scale is not None:  # a rerun with another scale must not be skipped
+        from .scale import describe
+
+        settings.fingerprint["scale"] = describe(scale)
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)

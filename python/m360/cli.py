@@ -18,13 +18,23 @@ import cv2
 import numpy as np
 
 from . import __version__, _core, batch, models, synthetic
+from . import scale as m360_scale
 from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
 from .eval import depth_metrics, format_metrics
 from .geometry import Layout
-from .io import SAVE_FORMATS, load, output_stem, read_array, save, save_npy, save_png
+from .io import (
+    GEOMETRY_FORMATS,
+    SAVE_FORMATS,
+    load,
+    output_stem,
+    read_array,
+    save,
+    save_npy,
+    save_png,
+)
 from .options import AlignSpec, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -78,7 +88,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--formats",
         type=_formats,
         default=("npy",),
-        help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
+        help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
+        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument(
@@ -148,6 +159,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="ONNX Runtime providers, comma-separated (e.g. CUDAExecutionProvider,"
         "CPUExecutionProvider); default CPU",
     )
+    run.add_argument(
+        "--camera-height",
+        type=float,
+        default=None,
+        metavar="METRES",
+        help="metric depth: the camera is METRES above the floor (floor plane fit; images "
+        "without a visible floor fail with ScaleError)",
+    )
     _stitch_options(run)
 
     ev = commands.add_parser(
@@ -191,6 +210,23 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--width", type=int, default=models.CHECK_ERP_WIDTH, help="ERP width of the layout"
     )
 
+    view = commands.add_parser(
+        "view",
+        help="show a result's point cloud or mesh in the browser (extra m360[3d])",
+        description=(
+            "Serve a local page (viser) on 127.0.0.1 showing the point cloud of an output "
+            "(STEM.points.ply with the panorama's colours, else the depth map's points coloured "
+            "by distance) or, with --mesh, its mesh. Prints the address and opens it in the "
+            "browser when there is one. Large clouds are subsampled for display only."
+        ),
+    )
+    view.add_argument("path", type=Path, help="output stem (or one of its files), .ply or .glb")
+    view.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
+    view.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    view.add_argument("--colour", choices=("rgb", "depth"), default="rgb", help="point colours")
+    view.add_argument("--max-points", type=int, default=2_000_000, help="most points displayed")
+    view.add_argument("--no-browser", action="store_true", help="do not open a browser")
+
     try:
         args = parser.parse_args(argv)
     except SystemExit as exc:  # usage error (2) or --help/--version (0)
@@ -202,6 +238,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _run(args)
         if args.command == "eval":
             return _eval(args)
+        if args.command == "view":
+            return _view(args)
         return _models_command(args)
     except ModelError as exc:
         print(f"m360: error: {exc}", file=sys.stderr)
@@ -216,11 +254,11 @@ def main(argv: Sequence[str] | None = None) -> int:
 
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
-    unknown = [f for f in chosen if f not in SAVE_FORMATS]
+    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    unknown = [f for f in chosen if f not in known]
     if unknown or not chosen:
         raise argparse.ArgumentTypeError(
-            f"unknown format(s) {', '.join(unknown) or '(none)'}; "
-            f"choose from {', '.join(SAVE_FORMATS)}"
+            f"unknown format(s) {', '.join(unknown) or '(none)'}; choose from {', '.join(known)}"
         )
     return chosen
 
@@ -393,6 +431,29 @@ def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions
     return 0
 
 
+def _view(args: argparse.Namespace) -> int:
+    import threading
+
+    from .viewer import serve
+
+    server = serve(
+        args.path,
+        port=args.port,
+        mesh=args.mesh,
+        colour=args.colour,
+        max_points=args.max_points,
+        open_browser=not args.no_browser,
+        announce=lambda line: print(line, flush=True),
+    )
+    try:
+        threading.Event().wait()  # until Ctrl-C / SIGTERM
+    except KeyboardInterrupt:
+        pass
+    finally:
+        server.stop()
+    return 0
+
+
 def _run(args: argparse.Namespace) -> int:
     def report_failure(outcome: batch.ImageOutcome) -> None:
         if outcome.status == "failed":
@@ -415,6 +476,7 @@ def _run(args: argparse.Namespace) -> int:
         providers=args.providers.split(",") if args.providers else None,
         input_size=tuple(args.input_size) if args.input_size else None,
         output_kind=args.output_kind,
+        scale=None if args.camera_height is None else m360_scale.camera_height(args.camera_height),
         engine=args.engine,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,

@@ -7,7 +7,15 @@ bindings import them from here), so there is one hierarchy whichever layer finds
 
 from __future__ import annotations
 
-__all__ = ["AspectRatioError", "InputError", "M360Error", "ModelError", "ReadError", "SolverError"]
+__all__ = [
+    "AspectRatioError",
+    "InputError",
+    "M360Error",
+    "ModelError",
+    "ReadError",
+    "ScaleError",
+    "SolverError",
+]
 
 
 class M360Error(Exception):
@@ -32,3 +40,7 @@ class ModelError(M360Error):
 
 class SolverError(M360Error):
     """A numerical solve failed (non-finite energy, singular system) on otherwise valid input."""
+
+
+class ScaleError(M360Error):
+    """A metric scale cannot be found (no floor visible, too few usable points, a bad fit)."""

@@ -17,9 +17,10 @@ from typing import Any
 import numpy as np
 
 from . import estimators as _estimators
+from . import masks as _masks
 from . import models as _models
 from ._compat import moved
-from ._validate import as_array, check_erp_shape
+from ._validate import as_array, check_erp_shape, one_of
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
@@ -78,6 +79,9 @@ class EstimateResult:
     layout : Layout
     stitch : StitchResult
         The stitcher's full report.
+    scale : dict or None
+        How the metric scale was found (:meth:`m360.scale.ScaleFit.as_dict`), when ``scale=``
+        was given.
     """
 
     disparity: np.ndarray
@@ -90,6 +94,7 @@ class EstimateResult:
     options: dict[str, Any]
     layout: Layout
     stitch: StitchResult = field(repr=False)
+    scale: dict[str, Any] | None = None
 
 
 def _check_erp_rgb(erp: Any) -> np.ndarray:
@@ -137,6 +142,8 @@ def estimate(
     output_kind: str | None = None,
     mean: Sequence[float] | None = None,
     std: Sequence[float] | None = None,
+    scale: Any = None,
+    sky: str = "keep",
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -158,12 +165,22 @@ def estimate(
         All stitching options at once (then leave their keywords at their defaults).
     layout : Layout, optional
         Tangent layout; default ``Layout.icosahedron(W)``.
-    mask : (N, h, w) bool, optional
-        False marks tangent pixels without an estimate (passed to :func:`m360.stitch`).
+    mask : optional
+        ERP pixels to leave out (:mod:`m360.masks`): an (H, W) bool array (True = use),
+        ``m360.masks.nadir(deg)`` / ``zenith(deg)``, or a list of them. Masked pixels take no
+        part in alignment or blending and are NaN in the outputs. An (N, h, w) bool array is a
+        tangent mask, passed to :func:`m360.stitch` as it is.
     providers, threads : optional
         ONNX Runtime execution providers and intra-op threads (ONNX models only).
     input_size, output_kind, mean, std : optional
         Override the model's preprocessing / declared output (ONNX models).
+    scale : scaler, optional
+        Metric scale (:mod:`m360.scale`: ``camera_height(1.6)``, ``points(...)``,
+        ``metric_map(...)``), fitted on the final disparity; the result is then in metres and
+        records the fit in ``scale``. A failed fit raises :class:`m360.ScaleError`.
+    sky : {"keep", "nan"}
+        ``"nan"``: pixels whose disparity is at or below ``m360.masks.SKY_THRESHOLD`` times its
+        90th percentile (the sky, or beyond) become NaN instead of a huge fake distance.
 
     Returns
     -------
@@ -193,6 +210,8 @@ def estimate(
         layout = Layout.icosahedron(width)
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    sky_mode = one_of(sky, "sky", _masks.SKY_MODES)
+    mask, erp_valid = _split_mask(mask, layout, (height, width))
     estimator = _estimators.load_estimator(
         model,
         providers=providers,
@@ -221,9 +240,25 @@ def estimate(
         _model_info(estimator, layout),
         timings,
         mask=mask,
+        erp_valid=erp_valid,
+        sky_mode=sky_mode,
+        scale=scale,
     )
     result.timings["total"] = time.perf_counter() - t_start
     return result
+
+
+def _split_mask(
+    mask: Any, layout: Layout, erp_shape: tuple[int, int]
+) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """Split ``estimate``'s ``mask`` into (tangent mask, ERP mask).
+
+    An ERP mask (array, caps) gives both; a tangent mask (N, h, w) passes through alone.
+    """
+    if mask is not None and (isinstance(mask, (_masks.Cap, list, tuple)) or np.ndim(mask) == 2):
+        erp_valid = _masks.erp_mask(mask, *erp_shape)
+        return _masks.tangent_mask(erp_valid, layout), erp_valid
+    return mask, None
 
 
 def _predict(estimator: Any, tangents: np.ndarray, layout: Layout) -> np.ndarray:
@@ -256,22 +291,39 @@ def _from_network(
     timings: dict[str, float],
     *,
     mask: np.ndarray | None = None,
+    erp_valid: np.ndarray | None = None,
+    sky_mode: str = "keep",
+    scale: Any = None,
 ) -> EstimateResult:
-    """Do the rest of :func:`estimate` after the network: convert, stitch, depth.
+    """Do the rest of :func:`estimate` after the network: convert, stitch, sky, scale, depth.
 
     Split out so that an engine running the network elsewhere (m360.batch's Ray engine) makes
     the same bytes. ``timings`` holds the earlier stages; ``total`` is left to the caller.
+    ``mask`` is the tangent mask and ``erp_valid`` the ERP mask it came from (see
+    :func:`_split_mask`).
     """
     t_network = time.perf_counter()
     perspective = _estimators.to_perspective_disparity(raw, kind, layout)
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
     disparity = details.disparity
+    if erp_valid is not None:
+        disparity[~erp_valid] = np.nan
+    if sky_mode == "nan":
+        disparity[_masks.sky(disparity)] = np.nan
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     st = details.timings
     metric = kind != "affine_disparity" and opts.align is None
     height, width = erp_shape
+    scale_fit = None
+    if scale is not None:
+        from .scale import scale_disparity
+
+        disparity, fit = scale_disparity(disparity, scale, affine=kind == "affine_disparity")
+        with np.errstate(divide="ignore", invalid="ignore"):
+            depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
+        metric, scale_fit = True, fit.as_dict()
     return EstimateResult(
         disparity=disparity,
         depth=depth,
@@ -285,9 +337,16 @@ def _from_network(
         },
         model=model_info,
         units="metres" if metric else "relative",
-        options={**opts.as_dict(), "layout": repr(layout), "erp_shape": [height, width]},
+        options={
+            **opts.as_dict(),
+            "layout": repr(layout),
+            "erp_shape": [height, width],
+            **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
+            **({"sky": "nan"} if sky_mode == "nan" else {}),
+        },
         layout=layout,
         stitch=details,
+        scale=scale_fit,
     )
 
 

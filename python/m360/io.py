@@ -39,6 +39,7 @@ from .errors import InputError, ReadError
 
 __all__ = [
     "ERP_CONVENTION",
+    "GEOMETRY_FORMATS",
     "IMAGE_SUFFIXES",
     "SAVE_FORMATS",
     "SavedResult",
@@ -65,6 +66,10 @@ __all__ = [
 
 #: Array formats :func:`save` writes (and :func:`load` reads back, in this order of preference).
 SAVE_FORMATS = ("npy", "pfm", "exr", "png16")
+#: 3D formats :func:`save` writes (optional extra ``m360[3d]``): ``ply`` the coloured point cloud
+#: ``STEM.points.ply`` (m360 frame), ``glb`` the mesh ``STEM.mesh.glb`` (glTF frame, y up).
+GEOMETRY_FORMATS = ("ply", "glb")
+GEOMETRY_FILES = {"ply": ("points", ".points.ply"), "glb": ("mesh", ".mesh.glb")}
 #: The quantities :func:`save` writes per format.
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
@@ -289,6 +294,9 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
         return p.with_name(name.removesuffix(".json").removesuffix(".preview.png"))
+    for _, tail in GEOMETRY_FILES.values():
+        if name.endswith(tail):
+            return p.with_name(name.removesuffix(tail))
     for quantity in QUANTITIES:
         for suffix in set(FORMAT_SUFFIXES.values()):
             tail = f".{quantity}{suffix}"
@@ -298,18 +306,19 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
 
 
 def check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
-    """Check the array formats ``formats`` names (one name or a list); drop repeats."""
+    """Check the formats ``formats`` names (one name or a list; array or 3D); drop repeats."""
     if isinstance(formats, str):
         chosen: tuple[Any, ...] = (formats,)
     elif isinstance(formats, (list, tuple)):
         chosen = tuple(formats)
     else:
         raise InputError(f"formats must be a format name or a list of them, got {formats!r}")
+    known = SAVE_FORMATS + GEOMETRY_FORMATS
     for fmt in chosen:
-        if not isinstance(fmt, str) or fmt not in SAVE_FORMATS:
-            raise InputError(f"format {fmt!r} is not supported; choose from {SAVE_FORMATS}")
+        if not isinstance(fmt, str) or fmt not in known:
+            raise InputError(f"format {fmt!r} is not supported; choose from {known}")
     if not chosen:
-        raise InputError(f"formats is empty; choose at least one of {SAVE_FORMATS}")
+        raise InputError(f"formats is empty; choose at least one of {known}")
     return tuple(dict.fromkeys(chosen))
 
 
@@ -328,6 +337,7 @@ def save(
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
     extra: Mapping[str, Any] | None = None,
+    rgb: np.ndarray | None = None,
 ) -> dict[str, Path]:
     """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
 
@@ -347,11 +357,16 @@ def save(
     stem : path
         Output path without suffix, e.g. ``out/pano``; folders are created.
     formats : sequence of str
-        Any of ``"npy"`` (default), ``"pfm"``, ``"exr"``, ``"png16"``.
+        Any of ``"npy"`` (default), ``"pfm"``, ``"exr"``, ``"png16"``, and the 3D formats
+        (extra ``m360[3d]``) ``"ply"`` (``STEM.points.ply``: the point cloud, m360 frame) and
+        ``"glb"`` (``STEM.mesh.glb``: the mesh of :func:`m360.to_mesh`, glTF frame, y up); the
+        sidecar's ``frame`` says which frame each 3D file is in.
     preview : bool
         Also write the colour preview PNG.
     extra : mapping, optional
         More JSON-serialisable fields for the sidecar.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: colours of the 3D files.
 
     Returns
     -------
@@ -379,7 +394,7 @@ def save(
     with contextlib.suppress(FileNotFoundError):
         sidecar_path.unlink()  # the old set is incomplete from here on
     try:
-        for fmt in chosen:
+        for fmt in [f for f in chosen if f in SAVE_FORMATS]:
             for quantity, values in arrays.items():
                 path = base.with_name(f"{base.name}.{quantity}{FORMAT_SUFFIXES[fmt]}")
                 params = write_array(path, values, fmt)
@@ -392,7 +407,10 @@ def save(
                 base.with_name(base.name + ".preview.png"), colorize(arrays["disparity"])
             )
             files["preview"] = written["preview"].name
+        frames = _save_geometry(result, base, chosen, rgb, written, files)
         sidecar = _sidecar(result, arrays["disparity"], files, png16, __version__)
+        if frames:
+            sidecar["frame"] = frames
         if extra:
             sidecar.update(extra)
         written["sidecar"] = save_json(sidecar_path, sidecar)
@@ -402,6 +420,33 @@ def save(
                 path.unlink()
         raise
     return written
+
+
+def _save_geometry(
+    result: Any,
+    base: Path,
+    chosen: Sequence[str],
+    rgb: np.ndarray | None,
+    written: dict[str, Path],
+    files: dict[str, Any],
+) -> dict[str, str]:
+    """Write the 3D formats among ``chosen``; returns file name → frame for the sidecar."""
+    from . import mesh
+
+    frames: dict[str, str] = {}
+    for fmt in [f for f in chosen if f in GEOMETRY_FORMATS]:
+        kind, tail = GEOMETRY_FILES[fmt]
+        path = base.with_name(base.name + tail)
+        if fmt == "ply":
+            geometry: Any = mesh.to_points(result, rgb=rgb)
+            mesh.write_ply(path, geometry)
+        else:
+            geometry = mesh.to_mesh(result, rgb=rgb)
+            mesh.write_glb(path, geometry)
+        written[f"{kind}.{fmt}"] = path
+        files[kind] = {fmt: path.name}
+        frames[path.name] = mesh.FRAMES[fmt]
+    return frames
 
 
 def _sidecar(
@@ -451,6 +496,8 @@ def _sidecar(
     }
     if png16:
         sidecar["png16"] = png16
+    if getattr(result, "scale", None) is not None:
+        sidecar["scale"] = result.scale
     return sidecar
 
 
@@ -576,6 +623,7 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
         return []
     names = [f"{base.name}.{q}{suffix}" for q in QUANTITIES for suffix in FORMAT_SUFFIXES.values()]
     names += [f"{base.name}.preview.png", f"{base.name}.json"]
+    names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
     removed = []
     for name in names:
         for tmp in base.parent.glob(f".{glob.escape(name)}.{'?' * 8}.tmp"):

@@ -1,0 +1,202 @@
+"""3D outputs: m360.to_points, m360.to_mesh and the GLB/PLY writers at 2K, 4K and 8K.
+
+Per ERP width, in a fresh subprocess each (so peak RSS belongs to the one operation): seconds
+(median of --repeat runs), peak RSS (ru_maxrss of the subprocess) and its growth over the input
+alone (0 when the operation stays below the peak of importing m360), and the file size for the
+writers. Compared in the same run with
+
+- trimesh's exporters writing the same mesh/points (``trimesh_glb`` times the export of the
+  mesh built by to_mesh, ``trimesh_ply`` of the points; m360 streams numpy arrays instead);
+
+- the numpy floor: the same points written out as plain numpy (directions from a lon/lat
+  meshgrid, times depth, NaN dropped) — what any implementation must at least do;
+- Open3D (with ``--open3d-python`` naming an interpreter that has open3d; it need not have
+  m360): ``PointCloud.create_from_depth_image`` is pinhole-only, so it is timed on the same
+  number of pixels read as a pinhole depth image (a cost reference), and
+  ``o3d_from_numpy`` times building an ``o3d.geometry.PointCloud`` from the numpy points.
+
+The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
+not depend on the content beyond the share of cut triangles.
+
+    .venv/bin/python benches/bench_3d.py [--widths 2048 4096 8192] [--repeat 3]
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+OPS = (
+    "numpy_floor",
+    "to_points",
+    "to_mesh",
+    "to_mesh+glb",
+    "to_points+ply",
+    "trimesh_glb",
+    "trimesh_ply",
+    "o3d_from_depth",
+    "o3d_from_numpy",
+)
+
+
+def depth_map(width: int, cache: Path) -> Path:
+    path = cache / f"depth_{width}.npy"
+    if not path.exists():
+        import cv2
+        from m360 import synthetic
+
+        base = cache / "depth_2048.npy"
+        if not base.exists():
+            np.save(base, synthetic.render(synthetic.room(0), 2048)[1])
+        depth = np.load(base)
+        if width != 2048:
+            depth = cv2.resize(depth, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+        np.save(path, depth)
+    return path
+
+
+def numpy_floor(depth: np.ndarray) -> np.ndarray:
+    h, w = depth.shape
+    lat = np.pi / 2 - np.pi * (np.arange(h, dtype=np.float32) + 0.5) / h
+    lon = 2 * np.pi * (np.arange(w, dtype=np.float32) + 0.5) / w - np.pi
+    lon_g, lat_g = np.meshgrid(lon, lat)
+    c = np.cos(lat_g)
+    xyz = np.stack([c * np.sin(lon_g), -np.sin(lat_g), c * np.cos(lon_g)], -1) * depth[..., None]
+    return xyz[np.isfinite(depth)]
+
+
+def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
+    if not op.startswith("o3d"):
+        import m360
+        from m360 import mesh
+    depth = np.load(path)
+    rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    times = []
+    size = 0
+    for k in range(repeat):
+        t0 = time.perf_counter()
+        if op == "numpy_floor":
+            numpy_floor(depth)
+        elif op == "to_points":
+            m360.to_points(depth)
+        elif op == "to_mesh":
+            m360.to_mesh(depth)
+        elif op == "to_mesh+glb":
+            target = Path(out_dir) / f"m{k}.glb"
+            mesh.write_glb(target, m360.to_mesh(depth))
+            size = target.stat().st_size
+            target.unlink()
+        elif op == "to_points+ply":
+            target = Path(out_dir) / f"p{k}.ply"
+            mesh.write_ply(target, m360.to_points(depth))
+            size = target.stat().st_size
+            target.unlink()
+        elif op in ("trimesh_glb", "trimesh_ply"):
+            # the same files through trimesh's exporters (what m360 used first)
+            import trimesh
+
+            geometry = m360.to_mesh(depth) if op == "trimesh_glb" else m360.to_points(depth)
+            t0 = time.perf_counter()
+            if op == "trimesh_glb":
+                data = trimesh.Trimesh(
+                    geometry.vertices, geometry.faces, process=False, validate=False
+                ).export(file_type="glb")
+            else:
+                data = trimesh.PointCloud(geometry.xyz).export(file_type="ply")
+            target = Path(out_dir) / f"t{k}.{op[-3:]}"
+            target.write_bytes(data)  # to disk, as m360's writers do
+            size = target.stat().st_size
+            target.unlink()
+            del data
+        elif op == "o3d_from_depth":
+            # Open3D's depth-to-points is pinhole only: the same number of pixels read as a
+            # pinhole depth image (a cost reference, not the ERP geometry).
+            import open3d as o3d
+
+            h, w = depth.shape
+            image = o3d.geometry.Image(np.nan_to_num(depth, nan=0.0))
+            intr = o3d.camera.PinholeCameraIntrinsic(w, h, w / 2, w / 2, w / 2, h / 2)
+            t0 = time.perf_counter()
+            o3d.geometry.PointCloud.create_from_depth_image(
+                image, intr, depth_scale=1.0, depth_trunc=1e9
+            )
+        elif op == "o3d_from_numpy":
+            import open3d as o3d
+
+            pts = numpy_floor(depth).astype(np.float64)
+            t0 = time.perf_counter()
+            o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
+        times.append(time.perf_counter() - t0)
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return {
+        "seconds": float(np.median(times)),
+        "peak_rss_mb": peak / 1024,
+        "growth_mb": (peak - rss_input) / 1024,
+        "file_mb": size / 1e6,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--widths", type=int, nargs="+", default=[2048, 4096, 8192])
+    parser.add_argument("--repeat", type=int, default=3)
+    parser.add_argument("--open3d-python", default=None, help="python with open3d installed")
+    parser.add_argument("--ops", nargs="+", choices=OPS, default=list(OPS))
+    parser.add_argument(
+        "--trimesh-max-width",
+        type=int,
+        default=4096,
+        help="skip trimesh's exporters beyond this width (its GLB export of an 8K mesh peaks "
+        "above 7 GB)",
+    )
+    parser.add_argument("--child", nargs=4, help=argparse.SUPPRESS)
+    args = parser.parse_args()
+    if args.child:
+        op, path, repeat, out_dir = args.child
+        print(json.dumps(child(op, path, int(repeat), out_dir)))
+        return
+    import m360
+
+    print(f"m360 {m360.__version__}, {os.cpu_count()} CPUs (machine shared: timings noisy)")
+    print(
+        f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
+        f"{'growth MB':>9} {'file MB':>8}"
+    )
+    with tempfile.TemporaryDirectory() as tmp:
+        cache = Path(tmp)
+        for width in args.widths:
+            path = depth_map(width, cache)
+            for op in args.ops:
+                if op.startswith("trimesh") and width > args.trimesh_max_width:
+                    print(f"{width:>6} {op:<14} skipped (--trimesh-max-width)")
+                    continue
+                python = sys.executable
+                if op.startswith("o3d"):
+                    if args.open3d_python is None:
+                        continue
+                    python = args.open3d_python
+                cmd = [python, __file__, "--child", op, str(path), str(args.repeat), tmp]
+                run = subprocess.run(cmd, capture_output=True, text=True, check=False)
+                if run.returncode != 0:
+                    why = (run.stderr.strip().splitlines() or [f"exit {run.returncode}"])[-1]
+                    print(f"{width:>6} {op:<14} failed: {why}")
+                    continue
+                r = json.loads(run.stdout.strip().splitlines()[-1])
+                print(
+                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['peak_rss_mb']:>11.0f} "
+                    f"{r['growth_mb']:>9.0f} {r['file_mb']:>8.1f}",
+                    flush=True,
+                )
+
+
+if __name__ == "__main__":
+    main()

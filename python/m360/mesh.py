@@ -1,0 +1,559 @@
+"""Point clouds and meshes from ERP depth, and their PLY/GLB files.
+
+Every 3D output is built in m360's world frame (docs/conventions.md: x right, y down, z forward,
+camera at the origin): ERP pixel (i, j) with radial depth r becomes the point r·d(i, j). The mesh
+lives on the ERP grid:
+
+- columns W − 1 and 0 are neighbours, so the mesh is closed across the 0/360° seam;
+- the first and last rows close with a fan of triangles to one vertex at each pole (its depth is
+  the median of that row's depths);
+- each grid quad is split along its shorter diagonal in 3D;
+- a triangle is dropped when one of its depths is NaN (or ≤ 0) or when its largest depth exceeds
+  its smallest by more than ``max_depth_ratio`` (an occlusion edge, not a surface).
+
+Everything is vectorised numpy: index arrays over the whole grid, no Python list per vertex.
+The writers (:func:`write_ply`, :func:`write_glb`) stream numpy arrays into the files (measured
+faster and leaner than trimesh's exporters: benches/bench_3d.py); glTF is y-up, so
+:func:`write_glb` rotates the frame at the writer (see :data:`FRAMES`). Reading back
+(:func:`read_geometry`, the viewer) uses ``trimesh`` from the optional extra ``m360[3d]``.
+"""
+
+from __future__ import annotations
+
+import io as _bytes_io
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ._validate import as_array, flag, integer, number
+from .errors import InputError
+
+__all__ = [
+    "DEFAULT_MAX_DEPTH_RATIO",
+    "FRAMES",
+    "Mesh",
+    "PointCloud",
+    "erp_ray_grid",
+    "to_mesh",
+    "to_points",
+    "write_glb",
+    "write_ply",
+]
+
+#: Default cut of :func:`to_mesh`: a triangle whose depths differ by more than this ratio is
+#: dropped. Measured on m360.synthetic rooms (benches/measure_depth_ratio.py, docs/method.md):
+#: at 2K, 99.99 % of the grid triangles lying on one continuous surface have a ratio below
+#: 1.06 (1.12 at 1K), while the triangles across an occlusion edge start at ~1.2.
+DEFAULT_MAX_DEPTH_RATIO = 1.1
+
+#: The frame each writer stores its coordinates in (also recorded in the sidecar's ``frame``).
+FRAMES = {
+    "ply": "m360 world frame: x right, y down, z forward (camera at the origin)",
+    "glb": "glTF frame: x right, y up, z backward = (x, -y, -z) of the m360 frame",
+}
+
+
+@dataclass(frozen=True)
+class PointCloud:
+    """Points of an ERP depth map (see :func:`to_points`).
+
+    Attributes
+    ----------
+    xyz : (N, 3) float32
+        Positions in the m360 world frame (x right, y down, z forward), in the depth's units.
+    rgb : (N, 3) uint8 or None
+        Colours from the panorama.
+    pixels : (N,) int64
+        Flat ERP index ``i * W + j`` of each point's pixel (in the full-resolution map).
+    units : str
+        Units of ``xyz`` (``"metres"`` or ``"relative"``).
+    """
+
+    xyz: np.ndarray
+    rgb: np.ndarray | None
+    pixels: np.ndarray
+    units: str = "relative"
+
+    def __len__(self) -> int:
+        return int(self.xyz.shape[0])
+
+
+@dataclass(frozen=True)
+class Mesh:
+    """A triangle mesh on the ERP grid (see :func:`to_mesh`).
+
+    Attributes
+    ----------
+    vertices : (V, 3) float32
+        Positions in the m360 world frame; only vertices used by a face are kept.
+    faces : (F, 3) int32 (int64 beyond 2**31 vertices)
+        Vertex indices; counter-clockwise seen from the camera (normals face the origin).
+    rgb : (V, 3) uint8 or None
+        Vertex colours from the panorama (pole vertices: the mean colour of their row).
+    units : str
+        Units of ``vertices``.
+    max_depth_ratio : float
+        The cut used.
+    """
+
+    vertices: np.ndarray
+    faces: np.ndarray
+    rgb: np.ndarray | None
+    units: str = "relative"
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO
+
+
+# -------------------------------------------------------------------------------- inputs
+
+
+def _depth_of(source: Any, quantity: str | None) -> tuple[np.ndarray, str]:
+    """(H, W) float32 radial depth (NaN = invalid) and its units, from any accepted source."""
+    if isinstance(source, (str, os.PathLike)):
+        from .io import load
+
+        source = load(source)
+    units = str(getattr(source, "units", "relative"))
+    if hasattr(source, "depth") and hasattr(source, "disparity"):
+        if quantity is not None:
+            raise InputError("quantity applies to plain arrays only, not to a result")
+        values = source.depth
+        name = "result.depth"
+    else:
+        values = source
+        name = "depth" if quantity in (None, "depth") else "disparity"
+        if quantity not in (None, "depth", "disparity"):
+            raise InputError(f"quantity must be 'depth' or 'disparity', got {quantity!r}")
+    array = as_array(values, name)
+    if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
+        raise InputError(
+            f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}"
+        )
+    if array.dtype.kind != "f":
+        raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        depth = array.astype(np.float32)
+        if name == "disparity":
+            depth = np.where(depth > 0, 1.0 / depth, np.nan).astype(np.float32)
+        depth[~(np.isfinite(depth) & (depth > 0))] = np.nan
+    return depth, units
+
+
+def _rgb_of(rgb: Any, shape: tuple[int, int]) -> np.ndarray | None:
+    if rgb is None:
+        return None
+    array = as_array(rgb, "rgb")
+    if array.shape != (*shape, 3):
+        raise InputError(
+            f"rgb must be the panorama of the depth map, shape {(*shape, 3)}, got {array.shape}"
+        )
+    if array.dtype == np.uint8:
+        return array
+    if array.dtype.kind == "f":
+        if not np.all(np.isfinite(array)) or array.min() < 0 or array.max() > 1:
+            raise InputError("a float rgb must be in [0, 1] without NaN (uint8 is usual)")
+        return np.rint(array * 255).astype(np.uint8)  # type: ignore[no-any-return]
+    raise InputError(f"rgb has dtype {array.dtype}; use uint8 (or float in [0, 1])")
+
+
+def erp_ray_grid(height: int, width: int, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
+    """Rows and unit directions of a strided ERP pixel grid, float32, without a per-pixel loop.
+
+    Returns ``rows`` (h,) int64 and ``directions`` (h, w, 3) float32 for the pixel centres
+    ``(i, j)`` with ``i, j`` multiples of ``stride`` (docs/conventions.md).
+    """
+    rows = np.arange(0, height, stride)
+    cols = np.arange(0, width, stride)
+    lat = (np.pi / 2 - np.pi * (rows + 0.5) / height).astype(np.float32)
+    lon = (2 * np.pi * (cols + 0.5) / width - np.pi).astype(np.float32)
+    cos_lat = np.cos(lat)[:, None]
+    dirs = np.empty((rows.size, cols.size, 3), np.float32)
+    dirs[..., 0] = cos_lat * np.sin(lon)[None, :]
+    dirs[..., 1] = -np.sin(lat)[:, None]
+    dirs[..., 2] = cos_lat * np.cos(lon)[None, :]
+    return rows, dirs
+
+
+def _stride(stride: Any) -> int:
+    return integer(stride, "stride", low=1, high=1 << 16)
+
+
+# -------------------------------------------------------------------------------- points
+
+
+def to_points(
+    source: Any,
+    *,
+    rgb: Any = None,
+    stride: int = 1,
+    quantity: str | None = None,
+) -> PointCloud:
+    """Turn an ERP depth map into a point cloud: each valid pixel's ray times its depth.
+
+    Parameters
+    ----------
+    source : EstimateResult, SavedResult, path or (H, W) float array
+        A result of :func:`m360.estimate`, one read by :func:`m360.load`, an output stem or file
+        (read with :func:`m360.load`), or a plain ERP map (W == 2H, docs/conventions.md) of
+        radial depth (or disparity with ``quantity="disparity"``); NaN / ≤ 0 = invalid.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: colours of the points.
+    stride : int
+        Keep every ``stride``-th row and column (pixel centres ``i, j ≡ 0 mod stride``).
+    quantity : {"depth", "disparity"}, optional
+        What a plain array holds (default depth).
+
+    Returns
+    -------
+    PointCloud
+        ``xyz`` (N, 3) float32 in the m360 frame (x right, y down, z forward), ``rgb`` (N, 3)
+        uint8 or None, ``pixels`` (N,) flat ERP indices.
+
+    Raises
+    ------
+    InputError
+        Not an ERP map, shapes differ, or no valid depth at all.
+    """
+    depth, units = _depth_of(source, quantity)
+    height, width = depth.shape
+    colours = _rgb_of(rgb, (height, width))
+    step = _stride(stride)
+    rows, dirs = erp_ray_grid(height, width, step)
+    sub = depth[::step, ::step]
+    valid = np.isfinite(sub)
+    if not valid.any():
+        raise InputError("the depth map has no valid (finite, > 0) value: no points to make")
+    flat_index = (rows[:, None] * width + np.arange(0, width, step)[None, :])[valid]
+    xyz = dirs[valid] * sub[valid][:, None]
+    colour = None if colours is None else colours[::step, ::step][valid]
+    return PointCloud(xyz=xyz, rgb=colour, pixels=flat_index.astype(np.int64), units=units)
+
+
+# -------------------------------------------------------------------------------- mesh
+
+
+def to_mesh(
+    source: Any,
+    *,
+    rgb: Any = None,
+    stride: int = 1,
+    max_depth_ratio: float = DEFAULT_MAX_DEPTH_RATIO,
+    poles: bool = True,
+    quantity: str | None = None,
+) -> Mesh:
+    """Triangulate an ERP depth map on its pixel grid (closed at the seam, fans at the poles).
+
+    Parameters
+    ----------
+    source : EstimateResult, SavedResult, path or (H, W) float array
+        As for :func:`to_points`.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: vertex colours.
+    stride : int
+        Mesh every ``stride``-th row and column (column wrap and pole fans included).
+    max_depth_ratio : float
+        Drop a triangle whose largest depth exceeds its smallest by more than this factor
+        (> 1; ``inf`` keeps every triangle with finite depths). Default
+        :data:`DEFAULT_MAX_DEPTH_RATIO`, measured on synthetic rooms (docs/method.md).
+    poles : bool
+        Close the first and last grid rows with a fan to a pole vertex.
+    quantity : {"depth", "disparity"}, optional
+        What a plain array holds (default depth).
+
+    Returns
+    -------
+    Mesh
+        Vertices in the m360 frame, faces counter-clockwise seen from the camera.
+
+    Raises
+    ------
+    InputError
+        Not an ERP map, shapes differ, no valid depth, or no triangle survives the cut.
+    """
+    depth, units = _depth_of(source, quantity)
+    height, width = depth.shape
+    colours = _rgb_of(rgb, (height, width))
+    step = _stride(stride)
+    ratio = (
+        number(max_depth_ratio, "max_depth_ratio", low=1.0)
+        if np.isfinite(max_depth_ratio)
+        else float("inf")
+    )
+    if not ratio > 1.0:
+        raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
+    closed = flag(poles, "poles")
+    _, dirs = erp_ray_grid(height, width, step)
+    grid = np.ascontiguousarray(depth[::step, ::step])
+    rows, cols = grid.shape
+    if not np.isfinite(grid).any():
+        raise InputError("the depth map has no valid (finite, > 0) value: no mesh to make")
+    if rows < 2 or cols < 3:
+        raise InputError(f"stride {step} leaves a {rows}x{cols} grid; a mesh needs at least 2x3")
+
+    n_grid = rows * cols
+    verts = dirs * grid[..., None]  # (rows, cols, 3)
+
+    def right(a: np.ndarray) -> np.ndarray:  # column j + 1, wrapping W − 1 → 0
+        return np.concatenate([a[:, 1:], a[:, :1]], axis=1)
+
+    # Corners of every grid quad as whole-array slices (no per-index gathers):
+    # a = (i, j), b = (i, j+1), c = (i+1, j), d = (i+1, j+1).
+    r_a, r_c = grid[:-1], grid[1:]
+    r_b, r_d = right(grid)[:-1], right(grid)[1:]
+    v_right = right(verts)
+    diff_ad = verts[:-1] - v_right[1:]
+    diff_bc = v_right[:-1] - verts[1:]
+    # Shorter 3D diagonal; a NaN diagonal counts as infinitely long so the other one is used.
+    len_ad = np.einsum("ijk,ijk->ij", diff_ad, diff_ad)
+    len_bc = np.einsum("ijk,ijk->ij", diff_bc, diff_bc)
+    del diff_ad, diff_bc, v_right
+    use_ad = np.nan_to_num(len_ad, nan=np.inf) <= np.nan_to_num(len_bc, nan=np.inf)
+    del len_ad, len_bc
+
+    def kept(r0: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
+        # NaN anywhere makes both sides NaN and the comparison False: dropped.
+        with np.errstate(invalid="ignore"):
+            top = np.maximum(np.maximum(r0, r1), r2)
+            low = np.minimum(np.minimum(r0, r1), r2)
+            return top <= ratio * low  # type: ignore[no-any-return]
+
+    # tri1 = (a, c, d) or (a, c, b); tri2 = (a, d, b) or (b, c, d): all CCW seen from the camera.
+    keep1 = kept(r_a, r_c, np.where(use_ad, r_d, r_b))
+    keep2 = np.where(use_ad, kept(r_a, r_d, r_b), kept(r_b, r_c, r_d))
+    index_type = np.int32 if n_grid + 2 < np.iinfo(np.int32).max else np.int64
+
+    def corners(keep: np.ndarray, split: np.ndarray) -> tuple[np.ndarray, ...]:
+        q = np.flatnonzero(keep).astype(index_type)
+        i, j = np.divmod(q, index_type(cols))
+        jn = j + 1
+        jn[jn == cols] = 0
+        a, b = i * cols + j, i * cols + jn
+        return a, b, a + cols, b + cols, split.ravel()[q]
+
+    a, b, c, d, ad = corners(keep1, use_ad)
+    tri1 = np.stack([a, c, np.where(ad, d, b)], axis=1)
+    a, b, c, d, ad = corners(keep2, use_ad)
+    tri2 = np.stack([np.where(ad, a, b), np.where(ad, d, c), np.where(ad, b, d)], axis=1)
+    del a, b, c, d, ad, keep1, keep2, use_ad
+    parts = [tri1, tri2]
+
+    all_verts = verts.reshape(n_grid, 3)
+    all_rgb = None if colours is None else colours[::step, ::step].reshape(n_grid, 3)
+    if closed:
+        idx = np.arange(n_grid, dtype=index_type).reshape(rows, cols)
+        extra_verts, extra_rgb = [], []
+        for k, (row, sign) in enumerate(((0, -1.0), (rows - 1, 1.0))):
+            row_r = grid[row]
+            finite = np.isfinite(row_r)
+            pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
+            extra_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
+            if all_rgb is not None:
+                extra_rgb.append(np.rint(all_rgb[idx[row]].mean(axis=0)).astype(np.uint8))
+            ring = idx[row]
+            nxt = np.roll(ring, -1)
+            ok = kept(row_r, np.roll(row_r, -1), np.full(cols, pole_r, np.float32))
+            apex = np.full(int(ok.sum()), n_grid + k, index_type)
+            # top: (pole, ring[j], ring[j+1]); bottom: (ring[j], pole, ring[j+1]) — both CCW
+            # seen from the camera, like the grid's triangles.
+            fan = (
+                np.stack([apex, ring[ok], nxt[ok]], 1)
+                if k == 0
+                else np.stack([ring[ok], apex, nxt[ok]], 1)
+            )
+            parts.append(fan)
+        all_verts = np.concatenate([all_verts, np.stack(extra_verts)])
+        if all_rgb is not None:
+            all_rgb = np.concatenate([all_rgb, np.stack(extra_rgb)])
+
+    faces = np.concatenate(parts)
+    if faces.shape[0] == 0:
+        raise InputError(
+            f"no triangle survives: every one touches NaN or spans a depth ratio above {ratio:g}"
+        )
+    used = np.zeros(all_verts.shape[0], bool)
+    used[faces.ravel()] = True
+    remap = (np.cumsum(used, dtype=np.int64) - 1).astype(index_type)
+    return Mesh(
+        vertices=np.ascontiguousarray(all_verts[used], np.float32),
+        faces=remap[faces],
+        rgb=None if all_rgb is None else all_rgb[used],
+        units=units,
+        max_depth_ratio=ratio,
+    )
+
+
+# -------------------------------------------------------------------------------- writers
+
+
+def _trimesh() -> Any:
+    try:
+        import trimesh
+    except ImportError as exc:  # the optional extra
+        raise InputError(
+            "writing PLY/GLB needs the optional extra: pip install 'm360[3d]' (trimesh)"
+        ) from exc
+    return trimesh
+
+
+def _geometry(item: Any) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    if isinstance(item, Mesh):
+        return item.vertices, item.faces, item.rgb
+    if isinstance(item, PointCloud):
+        return item.xyz, None, item.rgb
+    raise InputError(f"expected an m360 Mesh or PointCloud, got {type(item).__name__}")
+
+
+def _ply_header(n_vertices: int, n_faces: int | None, colours: bool) -> bytes:
+    lines = [
+        "ply",
+        "format binary_little_endian 1.0",
+        "comment m360: x right, y down, z forward (camera at the origin)",
+        f"element vertex {n_vertices}",
+        "property float x",
+        "property float y",
+        "property float z",
+    ]
+    if colours:
+        lines += ["property uchar red", "property uchar green", "property uchar blue"]
+    if n_faces is not None:
+        lines += [f"element face {n_faces}", "property list uchar int vertex_indices"]
+    return ("\n".join([*lines, "end_header"]) + "\n").encode("ascii")
+
+
+def write_ply(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
+    """Write a mesh or point cloud as binary little-endian PLY (m360 frame), atomically.
+
+    Vertices ``x, y, z`` float32 (and ``red, green, blue`` uchar when coloured), faces as
+    ``vertex_indices`` lists of 3 int32. Written straight from numpy record arrays (no copy of
+    the whole file in memory, no per-vertex Python).
+    """
+    from .io import atomic_path
+
+    vertices, faces, rgb = _geometry(item)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    records = np.empty(vertices.shape[0], np.dtype(fields))
+    for k, name in enumerate("xyz"):
+        records[name] = vertices[:, k]
+    if rgb is not None:
+        for k, name in enumerate(("red", "green", "blue")):
+            records[name] = rgb[:, k]
+    target = Path(path)
+    with atomic_path(target) as tmp, open(tmp, "wb") as f:
+        f.write(
+            _ply_header(
+                vertices.shape[0], None if faces is None else faces.shape[0], rgb is not None
+            )
+        )
+        records.tofile(f)
+        del records
+        if faces is not None:
+            face_records = np.empty(faces.shape[0], np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+            face_records["n"] = 3
+            face_records["v"] = faces
+            face_records.tofile(f)
+    return target
+
+
+def write_glb(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
+    """Write a mesh or point cloud as binary glTF 2.0 (GLB, y up: see :data:`FRAMES`), atomically.
+
+    One mesh primitive: ``POSITION`` float32 (the m360 frame turned by π about x),
+    ``COLOR_0`` normalised RGBA uint8 when coloured, uint32 ``indices`` (triangles; points
+    without faces). Written straight from numpy arrays.
+    """
+    import json
+
+    from .io import atomic_path
+
+    vertices, faces, rgb = _geometry(item)
+    positions = np.ascontiguousarray(vertices * np.array([1.0, -1.0, -1.0], np.float32))
+    n = positions.shape[0]
+    chunks: list[np.ndarray] = [positions]
+    views = [{"buffer": 0, "byteOffset": 0, "byteLength": positions.nbytes, "target": 34962}]
+    accessors: list[dict[str, Any]] = [
+        {
+            "bufferView": 0,
+            "componentType": 5126,
+            "count": n,
+            "type": "VEC3",
+            "min": positions.min(axis=0).tolist() if n else [0, 0, 0],
+            "max": positions.max(axis=0).tolist() if n else [0, 0, 0],
+        }
+    ]
+    attributes = {"POSITION": 0}
+    offset = positions.nbytes
+    if rgb is not None:
+        rgba = np.empty((n, 4), np.uint8)
+        rgba[:, :3] = rgb
+        rgba[:, 3] = 255
+        chunks.append(rgba)
+        views.append(
+            {"buffer": 0, "byteOffset": offset, "byteLength": rgba.nbytes, "target": 34962}
+        )
+        accessors.append(
+            {"bufferView": 1, "componentType": 5121, "normalized": True, "count": n, "type": "VEC4"}
+        )
+        attributes["COLOR_0"] = 1
+        offset += rgba.nbytes
+    primitive: dict[str, Any] = {"attributes": attributes, "mode": 0}
+    if faces is not None:
+        indices = np.ascontiguousarray(faces, np.uint32).reshape(-1)
+        chunks.append(indices)
+        views.append(
+            {"buffer": 0, "byteOffset": offset, "byteLength": indices.nbytes, "target": 34963}
+        )
+        accessors.append(
+            {
+                "bufferView": len(views) - 1,
+                "componentType": 5125,
+                "count": indices.size,
+                "type": "SCALAR",
+            }
+        )
+        primitive.update(indices=len(accessors) - 1, mode=4)
+        offset += indices.nbytes
+    gltf = {
+        "asset": {"version": "2.0", "generator": "m360"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [primitive]}],
+        "buffers": [{"byteLength": offset}],
+        "bufferViews": views,
+        "accessors": accessors,
+    }
+    text = json.dumps(gltf, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    pad = -offset % 4  # every chunk above is a multiple of 4 bytes already
+    total = 12 + 8 + len(text) + 8 + offset + pad
+    target = Path(path)
+    with atomic_path(target) as tmp, open(tmp, "wb") as f:
+        f.write(b"glTF" + np.array([2, total, len(text), 0x4E4F534A], "<u4").tobytes())
+        f.write(text)
+        f.write(np.array([offset + pad, 0x004E4942], "<u4").tobytes())
+        for chunk in chunks:
+            chunk.tofile(f)
+        f.write(b"\0" * pad)
+    return target
+
+
+def read_geometry(path: str | os.PathLike[str]) -> tuple[np.ndarray, np.ndarray | None]:
+    """Vertices (in the m360 frame) and faces (or None) of a PLY/GLB file written by m360."""
+    trimesh = _trimesh()
+    p = Path(path)
+    from .decode import read_bytes
+
+    data = read_bytes(p, "3D file")
+    loaded = trimesh.load(_bytes_io.BytesIO(data), file_type=p.suffix[1:].lower(), process=False)
+    if hasattr(loaded, "dump"):  # a glTF scene
+        geoms = list(loaded.geometry.values())
+        loaded = geoms[0] if len(geoms) == 1 else loaded.dump(concatenate=True)
+    vertices = np.asarray(loaded.vertices, np.float32)
+    if p.suffix.lower() == ".glb":
+        vertices = vertices * np.array([1.0, -1.0, -1.0], np.float32)
+    faces = getattr(loaded, "faces", None)
+    return vertices, None if faces is None else np.asarray(faces)
