@@ -97,3 +97,67 @@ def test_batch_scale_writes_metres(tmp_path, room):
         scale=m360.scale.camera_height(height * 2),
     )  # fmt: skip
     assert again.outcomes[0].status == "done"
+
+
+def test_geometry_only_formats_are_resumed(tmp_path, room, capsys):
+    """--formats ply,glb writes no arrays; a rerun still sees the image as done."""
+    _, rgb, _ = room
+    panorama = write_png(tmp_path / "room.png", rgb)
+    model = g.affine_of_mean(tmp_path / "m.onnx", 1.0, 0.1)
+    args = ["run", str(panorama), "-o", str(tmp_path / "out"), "--model", str(model)]
+    args += ["--formats", "ply,glb", "--align", "none", "--input-size", "64", "96"]
+    assert main(args) == 0
+    capsys.readouterr()
+    assert main(args) == 0
+    assert "0 done, 1 already done" in capsys.readouterr().err
+    (tmp_path / "out" / "room.mesh.glb").unlink()  # a listed 3D file is missing: redo
+    assert main(args) == 0
+    assert "1 done, 0 already done" in capsys.readouterr().err
+
+
+def test_nadir_zenith_and_sky_flags(tmp_path, room, capsys):
+    _, rgb, _ = room
+    panorama = write_png(tmp_path / "room.png", rgb)
+    model = g.affine_of_mean(tmp_path / "m.onnx", 1.0, 0.1)
+    base = ["run", str(panorama), "--model", str(model), "--input-size", "64", "96"]
+    base += ["--formats", "npy", "--align", "none", "--blend", "mean"]
+    assert main([*base, "-o", str(tmp_path / "plain")]) == 0
+    assert main([*base, "-o", str(tmp_path / "caps"), "--nadir", "30", "--zenith", "20"]) == 0
+    plain = m360.load(tmp_path / "plain" / "room").disparity
+    capped = m360.load(tmp_path / "caps" / "room").disparity
+    lat = 90 - 180 * (np.arange(plain.shape[0]) + 0.5) / plain.shape[0]
+    assert np.isnan(capped[lat < -60]).all() and np.isnan(capped[lat > 70]).all()
+    middle = (lat > -55) & (lat < 65)
+    assert np.isfinite(capped[middle]).all()
+    # the same estimate with the caps through the API: the CLI adds nothing else
+    api = m360.estimate(
+        rgb, str(model), align="none", blend="mean", input_size=(64, 96),
+        mask=[m360.masks.nadir(30), m360.masks.zenith(20)],
+    )  # fmt: skip
+    np.testing.assert_array_equal(capped, api.disparity)
+    # another mask is another result: the rerun into the same folder redoes the image
+    capsys.readouterr()
+    assert main([*base, "-o", str(tmp_path / "caps"), "--nadir", "25", "--zenith", "20"]) == 0
+    assert "1 done, 0 already done" in capsys.readouterr().err
+    assert main([*base, "-o", str(tmp_path / "caps"), "--nadir", "25", "--zenith", "20"]) == 0
+    assert "0 done, 1 already done" in capsys.readouterr().err
+    # sky=nan: the far pixels become NaN, recorded in the sidecar
+    assert main([*base, "-o", str(tmp_path / "sky"), "--sky", "nan"]) == 0
+    meta = json.loads((tmp_path / "sky" / "room.json").read_text())
+    assert meta["options"]["sky"] == "nan"
+    sky = m360.load(tmp_path / "sky" / "room").disparity
+    expected = plain.copy()
+    expected[m360.masks.sky(plain)] = np.nan
+    np.testing.assert_array_equal(sky, expected)
+    # bad values are usage errors
+    assert main([*base, "-o", str(tmp_path / "bad"), "--nadir", "-5"]) == 2
+    assert "nadir" in capsys.readouterr().err
+
+
+def test_batch_mask_argument_is_checked(tmp_path, room):
+    _, rgb, _ = room
+    write_png(tmp_path / "room.png", rgb)
+    with pytest.raises(m360.InputError, match="mask must be"):
+        m360.batch.run(tmp_path / "room.png", tmp_path / "out", mask=np.ones((4, 8), np.uint8))
+    with pytest.raises(m360.InputError, match="sky"):
+        m360.batch.run(tmp_path / "room.png", tmp_path / "out", sky="blue")

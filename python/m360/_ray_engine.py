@@ -156,7 +156,7 @@ def _stitch_write(
     info, kind, network_seconds = network_meta
     try:
         layout = _layout(erp_shape[1])
-        mask, erp_valid = _split_mask(read.captured, layout, erp_shape)
+        mask, erp_valid = _split_mask(_batch._image_mask(read, settings), layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
         result = _from_network(
@@ -169,6 +169,7 @@ def _stitch_write(
             before,
             mask=mask,
             erp_valid=erp_valid,
+            sky_mode=settings.sky,
             scale=settings.scale,
         )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting

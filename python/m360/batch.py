@@ -53,11 +53,13 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import Any
 
+import numpy as np
+
 from . import models as _models
 from ._gpano import place as place_crop
 from ._gpano import read_gpano
 from ._interrupt import MainThreadInterrupts, install_for_process
-from ._validate import MAX_THREADS, integer
+from ._validate import MAX_THREADS, integer, one_of
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Offsets
 from .blend import BlendMethod
@@ -65,6 +67,7 @@ from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_b
 from .errors import InputError, M360Error, ReadError
 from .estimators import OnnxEstimator
 from .io import (
+    GEOMETRY_FILES,
     GEOMETRY_FORMATS,
     check_formats,
     listed_files,
@@ -72,6 +75,7 @@ from .io import (
     remove_stale_temporaries,
     save,
 )
+from .masks import SKY_MODES
 from .options import AlignSpec, StitchOptions, build
 
 __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
@@ -327,6 +331,8 @@ class _Settings:
     run_id: str
     threads: int | None
     scale: Any = None
+    masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
+    sky: str = "keep"
 
 
 class _Worker:
@@ -358,7 +364,12 @@ class _Worker:
                 read = _read_job(job, s)
                 t_read = time.perf_counter()
                 result = estimate(
-                    read.rgb, self.estimator, options=s.options, scale=s.scale, mask=read.captured
+                    read.rgb,
+                    self.estimator,
+                    options=s.options,
+                    scale=s.scale,
+                    mask=_image_mask(read, s),
+                    sky=s.sky,
                 )
                 t_estimate = time.perf_counter()
                 _write_job(job, result, read.records, s, read.rgb)
@@ -422,6 +433,44 @@ def _read_job(job: Job, s: _Settings) -> _Read:
     return _Read(rgb, captured, records)
 
 
+def _image_mask(read: _Read, s: _Settings) -> list[Any] | None:
+    """Give the masks of one image for :func:`m360.estimate`: its captured part and the run's."""
+    masks = [*([] if read.captured is None else [read.captured]), *s.masks]
+    return masks or None
+
+
+def _check_masks(mask: Any) -> tuple[Any, ...]:
+    """Check ``run``'s ``mask``; returns a tuple of caps and (H, W) bool arrays.
+
+    They are not combined: images may differ in size, and a cap fits any.
+    """
+    from .masks import Cap
+
+    if mask is None:
+        return ()
+    items = list(mask) if isinstance(mask, (list, tuple)) else [mask]
+    for item in items:
+        if isinstance(item, Cap):
+            continue
+        if not isinstance(item, np.ndarray) or item.ndim != 2 or item.dtype != np.bool_:
+            raise InputError(
+                "mask must be m360.masks.nadir/zenith caps or (H, W) bool arrays (True = use), "
+                f"got {type(item).__name__}"
+                + (f" {item.dtype} of shape {item.shape}" if isinstance(item, np.ndarray) else "")
+            )
+    return tuple(items)
+
+
+def _describe_masks(masks: Sequence[Any]) -> list[dict[str, Any]]:
+    """Describe the masks as JSON for the resume fingerprint (arrays by sha256)."""
+    return [
+        {"array": hashlib.sha256(np.packbits(m).tobytes()).hexdigest(), "shape": list(m.shape)}
+        if isinstance(m, np.ndarray)
+        else {"cap": m.pole, "degrees": m.degrees}
+        for m in masks
+    ]
+
+
 def _needs_rgb(s: _Settings) -> bool:
     """Whether writing needs the panorama's colours (the 3D formats)."""
     return any(fmt in GEOMETRY_FORMATS for fmt in s.formats)
@@ -478,9 +527,11 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
         names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
     except M360Error:
         return False
-    preview = meta["files"].get("preview")
-    if isinstance(preview, str) and Path(preview).name == preview:
-        names.append(preview)
+    for extra in ("preview", *(kind for kind, _ in GEOMETRY_FILES.values())):
+        entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
+        for name in entry.values() if isinstance(entry, dict) else [entry]:
+            if isinstance(name, str) and Path(name).name == name:
+                names.append(name)
     return same_input and bool(names) and all((job.stem.parent / n).is_file() for n in names)
 
 
@@ -569,6 +620,8 @@ def run(
     input_size: tuple[int, int] | None = None,
     output_kind: str | None = None,
     scale: Any = None,
+    mask: Any = None,
+    sky: str = "keep",
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
@@ -611,6 +664,12 @@ def run(
     scale : scaler, optional
         Metric scale per image (:mod:`m360.scale`, e.g. ``camera_height(1.6)``); an image whose
         fit fails is a failure (``ScaleError``), nothing of it is written in metres.
+    mask : optional
+        ERP pixels to leave out of every image (:mod:`m360.masks`): ``nadir(deg)`` /
+        ``zenith(deg)`` caps, (H, W) bool arrays (True = use; an image of another size fails),
+        or a list of them; combined with a partial panorama's own mask.
+    sky : {"keep", "nan"}
+        As for :func:`m360.estimate`: ``"nan"`` gives the sky no depth.
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -639,6 +698,8 @@ def run(
     ray_resources = _ray_resources(engine, workers, gpus_per_model, cpus_per_stitch, providers)
     threads = check_threads(threads)
     chosen = check_formats(formats)
+    masks = _check_masks(mask)
+    sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,
         align,
@@ -682,11 +743,19 @@ def run(
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
         scale=scale,
+        masks=masks,
+        sky=sky,
     )
-    if scale is not None:  # a rerun with another scale must not be skipped
+    # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
+    # fingerprints of earlier runs stay valid).
+    if scale is not None:
         from .scale import describe
 
         settings.fingerprint["scale"] = describe(scale)
+    if masks:
+        settings.fingerprint["mask"] = _describe_masks(masks)
+    if sky != "keep":
+        settings.fingerprint["sky"] = sky
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)

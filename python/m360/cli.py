@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from . import __version__, _core, batch, models, synthetic
+from . import masks as m360_masks
 from . import scale as m360_scale
 from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
@@ -35,6 +36,7 @@ from .io import (
     save_npy,
     save_png,
 )
+from .masks import SKY_MODES
 from .options import AlignSpec, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -166,6 +168,28 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="METRES",
         help="metric depth: the camera is METRES above the floor (floor plane fit; images "
         "without a visible floor fail with ScaleError)",
+    )
+    run.add_argument(
+        "--nadir",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="leave out the cap within DEG degrees of the bottom pole (tripod, operator): NaN "
+        "there, and no part in alignment or blending",
+    )
+    run.add_argument(
+        "--zenith",
+        type=float,
+        default=None,
+        metavar="DEG",
+        help="leave out the cap within DEG degrees of the top pole",
+    )
+    run.add_argument(
+        "--sky",
+        choices=SKY_MODES,
+        default="keep",
+        help="nan: the sky (disparity at or below 2%% of its 90th percentile) gets no depth "
+        "(default: keep)",
     )
     _stitch_options(run)
 
@@ -454,6 +478,16 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _caps(nadir: float | None, zenith: float | None) -> list[m360_masks.Cap] | None:
+    """Make the polar caps asked for by --nadir / --zenith (None: no mask)."""
+    caps = [
+        make(deg)
+        for make, deg in ((m360_masks.nadir, nadir), (m360_masks.zenith, zenith))
+        if deg is not None
+    ]
+    return caps or None
+
+
 def _run(args: argparse.Namespace) -> int:
     def report_failure(outcome: batch.ImageOutcome) -> None:
         if outcome.status == "failed":
@@ -477,6 +511,8 @@ def _run(args: argparse.Namespace) -> int:
         input_size=tuple(args.input_size) if args.input_size else None,
         output_kind=args.output_kind,
         scale=None if args.camera_height is None else m360_scale.camera_height(args.camera_height),
+        mask=_caps(args.nadir, args.zenith),
+        sky=args.sky,
         engine=args.engine,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,

@@ -135,7 +135,7 @@ def estimate(
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     layout: Layout | None = None,
-    mask: np.ndarray | None = None,
+    mask: Any = None,
     providers: Sequence[str] | None = None,
     threads: int | None = None,
     input_size: tuple[int, int] | None = None,
