@@ -14,9 +14,11 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from . import estimators as _estimators
+from . import memory as _memory
 from . import models as _models
 from ._compat import moved
 from ._validate import as_array, check_erp_shape
@@ -26,6 +28,7 @@ from .errors import InputError, M360Error, ModelError
 from .geometry import Layout, erp_to_tangents
 from .options import AlignSpec, StitchOptions, build
 from .stitch import StitchResult, stitch
+from .upsample import UPSAMPLE_METHODS, guided_upsample
 
 __all__ = ["EstimateResult", "estimate"]
 
@@ -137,6 +140,8 @@ def estimate(
     output_kind: str | None = None,
     mean: Sequence[float] | None = None,
     std: Sequence[float] | None = None,
+    working_width: int | str | None = None,
+    upsample: str = "guided",
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -164,6 +169,13 @@ def estimate(
         ONNX Runtime execution providers and intra-op threads (ONNX models only).
     input_size, output_kind, mean, std : optional
         Override the model's preprocessing / declared output (ONNX models).
+    working_width : int or "native", optional
+        ERP width to run projection, network, alignment and blend at; the disparity is then
+        upsampled to the input's resolution (``upsample``). Default: the input's width up to
+        8192, above it 4096. ``"native"`` always runs at the input's width.
+    upsample : {"guided", "bilinear"}
+        How a working-resolution result is brought to the input's resolution: ``"guided"``
+        follows the photo's edges at depth discontinuities (:func:`m360.upsample.guided_upsample`).
 
     Returns
     -------
@@ -174,6 +186,9 @@ def estimate(
     t_start = time.perf_counter()
     rgb = _check_erp_rgb(erp)
     height, width = rgb.shape[:2]
+    work_width = _memory.working_width_for(working_width, width)
+    if upsample not in UPSAMPLE_METHODS:
+        raise InputError(f"upsample must be one of {UPSAMPLE_METHODS}, got {upsample!r}")
     opts = build(
         options,
         align,
@@ -190,9 +205,22 @@ def estimate(
         blend_options=blend_options,
     )
     if layout is None:
-        layout = Layout.icosahedron(width)
+        layout = Layout.icosahedron(work_width)
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    elif layout.erp_shape[1] != work_width and working_width is not None:
+        raise InputError(
+            f"layout is for ERP width {layout.erp_shape[1]} but working_width is {work_width}"
+        )
+    else:
+        work_width = layout.erp_shape[1]
+    _memory.check_memory(
+        _memory.estimate_memory(width, work_width, opts.method),
+        f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
+    )
+    full_rgb = rgb
+    if work_width != width:
+        rgb = cv2.resize(rgb, (work_width, work_width // 2), interpolation=cv2.INTER_AREA)
     estimator = _estimators.load_estimator(
         model,
         providers=providers,
@@ -225,7 +253,12 @@ def estimate(
     perspective = _estimators.to_perspective_disparity(raw_array, kind, layout)
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
-    disparity = details.disparity
+    disparity, confidence = details.disparity, details.confidence
+    t_stitched = time.perf_counter()
+    if work_width != width:
+        disparity = guided_upsample(disparity, full_rgb, method=upsample)
+        confidence = guided_upsample(confidence, full_rgb, method="bilinear")
+    t_upsampled = time.perf_counter()
     with np.errstate(divide="ignore", invalid="ignore"):
         depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     t_end = time.perf_counter()
@@ -234,7 +267,7 @@ def estimate(
     return EstimateResult(
         disparity=disparity,
         depth=depth,
-        confidence=details.confidence,
+        confidence=confidence,
         tangents=perspective,
         timings={
             "load": t_load - t_start,
@@ -243,11 +276,18 @@ def estimate(
             "convert": t_convert - t_network + st.get("convert", 0.0),
             "align": st.get("align", 0.0),
             "blend": st.get("blend", 0.0),
+            "upsample": t_upsampled - t_stitched,
             "total": t_end - t_start,
         },
         model=_model_info(estimator, layout),
         units="metres" if metric else "relative",
-        options={**opts.as_dict(), "layout": repr(layout), "erp_shape": [height, width]},
+        options={
+            **opts.as_dict(),
+            "layout": repr(layout),
+            "erp_shape": [height, width],
+            "working_width": work_width,
+            "upsample": upsample if work_width != width else None,
+        },
         layout=layout,
         stitch=details,
     )
