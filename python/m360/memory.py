@@ -29,11 +29,11 @@ DEFAULT_WORKING_WIDTH = 4096
 
 #: Peak bytes per working-resolution ERP pixel, per blend (the Poisson blend's system and
 #: multigrid hierarchy dominate; the row blends need the plan and the tangent stacks only).
-_BYTES_PER_PIXEL = {"poisson": 150.0, "other": 80.0}
+_BYTES_PER_PIXEL = {"poisson": 160.0, "other": 89.0}
 #: Peak bytes per full-resolution pixel when upsampling (outputs, guide, bands).
 _BYTES_PER_FULL_PIXEL = 20.0
 #: Fixed part (interpreter-independent buffers, thread stacks, small maps).
-_FIXED_BYTES = 64 * 2**20
+_FIXED_BYTES = 16 * 2**20
 
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 

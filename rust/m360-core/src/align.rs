@@ -262,10 +262,16 @@ mod sample_budget_tests {
         // Below the budget: a fixed fraction of the pixels, so about 4x from 1K to 2K.
         let ratio = reference as f64 / small as f64;
         let expected = reference_pixels as f64 / small_pixels as f64;
-        assert!((ratio / expected - 1.0).abs() < 0.05, "{ratio} vs {expected}");
+        assert!(
+            (ratio / expected - 1.0).abs() < 0.05,
+            "{ratio} vs {expected}"
+        );
         // Above it: the same number within sampling noise.
         let ratio = large as f64 / reference as f64;
-        assert!((ratio - 1.0).abs() < 0.03, "{large} samples at 4K, {reference} at 2K");
+        assert!(
+            (ratio - 1.0).abs() < 0.03,
+            "{large} samples at 4K, {reference} at 2K"
+        );
     }
 }
 
