@@ -14,8 +14,9 @@ process's high-water mark (VmHWM) at the end, above the baseline after the impor
 input image; ``estimate`` is :func:`m360.memory.estimate_memory` for the same call.
 
 Tables:
-1. per ERP width and blend (``--blends``, default m360.estimate's default and frustum): first
-   call, warm call (median), first / warm, peak and estimated memory, per-stage peaks;
+1. per ERP width and blend (``--blends``, default m360.estimate's default and frustum), with
+   the default working width (the input's up to 8192, 4096 above): first call, warm call
+   (median), first / warm, peak and estimated memory, per-stage peaks;
 2. with ``--mp72``: a 72 MP photo (11904 x 5952) with ``working_width`` 2048, 4096 and native
    (``--no-native`` leaves native out: it needs about 12 GB with the Poisson blend).
 
@@ -79,9 +80,9 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
     ww: int | str | None = (
         None if working == "default" else ("native" if working == "native" else int(working))
     )
-    # Without working_width for "native", so the same figures can be taken of an older m360
+    # Without working_width for "default", so the same figures can be taken of an older m360
     # (PYTHONPATH pointing at its package) as a baseline.
-    kwargs: dict[str, Any] = {} if working == "native" else {"working_width": ww}
+    kwargs: dict[str, Any] = {} if working == "default" else {"working_width": ww}
     try:
         memory = importlib.import_module("m360.memory")
         work = memory.working_width_for(ww, width)
@@ -178,7 +179,7 @@ def main() -> None:
             inputs(data)
         for width in args.sizes:
             for blend in args.blends:
-                rows.append(run_child(data, width, blend, "native", args.repeats))
+                rows.append(run_child(data, width, blend, "default", args.repeats))
                 print(f"  done {width} {blend}", file=sys.stderr)
         mp_rows = []
         if args.mp72:

@@ -76,3 +76,8 @@ def poisson_blend(
     target: npt.NDArray[np.float32],
     blend: dict[str, Any] | None = None,
 ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]: ...
+def upsample_planes(
+    planes: npt.NDArray[np.float32],
+    out_shape: tuple[int, int],
+    grey: npt.NDArray[np.uint8] | None = None,
+) -> npt.NDArray[np.float32]: ...

@@ -31,7 +31,7 @@ DEFAULT_WORKING_WIDTH = 4096
 #: multigrid hierarchy dominate; the row blends need the plan and the tangent stacks only).
 _BYTES_PER_PIXEL = {"poisson": 160.0, "other": 89.0}
 #: Peak bytes per full-resolution pixel when upsampling (outputs, guide, bands).
-_BYTES_PER_FULL_PIXEL = 20.0
+_BYTES_PER_FULL_PIXEL = 14.0
 #: Fixed part (interpreter-independent buffers, thread stacks, small maps).
 _FIXED_BYTES = 16 * 2**20
 

@@ -14,10 +14,10 @@ disparity jumps (relative range over a 3 × 3 window above ``edge_low``, fully a
 interpolation. Everything is NaN-aware (invalid pixels weigh nothing and stay invalid) and
 wraps at longitude ±180° (column 0 neighbours column W − 1), following docs/conventions.md.
 
-Everything runs on whole arrays with OpenCV (box filters, min/max filters, an affine warp with
-wrapping borders); the full-resolution pass goes in bands of rows, so memory beyond the output
-is a few MB per band. The warp places positions on OpenCV's 1/32-pixel grid, so a bilinear value
-is within 1/64 of the step between its neighbours of the exact one.
+The model is fitted on whole working-resolution arrays with OpenCV (box filters, min/max
+filters); the full-resolution pass is one parallel sweep in the core
+(``_core.upsample_planes``: about ten times faster at 72 MP than OpenCV warps and numpy, and
+with exact positions), which allocates nothing beyond the output.
 """
 
 from __future__ import annotations
@@ -25,6 +25,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from . import _core
 from ._validate import as_array
 from .errors import InputError
 
@@ -33,9 +34,6 @@ __all__ = ["UPSAMPLE_METHODS", "guided_upsample"]
 #: Methods of :func:`guided_upsample`: ``"guided"`` (edge-aware, the default) and
 #: ``"bilinear"`` (plain NaN-aware bilinear, wrapping at the seam).
 UPSAMPLE_METHODS = ("guided", "bilinear")
-
-#: Full-resolution rows per band of the last pass.
-_BAND_ROWS = 256
 
 
 def _wrap_columns(image: np.ndarray, pad: int) -> np.ndarray:
@@ -51,13 +49,11 @@ def _box(image: np.ndarray, radius: int) -> np.ndarray:
     return np.ascontiguousarray(out[:, radius:-radius], dtype=np.float32)
 
 
-def _grey(rgb: np.ndarray) -> np.ndarray:
-    """Grey image in [0, 1] (float32) of an RGB uint8 or float image."""
-    if rgb.dtype == np.uint8:
-        grey = cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY).astype(np.float32) * np.float32(1 / 255)
-    else:
-        grey = cv2.cvtColor(np.asarray(rgb, np.float32), cv2.COLOR_RGB2GRAY)
-    return np.asarray(grey, dtype=np.float32)
+def _grey_u8(rgb: np.ndarray) -> np.ndarray:
+    """Grey levels 0-255 (uint8, C-contiguous) of an RGB uint8 or float [0, 1] image."""
+    if rgb.dtype != np.uint8:
+        rgb = np.clip(np.asarray(rgb, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
+    return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
 
 
 def _edge_weight(
@@ -147,58 +143,28 @@ def guided_upsample(
     valid = np.isfinite(p)
     p0 = np.where(valid, p, np.float32(0))
     m = valid.astype(np.float32)
-    grey_full = _grey(img)
-    if method == "guided":
-        grey = cv2.resize(grey_full, (w, h), interpolation=cv2.INTER_AREA)
-        n = _box(m, radius)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            mean_i = _box(m * grey, radius) / n
-            mean_p = _box(p0, radius) / n
-            cov = _box(m * grey * p0, radius) / n - mean_i * mean_p
-            var = _box(m * grey * grey, radius) / n - mean_i * mean_i
-            a = cov / (np.maximum(var, 0) + np.float32(eps))
-            b = mean_p - a * mean_i
-        fitted = n > 0
-        a = np.where(fitted, a, 0).astype(np.float32)
-        b = np.where(fitted, b, 0).astype(np.float32)
-        fitted_f = fitted.astype(np.float32)
-        with np.errstate(invalid="ignore", divide="ignore"):
-            count = _box(fitted_f, radius)
-            mean_a = np.where(count > 0, _box(a, radius) / count, 0)
-            mean_b = np.where(count > 0, _box(b, radius) / count, 0)
-        edge, lo, hi = _edge_weight(p, valid, edge_low, edge_high)
-        planes = [np.dstack([p0, m, edge]), np.dstack([mean_a, mean_b, lo, hi])]
-    else:
-        planes = [np.dstack([p0, m])]
-    # One row of the nearest pole row above and below, so the warp's wrapping border is only
-    # ever met in longitude.
-    planes = [np.concatenate([q[:1], q, q[-1:]], axis=0).astype(np.float32) for q in planes]
-    sx, sy = w / width, h / height
-    out = np.empty((height, width), np.float32)
-    for r0 in range(0, height, _BAND_ROWS):
-        r1 = min(r0 + _BAND_ROWS, height)
-        # Output (j, i) of the band reads source ((j + ½)·sx − ½, (r0 + i + ½)·sy − ½ + 1).
-        matrix = np.array(
-            [[sx, 0.0, 0.5 * sx - 0.5], [0.0, sy, (r0 + 0.5) * sy - 0.5 + 1.0]], np.float64
-        )
-        bands = [
-            cv2.warpAffine(
-                q,
-                matrix,
-                (width, r1 - r0),
-                flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                borderMode=cv2.BORDER_WRAP,
-            )
-            for q in planes
-        ]
-        base = bands[0]
-        with np.errstate(invalid="ignore", divide="ignore"):
-            value = base[:, :, 0] / base[:, :, 1]
-            if method == "guided":
-                model = bands[1]
-                fitted = model[:, :, 0] * grey_full[r0:r1] + model[:, :, 1]
-                # Never beyond the values the working map has around the pixel (no overshoot).
-                fitted = np.clip(fitted, model[:, :, 2], model[:, :, 3])
-                value += base[:, :, 2] * (fitted - value)
-        out[r0:r1] = np.where(base[:, :, 1] >= 0.5, value, np.float32(np.nan))
-    return out
+    if method == "bilinear":
+        planes = np.dstack([p0, m])
+        return _core.upsample_planes(np.ascontiguousarray(planes, np.float32), (height, width))
+    grey_full = _grey_u8(img)
+    grey = cv2.resize(grey_full, (w, h), interpolation=cv2.INTER_AREA).astype(np.float32) / 255
+    n = _box(m, radius)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean_i = _box(m * grey, radius) / n
+        mean_p = _box(p0, radius) / n
+        cov = _box(m * grey * p0, radius) / n - mean_i * mean_p
+        var = _box(m * grey * grey, radius) / n - mean_i * mean_i
+        a = cov / (np.maximum(var, 0) + np.float32(eps))
+        b = mean_p - a * mean_i
+    fitted = n > 0
+    a = np.where(fitted, a, 0).astype(np.float32)
+    b = np.where(fitted, b, 0).astype(np.float32)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        count = _box(fitted.astype(np.float32), radius)
+        mean_a = np.where(count > 0, _box(a, radius) / count, 0)
+        mean_b = np.where(count > 0, _box(b, radius) / count, 0)
+    edge, lo, hi = _edge_weight(p, valid, edge_low, edge_high)
+    # The full-resolution pass (one parallel sweep in the core): bilinear p0/m moved towards
+    # clamp(a·I + b, lo, hi) by the edge weight; never beyond the values around the pixel.
+    planes = np.dstack([p0, m, edge, mean_a, mean_b, lo, hi]).astype(np.float32)
+    return _core.upsample_planes(np.ascontiguousarray(planes), (height, width), grey_full)
