@@ -15,6 +15,7 @@ __all__ = [
     "poisson_blend",
     "set_num_threads",
     "stitch_options",
+    "upsample_planes",
 ]
 __version__: str
 # Option names per kind, the first the default: blend, fidelity, poisson_solver, energy, solver,
