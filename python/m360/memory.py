@@ -30,7 +30,7 @@ DEFAULT_WORKING_WIDTH = 4096
 #: Peak bytes per working-resolution ERP pixel, per blend (the Poisson blend's system and
 #: multigrid hierarchy dominate; the row blends need the plan and the tangent stacks only).
 _BYTES_PER_PIXEL = {"poisson": 160.0, "other": 89.0}
-#: Peak bytes per full-resolution pixel when upsampling (outputs, guide, bands).
+#: Peak bytes per full-resolution pixel when upsampling (outputs, grey guide).
 _BYTES_PER_FULL_PIXEL = 14.0
 #: Fixed part (interpreter-independent buffers, thread stacks, small maps).
 _FIXED_BYTES = 16 * 2**20

@@ -3,8 +3,8 @@
 //! at every full-resolution pixel).
 //!
 //! One pass, parallel over output rows, instead of OpenCV warps plus numpy expressions over
-//! whole images: measured about 10x faster at 72 MP on two threads, with exact (not 1/32-pixel)
-//! positions.
+//! whole images: at 72 MP from 4096, 1.1 s against 2.5 s on a loaded 2-core machine, with
+//! exact (not 1/32-pixel) positions.
 
 use rayon::prelude::*;
 
