@@ -15,6 +15,7 @@ __all__ = [
     "poisson_blend",
     "set_num_threads",
     "stitch_options",
+    "upsample_planes",
 ]
 __version__: str
 # Option names per kind, the first the default: blend, fidelity, poisson_solver, energy, solver,
@@ -76,3 +77,8 @@ def poisson_blend(
     target: npt.NDArray[np.float32],
     blend: dict[str, Any] | None = None,
 ) -> tuple[npt.NDArray[np.float64], dict[str, Any]]: ...
+def upsample_planes(
+    planes: npt.NDArray[np.float32],
+    out_shape: tuple[int, int],
+    grey: npt.NDArray[np.uint8] | None = None,
+) -> npt.NDArray[np.float32]: ...

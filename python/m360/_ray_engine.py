@@ -91,24 +91,39 @@ def _use_threads(threads: int) -> None:
 
 
 def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any]:
-    """Stage 1: (meta, tangents); meta is a failed ImageOutcome or a :class:`_Read` whose
-    ``rgb`` is kept only when the 3D formats need its colours, with the ERP shape and timings."""
+    """Stage 1: (meta, tangents).
+
+    meta is a failed ImageOutcome or (read, ERP shape, working width, timings); ``read.rgb`` is
+    kept only when the 3D formats need its colours or a working width smaller than the image's
+    needs it as the upsampling guide: otherwise only the tangents travel on. The working width
+    is :func:`m360.estimate`'s default, so both engines make the same bytes.
+    """
+    import cv2
+
     from .estimate import _check_erp_rgb
     from .geometry import erp_to_tangents
+    from .memory import working_width_for
 
     _use_threads(threads)
     try:
         t0 = time.perf_counter()
         read = _batch._read_job(job, settings)
         rgb = _check_erp_rgb(read.rgb)
+        height, width = rgb.shape[:2]
+        work_width = working_width_for(None, width)
+        working = rgb
+        if work_width != width:
+            size = (work_width, work_width // 2)
+            working = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         t_read = time.perf_counter()
-        tangents = erp_to_tangents(rgb, _layout(rgb.shape[1]))
+        tangents = erp_to_tangents(working, _layout(work_width))
         t_project = time.perf_counter()
     except Exception as exc:
         return _batch._error_outcome(job, exc), None
     timings = {"read": t_read - t0, "project": t_project - t_read}
-    read.rgb = rgb if _batch._needs_rgb(settings) else None  # only the tangents travel on
-    return (read, (rgb.shape[0], rgb.shape[1]), timings), tangents
+    keep = _batch._needs_rgb(settings) or work_width != width
+    read.rgb = rgb if keep else None
+    return (read, (height, width), work_width, timings), tangents
 
 
 class _Network:
@@ -152,10 +167,10 @@ def _stitch_write(
     _use_threads(threads)
     if isinstance(network_meta, Exception):
         return _batch._error_outcome(job, network_meta)
-    read, erp_shape, timings = read_meta
+    read, erp_shape, work_width, timings = read_meta
     info, kind, network_seconds = network_meta
     try:
-        layout = _layout(erp_shape[1])
+        layout = _layout(work_width)
         mask, erp_valid = _split_mask(_batch._image_mask(read, settings), layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
@@ -171,6 +186,7 @@ def _stitch_write(
             erp_valid=erp_valid,
             sky_mode=settings.sky,
             scale=settings.scale,
+            guide=read.rgb if work_width != erp_shape[1] else None,
         )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting
         t_write = time.perf_counter()
@@ -361,7 +377,7 @@ class _Driver:
         while self.idle and self.waiting_for_network:
             image = self.waiting_for_network.popleft()
             actor = self.idle.popleft()
-            width = image.read_meta[1][1]
+            width = image.read_meta[2]  # the working width
             meta, raw = actor.predict.options(num_returns=2).remote(image.tangents, width)
             image.tangents = None  # the actor has the reference; free it when it is done
             done = self.stitch_task.remote(

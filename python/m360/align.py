@@ -30,7 +30,8 @@ iterations
 tolerance
     Converged when the gradient's max-norm ≤ tolerance · max(1, |energy|).
 sample_fraction
-    Fraction of overlap pixels used by the data term (paper: 1 %), chosen deterministically.
+    Fraction of overlap pixels used by the data term (paper: 1 %), chosen deterministically;
+    tangents larger than a 2048-wide layout's (400 x 346) keep that layout's number of samples.
 pole_cap_deg
     Leave out overlap samples within this many degrees of either pole.
 smoothness, scale_weight

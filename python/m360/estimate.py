@@ -14,10 +14,12 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
+import cv2
 import numpy as np
 
 from . import estimators as _estimators
 from . import masks as _masks
+from . import memory as _memory
 from . import models as _models
 from ._compat import moved
 from ._validate import as_array, check_erp_shape, one_of
@@ -27,6 +29,7 @@ from .errors import InputError, M360Error, ModelError
 from .geometry import Layout, erp_to_tangents
 from .options import AlignSpec, StitchOptions, build
 from .stitch import StitchResult, stitch
+from .upsample import UPSAMPLE_METHODS, guided_upsample
 
 __all__ = ["EstimateResult", "estimate"]
 
@@ -144,6 +147,8 @@ def estimate(
     std: Sequence[float] | None = None,
     scale: Any = None,
     sky: str = "keep",
+    working_width: int | str | None = None,
+    upsample: str = "guided",
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -181,6 +186,13 @@ def estimate(
     sky : {"keep", "nan"}
         ``"nan"``: pixels whose disparity is at or below ``m360.masks.SKY_THRESHOLD`` times its
         90th percentile (the sky, or beyond) become NaN instead of a huge fake distance.
+    working_width : int or "native", optional
+        ERP width to run projection, network, alignment and blend at; the disparity is then
+        upsampled to the input's resolution (``upsample``). Default: the input's width up to
+        8192, above it 4096. ``"native"`` always runs at the input's width.
+    upsample : {"guided", "bilinear"}
+        How a working-resolution result is brought to the input's resolution: ``"guided"``
+        follows the photo's edges at depth discontinuities (:func:`m360.upsample.guided_upsample`).
 
     Returns
     -------
@@ -191,6 +203,8 @@ def estimate(
     t_start = time.perf_counter()
     rgb = _check_erp_rgb(erp)
     height, width = rgb.shape[:2]
+    work_width = _memory.working_width_for(working_width, width)
+    upsample = one_of(upsample, "upsample", UPSAMPLE_METHODS)
     opts = build(
         options,
         align,
@@ -207,11 +221,25 @@ def estimate(
         blend_options=blend_options,
     )
     if layout is None:
-        layout = Layout.icosahedron(width)
+        layout = Layout.icosahedron(work_width)
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
+    elif layout.erp_shape[1] != work_width and working_width is not None:
+        raise InputError(
+            f"layout is for ERP width {layout.erp_shape[1]} but working_width is {work_width}"
+        )
+    else:
+        work_width = layout.erp_shape[1]
+    _memory.check_memory(
+        _memory.estimate_memory(width, work_width, opts.method),
+        f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
+    )
     sky_mode = one_of(sky, "sky", _masks.SKY_MODES)
     mask, erp_valid = _split_mask(mask, layout, (height, width))
+    guide = None
+    if work_width != width:
+        guide = rgb  # the full-resolution photo guides the upsampling
+        rgb = cv2.resize(rgb, (work_width, work_width // 2), interpolation=cv2.INTER_AREA)
     estimator = _estimators.load_estimator(
         model,
         providers=providers,
@@ -243,6 +271,8 @@ def estimate(
         erp_valid=erp_valid,
         sky_mode=sky_mode,
         scale=scale,
+        guide=guide,
+        upsample=upsample,
     )
     result.timings["total"] = time.perf_counter() - t_start
     return result
@@ -253,11 +283,18 @@ def _split_mask(
 ) -> tuple[np.ndarray | None, np.ndarray | None]:
     """Split ``estimate``'s ``mask`` into (tangent mask, ERP mask).
 
-    An ERP mask (array, caps) gives both; a tangent mask (N, h, w) passes through alone.
+    An ERP mask (array, caps) at the output's ``erp_shape`` gives both; at a smaller working
+    width a working pixel is used only when every output pixel it covers is. A tangent mask
+    (N, h, w) passes through alone.
     """
     if mask is not None and (isinstance(mask, (_masks.Cap, list, tuple)) or np.ndim(mask) == 2):
         erp_valid = _masks.erp_mask(mask, *erp_shape)
-        return _masks.tangent_mask(erp_valid, layout), erp_valid
+        working = erp_valid
+        if layout.erp_shape != erp_shape:
+            size = (layout.erp_shape[1], layout.erp_shape[0])
+            area = cv2.resize(erp_valid.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+            working = area >= 1.0 - 1e-6
+        return _masks.tangent_mask(working, layout), erp_valid
     return mask, None
 
 
@@ -294,19 +331,32 @@ def _from_network(
     erp_valid: np.ndarray | None = None,
     sky_mode: str = "keep",
     scale: Any = None,
+    guide: np.ndarray | None = None,
+    upsample: str = "guided",
 ) -> EstimateResult:
-    """Do the rest of :func:`estimate` after the network: convert, stitch, sky, scale, depth.
+    """Do the rest of :func:`estimate` after the network: convert, stitch, upsample, masks,
+    sky, scale, depth.
 
     Split out so that an engine running the network elsewhere (m360.batch's Ray engine) makes
     the same bytes. ``timings`` holds the earlier stages; ``total`` is left to the caller.
-    ``mask`` is the tangent mask and ``erp_valid`` the ERP mask it came from (see
-    :func:`_split_mask`).
+    ``erp_shape`` is the output's shape; when the layout's is smaller (a working width),
+    ``guide`` is the full-resolution RGB photo that guides the upsampling. ``mask`` is the
+    tangent mask and ``erp_valid`` the output-sized ERP mask (see :func:`_split_mask`).
     """
     t_network = time.perf_counter()
     perspective = _estimators.to_perspective_disparity(raw, kind, layout)
     t_convert = time.perf_counter()
     details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
-    disparity = details.disparity
+    disparity, confidence = details.disparity, details.confidence
+    t_stitched = time.perf_counter()
+    height, width = erp_shape
+    work_width = layout.erp_shape[1]
+    if work_width != width:
+        if guide is None:
+            raise InputError(f"upsampling {work_width} -> {width} needs the photo as its guide")
+        disparity = guided_upsample(disparity, guide, method=upsample)
+        confidence = guided_upsample(confidence, guide, method="bilinear")
+    t_upsampled = time.perf_counter()
     if erp_valid is not None:
         disparity[~erp_valid] = np.nan
     if sky_mode == "nan":
@@ -315,7 +365,6 @@ def _from_network(
         depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     st = details.timings
     metric = kind != "affine_disparity" and opts.align is None
-    height, width = erp_shape
     scale_fit = None
     if scale is not None:
         from .scale import scale_disparity
@@ -327,13 +376,14 @@ def _from_network(
     return EstimateResult(
         disparity=disparity,
         depth=depth,
-        confidence=details.confidence,
+        confidence=confidence,
         tangents=perspective,
         timings={
             **timings,
             "convert": t_convert - t_network + st.get("convert", 0.0),
             "align": st.get("align", 0.0),
             "blend": st.get("blend", 0.0),
+            "upsample": t_upsampled - t_stitched,
         },
         model=model_info,
         units="metres" if metric else "relative",
@@ -341,6 +391,8 @@ def _from_network(
             **opts.as_dict(),
             "layout": repr(layout),
             "erp_shape": [height, width],
+            "working_width": work_width,
+            "upsample": upsample if work_width != width else None,
             **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
             **({"sky": "nan"} if sky_mode == "nan" else {}),
         },

@@ -191,6 +191,23 @@ class Layout:
         """(h, w) of every tangent image."""
         return self.cameras[0].height, self.cameras[0].width
 
+    def prepare(self) -> Layout:
+        """Build the plan of this layout now, instead of in the first call that needs it.
+
+        Every map :func:`m360.estimate` needs with its default options is built: tangent and
+        ERP taps, the frustum weights, the alignment samples.
+
+        A later call on the layout then costs as much as a warm one. Plans live in a small
+        in-process cache (:func:`plan_for`), so call it in the process that estimates.
+
+        Returns
+        -------
+        Layout
+            ``self``, so ``layout = Layout.icosahedron(16384).prepare()`` works.
+        """
+        plan_for(self).prepare("estimate")
+        return self
+
     def __len__(self) -> int:
         return len(self.cameras)
 

@@ -159,6 +159,9 @@ pub struct SolveReport {
 ///
 /// A deterministic pseudo-random `fraction` of the pixels of each tangent is kept (a hash of
 /// tangent and pixel index), so the same layout and options always give the same samples.
+/// Tangents larger than [`SAMPLE_BUDGET_PIXELS`] keep `fraction` of that many pixels: the
+/// number of samples per overlapping pair, and so the alignment's cost, stops growing with the
+/// resolution (the unknowns do not grow either).
 #[derive(Debug, Clone, Default)]
 pub struct Overlaps {
     a: Vec<u16>,
@@ -168,13 +171,18 @@ pub struct Overlaps {
     yb: Vec<f32>,
 }
 
+/// Tangent pixels whose `fraction` is the sample budget of larger tangents: those of the
+/// paper's layout at ERP width 2048 (400 × 346), so up to that size nothing changes.
+pub const SAMPLE_BUDGET_PIXELS: usize = 400 * 346;
+
 impl Overlaps {
     /// Samples of `layout` keeping `fraction` of the pixels, excluding directions within
     /// `pole_cap_deg` degrees of either pole.
     #[must_use]
     pub fn build(layout: &Layout, fraction: f64, pole_cap_deg: f64) -> Self {
         let (h, w) = layout.tangent_shape();
-        let threshold = (fraction.clamp(0.0, 1.0) * u64::MAX as f64) as u64;
+        let budget = (SAMPLE_BUDGET_PIXELS as f64 / (h * w) as f64).min(1.0);
+        let threshold = (fraction.clamp(0.0, 1.0) * budget * u64::MAX as f64) as u64;
         let max_abs_lat = (90.0 - pole_cap_deg).to_radians();
         let (eh, ew) = (layout.erp_height, layout.erp_width);
         let per_face: Vec<Overlaps> = (0..layout.cameras.len())
@@ -231,6 +239,39 @@ impl Overlaps {
     #[must_use]
     pub fn is_empty(&self) -> bool {
         self.a.is_empty()
+    }
+}
+
+#[cfg(test)]
+mod sample_budget_tests {
+    use super::*;
+
+    /// Up to the budget's tangent size the samples are `fraction` of the overlap pixels; beyond
+    /// it their number stays that of the budget, whatever the resolution.
+    #[test]
+    fn samples_per_pair_stop_growing_with_the_resolution() {
+        let count = |erp: usize| {
+            let layout = Layout::icosahedron(erp, 0.3, None).expect("layout");
+            let (h, w) = layout.tangent_shape();
+            (Overlaps::build(&layout, 0.01, 0.0).len(), h * w)
+        };
+        let (small, small_pixels) = count(1024);
+        let (reference, reference_pixels) = count(2048);
+        let (large, _) = count(4096);
+        assert_eq!(reference_pixels, SAMPLE_BUDGET_PIXELS);
+        // Below the budget: a fixed fraction of the pixels, so about 4x from 1K to 2K.
+        let ratio = reference as f64 / small as f64;
+        let expected = reference_pixels as f64 / small_pixels as f64;
+        assert!(
+            (ratio / expected - 1.0).abs() < 0.05,
+            "{ratio} vs {expected}"
+        );
+        // Above it: the same number within sampling noise.
+        let ratio = large as f64 / reference as f64;
+        assert!(
+            (ratio - 1.0).abs() < 0.03,
+            "{large} samples at 4K, {reference} at 2K"
+        );
     }
 }
 

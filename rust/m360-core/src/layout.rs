@@ -10,10 +10,11 @@ pub const REFERENCE_TANGENT_WIDTH: usize = 400;
 pub const REFERENCE_ERP_WIDTH: usize = 2048;
 /// Narrowest ERP of the icosahedron layout: below it the tangents are a handful of pixels.
 pub const MIN_ERP_WIDTH: usize = 64;
-/// Widest ERP m360 accepts (16K, beyond any 360° camera). A plan holds about 42 bytes per ERP
-/// pixel, so this caps one plan at ~5.6 GB: larger sizes are refused up front instead of failing
-/// (or aborting) in an allocation.
-pub const MAX_ERP_WIDTH: usize = 1 << 14;
+/// Widest ERP m360 accepts (32K): the widest whose indices fit the plan's 32-bit taps (an ERP
+/// pixel index below 2³¹, a tangent pixel below 2²⁸). A plan holds about 42 bytes per ERP pixel
+/// (~22 GB at 32K), so whether a size fits this machine is judged before allocating, from an
+/// estimate of the memory needed (`m360.memory` in the Python package).
+pub const MAX_ERP_WIDTH: usize = 1 << 15;
 /// Largest icosahedron padding, in gnomonic units (0.3 is the paper's).
 pub const MAX_PADDING: f64 = 2.0;
 /// Narrowest tangent image of the icosahedron layout.

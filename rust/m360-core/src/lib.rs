@@ -29,6 +29,7 @@ pub mod plan;
 pub mod resample;
 pub mod sphere;
 pub mod stitch;
+pub mod upsample;
 
 pub use camera::TangentCamera;
 pub use error::CoreError;

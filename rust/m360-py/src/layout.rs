@@ -96,16 +96,25 @@ impl Plan {
         })
     }
 
-    /// Build the sampling maps now instead of on first use ("tangents", "erp" or "all").
+    /// Build the sampling maps now instead of on first use ("tangents", "erp", "all" for both,
+    /// or "estimate": both, the default blend's weights and the default alignment's samples).
     #[pyo3(signature = (which="all"))]
     fn prepare(&self, py: Python<'_>, which: &str) -> PyResult<()> {
+        let defaults = m360_core::align::Options::default();
+        let estimate = [
+            Need::TangentTaps,
+            Need::ErpTaps,
+            Need::TapWeights(m360_core::blend::Weighting::Frustum),
+            Need::Overlaps(defaults.sample_fraction, defaults.pole_cap_deg),
+        ];
         let needs: &[Need] = match which {
             "tangents" => &[Need::TangentTaps],
             "erp" => &[Need::ErpTaps],
             "all" => &[Need::TangentTaps, Need::ErpTaps],
+            "estimate" => &estimate,
             _ => {
                 return Err(input_error(format!(
-                    "unknown map {which:?}: 'tangents', 'erp' or 'all'"
+                    "unknown map {which:?}: 'tangents', 'erp', 'all' or 'estimate'"
                 )))
             }
         };

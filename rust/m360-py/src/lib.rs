@@ -17,6 +17,7 @@ mod errors;
 mod layout;
 mod options;
 mod threads;
+mod upsample;
 
 #[pyo3::pymodule]
 mod _core {
@@ -28,6 +29,8 @@ mod _core {
     use super::options::stitch_options;
     #[pymodule_export]
     use super::threads::{get_num_threads, set_num_threads};
+    #[pymodule_export]
+    use super::upsample::upsample_planes;
 
     #[pymodule_init]
     fn init(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {

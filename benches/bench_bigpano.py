@@ -1,0 +1,219 @@
+"""Big panoramas: first and warm call, peak memory per stage, and the memory estimate, 2K-16K.
+
+Each configuration runs in a fresh interpreter (so the first call really builds its plan and the
+peak is its own): ``m360.estimate`` on a panorama of the given width, first call, then
+``--repeats`` warm calls (median). The network is replaced by held-out-style tangents: the
+exact disparity of a synthetic room ray-cast for a 1024-wide layout, distorted per tangent as a
+network errs (``m360.synthetic.distort``: scale, shift, smooth field, noise) and resized to the
+layout's tangent size, so the times are "beyond the network" (the network stage is that resize).
+
+Peak memory per stage: a thread samples the process's resident memory (VmRSS) every 5 ms during
+the first call; each sample is given to the stage (``EstimateResult.timings`` order: load,
+project, network, convert, align, blend, upsample) running at that time. ``peak`` is the
+process's high-water mark (VmHWM) at the end, above the baseline after the imports and the
+input image; ``estimate`` is :func:`m360.memory.estimate_memory` for the same call.
+
+Tables:
+1. per ERP width and blend (``--blends``, default m360.estimate's default and frustum), with
+   the default working width (the input's up to 8192, 4096 above): first call, warm call
+   (median), first / warm, peak and estimated memory, per-stage peaks;
+2. with ``--mp72``: a 72 MP photo (11904 x 5952) with ``working_width`` 2048, 4096 and native
+   (``--no-native`` leaves native out: it needs about 12 GB with the Poisson blend).
+
+Run: ``.venv/bin/python benches/bench_bigpano.py [--sizes 2048 4096 8192] [--repeats 3]
+[--mp72]``. Sizes above 8K need ``free -g`` headroom: run them alone.
+"""
+
+from __future__ import annotations
+
+import importlib
+import inspect
+import json
+import statistics
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as h
+import m360
+
+DEFAULT_BLEND = inspect.signature(m360.estimate).parameters["blend"].default or "poisson"
+STAGES = ("load", "project", "network", "convert", "align", "blend", "upsample")
+MP72 = 11904
+
+
+def _status(field: str) -> int:
+    with open("/proc/self/status") as fh:
+        for line in fh:
+            if line.startswith(field + ":"):
+                return int(line.split()[1]) * 1024
+    return 0
+
+
+class HeldOut:
+    """Distorted exact tangents of a 1024-wide layout, resized to whatever layout asks."""
+
+    output_kind = "affine_disparity"
+
+    def __init__(self, tangents: np.ndarray) -> None:
+        self.tangents = tangents
+
+    def predict(self, tiles: np.ndarray) -> np.ndarray:
+        th, tw = tiles.shape[1:3]
+        return np.stack(
+            [cv2.resize(t, (tw, th), interpolation=cv2.INTER_LINEAR) for t in self.tangents]
+        )
+
+
+def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dict[str, Any]:
+    """One configuration in this (fresh) process; returns its figures."""
+    rgb = cv2.resize(np.load(data / "rgb.npy"), (width, width // 2), interpolation=cv2.INTER_LINEAR)
+    est = HeldOut(np.load(data / "tangents.npy"))
+    ww: int | str | None = (
+        None if working == "default" else ("native" if working == "native" else int(working))
+    )
+    # Without working_width for "default", so the same figures can be taken of an older m360
+    # (PYTHONPATH pointing at its package) as a baseline.
+    kwargs: dict[str, Any] = {} if working == "default" else {"working_width": ww}
+    try:
+        memory = importlib.import_module("m360.memory")
+        work = memory.working_width_for(ww, width)
+        predicted: float = memory.estimate_memory(width, work, blend)
+    except ImportError:
+        work, predicted = width, float("nan")
+    with open("/proc/self/clear_refs", "w") as fh:
+        fh.write("5")  # reset the high-water mark: the peak of the call alone
+    baseline = _status("VmRSS")
+    samples: list[tuple[float, int]] = []
+    done = threading.Event()
+
+    def sample() -> None:
+        while not done.is_set():
+            samples.append((time.perf_counter(), _status("VmRSS")))
+            time.sleep(0.005)
+
+    sampler = threading.Thread(target=sample, daemon=True)
+    sampler.start()
+    t0 = time.perf_counter()
+    res = m360.estimate(rgb, est, blend=blend, **kwargs)
+    first = time.perf_counter() - t0
+    done.set()
+    sampler.join()
+    hwm = _status("VmHWM")
+    stage_peak = {}
+    start = t0
+    for stage in STAGES:
+        end = start + res.timings.get(stage, 0.0)
+        inside = [rss for t, rss in samples if start <= t < end]
+        stage_peak[stage] = (max(inside) - baseline) / 2**30 if inside else None
+        start = end
+    warm = []
+    for _ in range(repeats):
+        t1 = time.perf_counter()
+        r = m360.estimate(rgb, est, blend=blend, **kwargs)
+        warm.append((time.perf_counter() - t1, r.timings["network"]))
+    return {
+        "width": width, "blend": blend, "working": working, "work_width": work,
+        "first": first, "first_network": res.timings["network"],
+        "warm": statistics.median(w for w, _ in warm),
+        "warm_network": statistics.median(n for _, n in warm),
+        "peak_gb": (hwm - baseline) / 2**30, "estimate_gb": predicted / 2**30,
+        "stage_peak_gb": stage_peak, "timings_first": res.timings,
+    }  # fmt: skip
+
+
+def run_child(data: Path, width: int, blend: str, working: str, repeats: int) -> dict[str, Any]:
+    cmd = [sys.executable, __file__, "--child", str(data), str(width), blend, working,
+           str(repeats)]  # fmt: skip
+    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+    if proc.returncode != 0:
+        raise RuntimeError(f"{width} {blend} {working} failed:\n{proc.stderr[-3000:]}")
+    return json.loads(proc.stdout.strip().splitlines()[-1])  # type: ignore[no-any-return]
+
+
+def inputs(data: Path) -> None:
+    """The photo (a 2048-wide render, resized per size) and the held-out tangents."""
+    import m360.synthetic as syn
+
+    scene = syn.room(0)
+    rgb, _ = syn.render(scene, 2048)
+    np.save(data / "rgb.npy", rgb)
+    layout = m360.Layout.icosahedron(1024)
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    np.save(data / "tangents.npy", syn.distort(exact, 100, field=0.1, noise=0.01))
+
+
+def fmt_gb(v: float | None) -> str:
+    return "-" if v is None else f"{v:.2f}"
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--child":
+        data, width, blend, working, repeats = sys.argv[2:7]
+        out = child(Path(data), int(width), blend, working, int(repeats))
+        print(json.dumps(out))
+        return
+    parser = h.bench_argparser(__doc__.splitlines()[0])
+    parser.set_defaults(repeats=3)
+    parser.add_argument("--blends", nargs="+", default=[DEFAULT_BLEND, "frustum"])
+    parser.add_argument("--mp72", action="store_true", help="72 MP with working widths")
+    parser.add_argument("--no-native", action="store_true", help="72 MP: leave native out")
+    parser.add_argument(
+        "--data", type=Path, default=None, help="keep the inputs here (reused when present)"
+    )
+    args = parser.parse_args()
+    meta = h.metadata()
+    rows = []
+    with tempfile.TemporaryDirectory() as tmp:
+        data = args.data or Path(tmp)
+        data.mkdir(parents=True, exist_ok=True)
+        if not (data / "tangents.npy").exists():
+            inputs(data)
+        for width in args.sizes:
+            for blend in args.blends:
+                rows.append(run_child(data, width, blend, "default", args.repeats))
+                print(f"  done {width} {blend}", file=sys.stderr)
+        mp_rows = []
+        if args.mp72:
+            workings = ["2048", "4096"] + ([] if args.no_native else ["native"])
+            for working in workings:
+                mp_rows.append(run_child(data, MP72, DEFAULT_BLEND, working, args.repeats))
+                print(f"  done 72 MP {working}", file=sys.stderr)
+
+    def table(title: str, rs: list[dict[str, Any]]) -> None:
+        h.print_table(
+            title,
+            ["ERP", "blend", "working", "first s", "warm s", "warm - net s", "first/warm",
+             "peak GB", "estimate GB", "est/peak",
+             *(f"{s} GB" for s in STAGES if s != "load")],
+            [
+                [f"{r['width']}x{r['width'] // 2}", r["blend"], r["work_width"], r["first"],
+                 r["warm"], r["warm"] - r["warm_network"], f"{r['first'] / r['warm']:.2f}",
+                 r["peak_gb"], r["estimate_gb"], f"{r['estimate_gb'] / r['peak_gb']:.2f}",
+                 *(fmt_gb(r["stage_peak_gb"][s]) for s in STAGES if s != "load")]
+                for r in rs
+            ],
+        )  # fmt: skip
+
+    table(
+        f"m360.estimate, held-out tangents, first call and median of {args.repeats} warm calls; "
+        "memory above the baseline (imports + input); per-stage = peak RSS while it ran",
+        rows,
+    )
+    if mp_rows:
+        table("72 MP (11904x5952), default blend, by working width", mp_rows)
+    print(f"\n{meta['cpu_model']}, {meta['cpu_count']} cores, commit {meta['git_commit']}")
+    if args.json:
+        h.write_json(args.json, [*rows, *mp_rows], meta)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,124 @@
+"""How much memory :func:`m360.estimate` needs, estimated before anything large is allocated.
+
+A request that cannot fit fails early with an :class:`~m360.errors.InputError` that states the
+estimate and what is available, instead of ending in an out-of-memory kill. The estimate is a
+linear model of the peak resident memory per working-resolution ERP pixel (projection, plan
+maps, alignment, blend) plus, with a working width below the input's, per full-resolution pixel
+(the upsampled disparity, depth and confidence, the grey guide); the coefficients were fitted to
+the peaks measured by ``benches/bench_bigpano.py`` at 2K, 4K and 8K (within 20 % there; see
+docs/architecture.md, memory).
+
+``M360_MEMORY_LIMIT`` (bytes, or with a K/M/G suffix) replaces the available memory the check
+compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+
+from .errors import InputError
+
+__all__ = ["available_memory", "check_memory", "estimate_memory", "working_width_for"]
+
+#: Widest input processed at its own resolution by default; wider inputs run at
+#: :data:`DEFAULT_WORKING_WIDTH` and are upsampled along the photo's edges.
+NATIVE_WIDTH_LIMIT = 8192
+#: Working width of inputs wider than :data:`NATIVE_WIDTH_LIMIT`.
+DEFAULT_WORKING_WIDTH = 4096
+
+#: Peak bytes per working-resolution ERP pixel, per blend (the Poisson blend's system and
+#: multigrid hierarchy dominate; the row blends need the plan and the tangent stacks only).
+_BYTES_PER_PIXEL = {"poisson": 160.0, "other": 89.0}
+#: Peak bytes per full-resolution pixel when upsampling (outputs, grey guide).
+_BYTES_PER_FULL_PIXEL = 14.0
+#: Fixed part (interpreter-independent buffers, thread stacks, small maps).
+_FIXED_BYTES = 16 * 2**20
+
+_UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
+
+
+def working_width_for(working_width: int | str | None, width: int) -> int:
+    """Return the ERP width the pipeline runs at for an input ``width`` pixels wide.
+
+    ``None``: the input's width up to :data:`NATIVE_WIDTH_LIMIT`, above it
+    :data:`DEFAULT_WORKING_WIDTH`; ``"native"``: the input's width; an even integer: that width
+    (at most the input's; the input's own width if larger).
+    """
+    if working_width is None:
+        return width if width <= NATIVE_WIDTH_LIMIT else DEFAULT_WORKING_WIDTH
+    if working_width == "native":
+        return width
+    if isinstance(working_width, bool) or not isinstance(working_width, int):
+        raise InputError(
+            f"working_width must be None, 'native' or an even integer, got {working_width!r}"
+        )
+    if working_width < 64 or working_width % 2:
+        raise InputError(f"working_width must be an even integer >= 64, got {working_width}")
+    return min(working_width, width)
+
+
+def estimate_memory(width: int, working_width: int | None = None, blend: str = "poisson") -> int:
+    """Peak bytes :func:`m360.estimate` adds for an input ``width`` pixels wide.
+
+    Parameters
+    ----------
+    width : int
+        Input ERP width (height width / 2).
+    working_width : int, optional
+        Width the pipeline runs at (default: ``width``).
+    blend : str
+        The blend method (``"poisson"`` needs the most).
+
+    Returns
+    -------
+    int
+        Bytes beyond what the process holds before the call (its input image included there).
+    """
+    work = width if working_width is None else working_width
+    per_pixel = _BYTES_PER_PIXEL["poisson" if blend == "poisson" else "other"]
+    total = _FIXED_BYTES + per_pixel * work * (work // 2)
+    if work != width:
+        total += _BYTES_PER_FULL_PIXEL * width * (width // 2)
+    return int(total)
+
+
+def _parse_bytes(text: str) -> int:
+    match = re.fullmatch(r"\s*(\d+(?:\.\d+)?)\s*([KMGT]?)i?B?\s*", text, re.IGNORECASE)
+    if match is None:
+        raise InputError(
+            f"M360_MEMORY_LIMIT={text!r} is not a size (bytes, or a number with K/M/G/T)"
+        )
+    return int(float(match.group(1)) * _UNITS[match.group(2).upper()])
+
+
+def available_memory() -> int | None:
+    """Return the bytes a new allocation may use.
+
+    ``M360_MEMORY_LIMIT`` if set (0: no limit, None), else the kernel's ``MemAvailable``
+    (Linux), else None (unknown: no check).
+    """
+    limit = os.environ.get("M360_MEMORY_LIMIT")
+    if limit:
+        value = _parse_bytes(limit)
+        return value if value > 0 else None
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def check_memory(needed: int, what: str) -> None:
+    """Raise :class:`InputError` if ``needed`` bytes exceed :func:`available_memory`."""
+    available = available_memory()
+    if available is not None and needed > available:
+        raise InputError(
+            f"{what} needs about {needed / 2**30:.1f} GiB of memory but only "
+            f"{available / 2**30:.1f} GiB is available; use a smaller working_width "
+            "(e.g. working_width=4096, upsampled along the photo's edges) or a row blend "
+            "(blend='frustum')"
+        )

@@ -1,0 +1,163 @@
+//! The full-resolution pass of upsampling an ERP map from a working resolution
+//! (`m360.upsample.guided_upsample` fits the model at the working resolution; this evaluates it
+//! at every full-resolution pixel).
+//!
+//! One pass, parallel over output rows, instead of OpenCV warps plus numpy expressions over
+//! whole images: at 72 MP from 4096, 1.1 s against 2.5 s on a loaded 2-core machine, with
+//! exact (not 1/32-pixel) positions.
+
+use rayon::prelude::*;
+
+/// Planes per working pixel of the bilinear pass: (valid value or 0, validity).
+pub const BILINEAR_PLANES: usize = 2;
+/// Planes per working pixel of the guided pass (see [`upsample`]).
+pub const GUIDED_PLANES: usize = 7;
+
+/// Bilinear positions of `n` output samples on a grid of `m` source samples, both covering the
+/// same extent with centres at half-integers: (first index, fraction) per output sample.
+fn positions(n: usize, m: usize, wrap: bool) -> Vec<(usize, usize, f32)> {
+    let scale = m as f64 / n as f64;
+    (0..n)
+        .map(|k| {
+            let x = (k as f64 + 0.5) * scale - 0.5;
+            if wrap {
+                let x0 = x.floor();
+                let f = (x - x0) as f32;
+                let a = (x0 as i64).rem_euclid(m as i64) as usize;
+                (a, (a + 1) % m, f)
+            } else {
+                let x = x.clamp(0.0, (m - 1) as f64);
+                let a = (x.floor() as usize).min(m - 1);
+                let b = (a + 1).min(m - 1);
+                (a, b, (x - a as f64) as f32)
+            }
+        })
+        .collect()
+}
+
+/// Evaluate working-resolution planes at every pixel of an `out_h` × `out_w` ERP grid into
+/// `out`: bilinear, half-pixel centred, wrapping in longitude, clamped at the pole rows.
+///
+/// `planes` is h × w × C interleaved. With C = [`BILINEAR_PLANES`] the planes are (p0, m) and
+/// the value is p0/m. With C = [`GUIDED_PLANES`] they are (p0, m, e, a, b, lo, hi) and `grey`
+/// (out_h × out_w, 0–255) is required: with I = grey/255 and the guided value
+/// g = clamp(a·I + b, lo, hi), the value is p0/m + e·(g − p0/m), the bilinear value moved
+/// towards the guided one by the edge weight e. The output is NaN where the interpolated
+/// validity m is below ½.
+///
+/// # Panics
+/// If the slice sizes do not match (the bindings check them first) or C is neither count.
+#[allow(clippy::too_many_arguments)]
+pub fn upsample(
+    planes: &[f32],
+    channels: usize,
+    h: usize,
+    w: usize,
+    grey: Option<&[u8]>,
+    out: &mut [f32],
+    out_h: usize,
+    out_w: usize,
+) {
+    assert!(channels == BILINEAR_PLANES || channels == GUIDED_PLANES);
+    assert_eq!(planes.len(), h * w * channels, "planes size");
+    assert_eq!(out.len(), out_h * out_w, "output size");
+    if channels == GUIDED_PLANES {
+        assert_eq!(grey.map(<[u8]>::len), Some(out_h * out_w), "guide size");
+        sweep::<GUIDED_PLANES>(planes, w, grey, out, out_h, out_w, h);
+    } else {
+        sweep::<BILINEAR_PLANES>(planes, w, None, out, out_h, out_w, h);
+    }
+}
+
+/// [`upsample`] with the plane count known at compile time (the per-channel loop unrolls).
+#[allow(clippy::too_many_arguments)]
+fn sweep<const C: usize>(
+    planes: &[f32],
+    w: usize,
+    grey: Option<&[u8]>,
+    out: &mut [f32],
+    out_h: usize,
+    out_w: usize,
+    h: usize,
+) {
+    let cols = positions(out_w, w, true);
+    let rows = positions(out_h, h, false);
+    out.par_chunks_mut(out_w)
+        .enumerate()
+        .for_each(|(i, out_row)| {
+            let (y0, y1, fy) = rows[i];
+            let top = &planes[y0 * w * C..(y0 + 1) * w * C];
+            let bottom = &planes[y1 * w * C..(y1 + 1) * w * C];
+            let grey_row = grey.map(|g| &g[i * out_w..(i + 1) * out_w]);
+            for (j, (o, &(x0, x1, fx))) in out_row.iter_mut().zip(&cols).enumerate() {
+                let (ta, tb) = (&top[x0 * C..x0 * C + C], &top[x1 * C..x1 * C + C]);
+                let (ba, bb) = (&bottom[x0 * C..x0 * C + C], &bottom[x1 * C..x1 * C + C]);
+                let v: [f32; C] = std::array::from_fn(|c| {
+                    let upper = ta[c] + fx * (tb[c] - ta[c]);
+                    let lower = ba[c] + fx * (bb[c] - ba[c]);
+                    upper + fy * (lower - upper)
+                });
+                if v[1] < 0.5 {
+                    *o = f32::NAN;
+                    continue;
+                }
+                let mut value = v[0] / v[1];
+                if let Some(g) = grey_row {
+                    // A slice: the guided planes exist only when C is GUIDED_PLANES.
+                    let p: &[f32] = &v;
+                    let level = f32::from(g[j]) * (1.0 / 255.0);
+                    let fitted = (p[3] * level + p[4]).clamp(p[5], p[6]);
+                    value += p[2] * (fitted - value);
+                }
+                *o = value;
+            }
+        });
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Against a direct evaluation of the bilinear formula, wrapping at the seam.
+    #[test]
+    fn bilinear_matches_direct_evaluation_and_wraps() {
+        let (h, w, out_h, out_w) = (4, 8, 12, 24);
+        let value = |i: usize, j: usize| (1 + i * 8 + j) as f32;
+        let mut planes = Vec::new();
+        for i in 0..h {
+            for j in 0..w {
+                planes.extend([value(i, j), 1.0]);
+            }
+        }
+        let mut out = vec![0.0; out_h * out_w];
+        upsample(&planes, 2, h, w, None, &mut out, out_h, out_w);
+        for (i, j) in [(0, 0), (5, 23), (11, 1), (6, 12)] {
+            let y = ((i as f64 + 0.5) / 3.0 - 0.5).clamp(0.0, 3.0);
+            let x = (j as f64 + 0.5) / 3.0 - 0.5;
+            let (y0, x0) = (y.floor() as usize, x.floor());
+            let (fy, fx) = (y - y0 as f64, x - x0);
+            let y1 = (y0 + 1).min(3);
+            let col = |k: f64| (k as i64).rem_euclid(8) as usize;
+            let at = |r: usize, c: f64| f64::from(value(r, col(c)));
+            let top = at(y0, x0) * (1.0 - fx) + at(y0, x0 + 1.0) * fx;
+            let bottom = at(y1, x0) * (1.0 - fx) + at(y1, x0 + 1.0) * fx;
+            let expected = top * (1.0 - fy) + bottom * fy;
+            let got = f64::from(out[i * out_w + j]);
+            assert!(
+                (got - expected).abs() < 1e-4,
+                "({i}, {j}): {got} vs {expected}"
+            );
+        }
+    }
+
+    #[test]
+    fn invalid_where_validity_is_below_half() {
+        // Same size: every output pixel is its own source pixel; odd columns are invalid.
+        let row = [2.0, 1.0, 0.0, 0.0, 3.0, 1.0, 0.0, 0.0];
+        let planes: Vec<f32> = row.iter().chain(&row).copied().collect();
+        let mut out = vec![0.0; 8];
+        upsample(&planes, 2, 2, 4, None, &mut out, 2, 4);
+        assert_eq!((out[0], out[2], out[4]), (2.0, 3.0, 2.0));
+        assert!(out[1].is_nan() && out[3].is_nan() && out[7].is_nan());
+    }
+}
