@@ -334,9 +334,9 @@ def _from_network(
     guide: np.ndarray | None = None,
     upsample: str = "guided",
 ) -> EstimateResult:
-    """Do the rest of :func:`estimate` after the network: convert, stitch, upsample, masks,
-    sky, scale, depth.
+    """Do the rest of :func:`estimate` after the network (stitch, upsample, masks, scale).
 
+    Convert, stitch, upsample to the output's size, apply the masks and the sky, scale, depth.
     Split out so that an engine running the network elsewhere (m360.batch's Ray engine) makes
     the same bytes. ``timings`` holds the earlier stages; ``total`` is left to the caller.
     ``erp_shape`` is the output's shape; when the layout's is smaller (a working width),

@@ -17,7 +17,8 @@ wraps at longitude ±180° (column 0 neighbours column W − 1), following docs/
 The model is fitted on whole working-resolution arrays with OpenCV (box filters, min/max
 filters); the full-resolution pass is one parallel sweep in the core
 (``_core.upsample_planes``: at 72 MP from 4096, 1.1 s against 2.5 s for OpenCV warps plus
-numpy expressions on the same loaded 2-core machine, and with exact positions), which allocates nothing beyond the output.
+numpy expressions on the same loaded 2-core machine, and with exact positions), which allocates
+nothing beyond the output.
 """
 
 from __future__ import annotations
