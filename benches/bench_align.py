@@ -109,7 +109,7 @@ class CappedSolver:
 
     def run(self, cap: int) -> tuple[dict, np.ndarray]:
         """(level report, node values x in align_scipy's order) after at most ``cap`` steps."""
-        _, levels, grids = plan_align(self.plan, self.maps, [GRID], PAPER, self.solver, cap, 0.0)
+        _, levels, grids, _ = plan_align(self.plan, self.maps, [GRID], PAPER, self.solver, cap, 0.0)
         return levels[0], np.asarray(grids[0], np.float64).reshape(-1)
 
     def energy(self, cap: int) -> float:
@@ -187,7 +187,7 @@ def solver_race(
     lbfgs = CappedSolver(plan, maps, "lbfgs")
     newton = CappedSolver(plan, maps, "newton")
     # E*: Newton to convergence (tolerance 1e-9).
-    _, levels, grids = plan_align(plan, maps, [GRID], PAPER, "newton", NEWTON_CAP, 1e-9)
+    _, levels, grids, _ = plan_align(plan, maps, [GRID], PAPER, "newton", NEWTON_CAP, 1e-9)
     e_star, e_star_converged = float(levels[0]["energy"]), bool(levels[0]["converged"])
     e0 = lbfgs.energy(0)
     targets = [("m360 L-BFGS after 50 its", lbfgs.energy(50))]

@@ -52,7 +52,7 @@ from typing import Any
 from . import models as _models
 from ._validate import MAX_THREADS, integer
 from ._validate import threads as check_threads
-from .align import AlignSolver, Energy, Offsets
+from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
@@ -479,6 +479,7 @@ def run(
     smoothness: float | None = None,
     scale_weight: float | None = None,
     offsets: Offsets | None = None,
+    loss: Loss | None = None,
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     formats: Sequence[str] | str = ("npy",),
@@ -507,7 +508,7 @@ def run(
         picklable.
     align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
         The stitching options, as for :func:`m360.stitch`.
-    pole_cap_deg, smoothness, scale_weight, offsets, blend_options, options : optional
+    pole_cap_deg, smoothness, scale_weight, offsets, loss, blend_options, options : optional
         The stitching options, as for :func:`m360.stitch`.
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
@@ -560,6 +561,7 @@ def run(
         smoothness=smoothness,
         scale_weight=scale_weight,
         offsets=offsets,
+        loss=loss,
         blend_options=blend_options,
     )
     if on_outcome is not None and not callable(on_outcome):

@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from . import __version__, _core, batch, models, synthetic
-from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
+from .align import ALIGN_MODES, DEFAULT_LOSS, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
@@ -230,7 +230,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
 
     The help texts show the core's defaults.
     """
-    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["blend"]
+    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["poisson"]
     choices = _core.CHOICES
     schedules = "; ".join(
         f"{energy}: {','.join(f'{c}x{r}' for c, r in levels)}"
@@ -249,7 +249,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "--blend",
         choices=choices["blend"],
         default=None,
-        help=f"blending (default {blend['method']})",
+        help=f"blending (default {_core.DEFAULTS['blend']['method']})",
     )
     group.add_argument(
         "--energy", choices=choices["energy"], help=f"alignment energy (default {align['energy']})"
@@ -281,6 +281,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "smoothness": ", ".join(f"{e} {w[0]:g}" for e, w in ENERGY_WEIGHTS.items()),
         "scale_weight": ", ".join(f"{e} {w[1]:g}" for e, w in ENERGY_WEIGHTS.items()),
         "offsets": ", ".join(f"{e} {o}" for e, o in DEFAULT_OFFSETS.items()),
+        "loss": ", ".join(f"{e} {o}" for e, o in DEFAULT_LOSS.items()),
     }
     group.add_argument(
         "--smoothness",
@@ -296,6 +297,11 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "--offsets",
         choices=choices["offsets"],
         help=f"where the offset acts (default per energy: {per_energy['offsets']})",
+    )
+    group.add_argument(
+        "--loss",
+        choices=choices["loss"],
+        help=f"data-term loss (default per energy: {per_energy['loss']})",
     )
     group.add_argument(
         "--poisson-fidelity",
@@ -347,6 +353,7 @@ def _options(args: argparse.Namespace) -> StitchOptions:
         smoothness=args.smoothness,
         scale_weight=args.scale_weight,
         offsets=args.offsets,
+        loss=args.loss,
         blend_options={k: v for k, v in poisson.items() if v is not None} or None,
     )
 

@@ -50,6 +50,16 @@ impl Energy {
         }
     }
 
+    /// Default data-term loss: Cauchy for the normalized energy (content errors of one tangent
+    /// measured to halve the AbsRel, benches/bench_align.py), least squares for the paper's.
+    #[must_use]
+    pub fn default_loss(self) -> Loss {
+        match self {
+            Self::Normalized => Loss::Cauchy,
+            Self::Paper => Loss::Squared,
+        }
+    }
+
     /// Default offset space: perspective for the normalized energy, the paper's spherical.
     #[must_use]
     pub fn default_offsets(self) -> Offsets {
@@ -92,6 +102,67 @@ choice!(
         (Offsets::Spherical, "spherical"),
     ]
 );
+
+/// The loss on each overlap residual of the data term.
+///
+/// A robust loss is minimised by iteratively reweighted least squares: after each solve every
+/// sample gets the weight ψ(r)/r of its residual r, with the residuals' scale σ = 1.4826·median|r|
+/// (the MAD, robust to up to half the samples being wrong), and the level is solved again from
+/// where it stands, [`ROBUST_ROUNDS`] times. A content error of one tangent (a region the network
+/// got too near or too far, which its neighbours do not share) then stops pulling the grids of
+/// its neighbours: its samples' weights fall towards 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Loss {
+    /// Cauchy: ρ(r) = c²/2·ln(1 + (r/c)²), weight 1/(1 + (r/c)²), c = 2.385·σ (95 % efficiency
+    /// on gaussian residuals); outliers lose their pull entirely. The normalized energy's default.
+    Cauchy,
+    /// Huber: quadratic up to k = 1.345·σ, linear beyond, weight min(1, k/|r|); outliers keep a
+    /// bounded pull.
+    Huber,
+    /// Plain least squares r², as the paper (the paper energy's default).
+    Squared,
+}
+
+choice!(
+    Loss,
+    "loss",
+    [
+        (Loss::Cauchy, "cauchy"),
+        (Loss::Huber, "huber"),
+        (Loss::Squared, "squared"),
+    ]
+);
+
+/// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
+/// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
+pub const ROBUST_ROUNDS: usize = 3;
+
+/// Residual scale floor (standardised units): exact tangents have residuals near rounding, and a
+/// scale of 0 would weigh every sample 0.
+const MIN_ROBUST_SCALE: f64 = 1e-4;
+
+impl Loss {
+    /// IRLS weight of residual `r` at residual scale `sigma` (> 0).
+    #[inline]
+    #[must_use]
+    pub fn weight(self, r: f64, sigma: f64) -> f64 {
+        match self {
+            Self::Cauchy => {
+                let u = r / (2.385 * sigma);
+                1.0 / (1.0 + u * u)
+            }
+            Self::Huber => {
+                let k = 1.345 * sigma;
+                if r.abs() <= k {
+                    1.0
+                } else {
+                    k / r.abs()
+                }
+            }
+            Self::Squared => 1.0,
+        }
+    }
+}
 
 /// Weights and shape of one alignment level.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -225,6 +296,16 @@ impl Overlaps {
     #[must_use]
     pub fn len(&self) -> usize {
         self.a.len()
+    }
+
+    /// Sample k: (tangent a, pixel index in a, tangent b).
+    #[must_use]
+    pub fn sample(&self, k: usize) -> (usize, usize, usize) {
+        (
+            self.a[k] as usize,
+            self.pa[k] as usize,
+            self.b[k] as usize,
+        )
     }
 
     /// Whether there are no samples.
@@ -440,6 +521,12 @@ pub struct Problem {
     params: LevelParams,
     tangents: usize,
     samples: Vec<Sample>,
+    /// Index of each sample in the [`Overlaps`] it came from.
+    origin: Vec<u32>,
+    /// Per-sample weight of the data term (1 until [`Problem::reweight`]).
+    weights: Vec<f64>,
+    /// Σ weights: the data term is the weighted mean of r² (with all weights 1, the plain mean).
+    weight_total: f64,
     /// (node p, node q, weight): smoothness adds weight·((s_p − s_q)² + (o_p − o_q)²).
     edges: Vec<(u32, u32, f64)>,
     /// Weight of Σ 1/s.
@@ -475,7 +562,7 @@ impl Problem {
         let per = cols * rows;
         let tp = h * w;
         // Rayon's collect keeps the index order, so the samples are in overlap order.
-        let samples: Vec<Sample> = (0..overlaps.len())
+        let (origin, samples): (Vec<u32>, Vec<Sample>) = (0..overlaps.len())
             .into_par_iter()
             .filter_map(|k| {
                 let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
@@ -513,7 +600,7 @@ impl Problem {
                 let (ca, ra, ax, ay) =
                     grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
                 let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
-                Some(Sample {
+                Some((k as u32, Sample {
                     node_a: (a * per + ra * cols + ca) as u32,
                     node_b: (b * per + rb * cols + cb) as u32,
                     frac_a: [ax, ay],
@@ -527,9 +614,9 @@ impl Problem {
                     ),
                     db,
                     fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
-                })
+                }))
             })
-            .collect();
+            .unzip();
 
         // Smoothness edges between 4-neighbours, and the term weights.
         let (hx, hy) = (1.0 / (cols - 1) as f64, 1.0 / (rows - 1) as f64);
@@ -561,7 +648,10 @@ impl Problem {
         let mut problem = Self {
             params,
             tangents: n,
+            weights: vec![1.0; samples.len()],
+            weight_total: samples.len() as f64,
             samples,
+            origin,
             edges,
             scale_weight,
             gauge_weight: GAUGE,
@@ -591,7 +681,7 @@ impl Problem {
             })
             .collect();
         order.par_sort_unstable();
-        let two_over_z = 2.0 / self.samples().max(1) as f64;
+        let two_over_z = 2.0 / self.weight_total.max(f64::MIN_POSITIVE);
         let groups: Vec<&[(u64, u32)]> = order.chunk_by(|p, q| p.0 == q.0).collect();
         let group_blocks: Vec<([u32; 8], [f64; 256])> = groups
             .par_iter()
@@ -600,12 +690,14 @@ impl Problem {
                 let mut block = [0.0; 256];
                 for &(_, k) in *group {
                     let (coef_s, coef_o) = self.samples[k as usize].coefficients();
+                    let weight = self.weights[k as usize];
                     let mut c = [0.0; 16];
                     for j in 0..8 {
                         c[2 * j] = coef_s[j];
                         c[2 * j + 1] = coef_o[j];
                     }
                     for (u, &cu) in c.iter().enumerate() {
+                        let cu = weight * cu;
                         for (b, &cv) in block[16 * u + u..16 * u + 16].iter_mut().zip(&c[u..]) {
                             *b += cu * cv;
                         }
@@ -726,6 +818,56 @@ impl Problem {
         )
     }
 
+    /// The data-term weight of each sample (all 1 until [`Problem::reweight`]).
+    #[must_use]
+    pub fn weights(&self) -> &[f64] {
+        &self.weights
+    }
+
+    /// Index of each sample in the [`Overlaps`] the problem was built from.
+    #[must_use]
+    pub fn origins(&self) -> &[u32] {
+        &self.origin
+    }
+
+    /// Residual of every sample at `x`, in sample order.
+    #[must_use]
+    pub fn residuals(&self, x: &[f64]) -> Vec<f64> {
+        (0..self.samples())
+            .into_par_iter()
+            .map(|k| self.residual(k, x))
+            .collect()
+    }
+
+    /// Set every sample's weight to `loss`'s IRLS weight of its residual at `x`, with the scale
+    /// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]), and reassemble the Hessian.
+    /// Returns σ.
+    pub fn reweight(&mut self, x: &[f64], loss: Loss) -> f64 {
+        let residuals = self.residuals(x);
+        let mut magnitudes: Vec<f64> = residuals.iter().map(|r| r.abs()).collect();
+        let sigma = if magnitudes.is_empty() {
+            1.0
+        } else {
+            let mid = magnitudes.len() / 2;
+            let (_, &mut median, _) = magnitudes.select_nth_unstable_by(mid, f64::total_cmp);
+            (1.4826 * median).max(MIN_ROBUST_SCALE)
+        };
+        self.set_weights(residuals.iter().map(|&r| loss.weight(r, sigma)).collect());
+        sigma
+    }
+
+    /// Set the data term's per-sample weights (≥ 0, one per sample) and reassemble.
+    ///
+    /// # Panics
+    /// If `weights` does not have one entry per sample.
+    pub fn set_weights(&mut self, weights: Vec<f64>) {
+        assert_eq!(weights.len(), self.samples(), "one weight per sample");
+        // Sequential sum: the same for any thread count.
+        self.weight_total = weights.iter().sum();
+        self.weights = weights;
+        self.assemble();
+    }
+
     /// Identity fields: s = 1, o = 0.
     #[must_use]
     pub fn identity(&self) -> Vec<f64> {
@@ -764,11 +906,11 @@ impl Problem {
             .into_par_iter()
             .map(|c| {
                 (c * CHUNK..((c + 1) * CHUNK).min(samples))
-                    .map(|k| self.residual(k, x).powi(2))
+                    .map(|k| self.weights[k] * self.residual(k, x).powi(2))
                     .sum()
             })
             .collect();
-        let mut energy = partial.iter().sum::<f64>() / samples.max(1) as f64;
+        let mut energy = partial.iter().sum::<f64>() / self.weight_total.max(f64::MIN_POSITIVE);
         for &(p, q, wgt) in &self.edges {
             let (p, q) = (2 * p as usize, 2 * q as usize);
             let (ds, dof) = (x[p] - x[q], x[p + 1] - x[q + 1]);
@@ -1156,7 +1298,61 @@ pub struct Level {
     pub build_seconds: f64,
     /// Seconds spent solving it.
     pub solve_seconds: f64,
+    /// The data-term weight of each valid overlap sample after the last reweighting (all 1
+    /// with [`Loss::Squared`]).
+    pub sample_weights: Vec<f32>,
+    /// Index in the [`Overlaps`] of each entry of `sample_weights`.
+    pub sample_origins: Vec<u32>,
+    /// The residual scale σ of the last reweighting (0 with [`Loss::Squared`]).
+    pub robust_scale: f64,
 }
+
+/// What an alignment could do with the overlap samples it had.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fallback {
+    /// Every level of the schedule ran.
+    None,
+    /// Some levels had too few samples for their grid and were left out; the coarser ones ran.
+    CoarserGrid,
+    /// No level of the schedule had enough samples; one per-tangent affine level ran (a 2x2
+    /// grid held flat by a strong smoothness).
+    Affine,
+    /// Too few samples even for a per-tangent affine map: the tangents are only standardised
+    /// (each one's median and mean absolute deviation matched), not aligned.
+    Unaligned,
+}
+
+impl Fallback {
+    /// The name reports and sidecars use.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::CoarserGrid => "coarser_grid",
+            Self::Affine => "affine",
+            Self::Unaligned => "unaligned",
+        }
+    }
+}
+
+/// The result of [`align`]: the levels solved and the fallback taken.
+#[derive(Debug, Clone)]
+pub struct Alignment {
+    /// The levels that ran, coarse to fine.
+    pub levels: Vec<Level>,
+    /// Whether the schedule had to be cut short for lack of overlap samples.
+    pub fallback: Fallback,
+}
+
+/// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
+/// (all tangents together); below it the data cannot support the grid. (The smoothness term
+/// carries sparse data between samples: the paper's 16x14 level at ERP width 512 has about one
+/// sample per two nodes and still aligns.)
+pub const NODES_PER_SAMPLE: usize = 4;
+
+/// Smoothness of the per-tangent affine fallback level: with it the 2x2 grid stays flat (one
+/// scale and offset per tangent) to well below the data's resolution.
+const AFFINE_SMOOTHNESS: f64 = 1e4;
 
 /// Options of a whole alignment, every default resolved.
 #[derive(Debug, Clone, PartialEq)]
@@ -1181,6 +1377,8 @@ pub struct Options {
     pub scale_weight: f64,
     /// Where the offset acts.
     pub offsets: Offsets,
+    /// The data term's loss.
+    pub loss: Loss,
 }
 
 impl Options {
@@ -1204,6 +1402,7 @@ impl Options {
             smoothness,
             scale_weight,
             offsets: energy.default_offsets(),
+            loss: energy.default_loss(),
         }
     }
 
@@ -1280,61 +1479,120 @@ impl Default for Options {
 ///
 /// Each tangent is standardised, then every level is solved from identity fields on the maps
 /// as the previous level left them, and its fields are applied before the next level (so no
-/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md).
+/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md). With a
+/// robust [`Loss`] each level is reweighted and solved again [`ROBUST_ROUNDS`] times.
 /// Finally the common standardisation is undone with the mean median and spread of the inputs,
 /// so the result is in the inputs' range.
 ///
+/// Degrades instead of failing: a level with fewer than one valid overlap sample per
+/// [`NODES_PER_SAMPLE`] grid nodes is left out; when no level is left, one per-tangent affine level runs
+/// if the samples support it, else the tangents stay standardised only ([`Fallback`]).
+///
 /// # Errors
-/// Those of [`standardize`] and [`solve`], and [`CoreError::Degenerate`] when the tangents
-/// have no valid overlapping pixels.
+/// Those of [`standardize`] and [`solve`].
 pub fn align(
     layout: &Layout,
     maps: &mut [f32],
     overlaps: &Overlaps,
     options: &Options,
-) -> Result<Vec<Level>> {
+) -> Result<Alignment> {
     let stats = standardize(layout, maps, options.offsets)?;
+    let n = layout.cameras.len();
     let mut levels = Vec::with_capacity(options.levels.len());
+    let mut skipped = false;
     for params in &options.level_params() {
         let t0 = std::time::Instant::now();
         let problem = Problem::new(layout, maps, overlaps, *params);
-        if problem.samples() == 0 {
-            return Err(CoreError::Degenerate(
-                "the tangents have no valid overlapping pixels to align".into(),
-            ));
+        if problem.samples() * NODES_PER_SAMPLE < n * params.cols * params.rows {
+            skipped = true;
+            continue;
         }
-        let t1 = std::time::Instant::now();
-        let (mut fields, report) = solve(
-            &problem,
-            &problem.identity(),
-            options.solver,
-            options.iterations,
-            options.tolerance,
-        )?;
-        // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
-        // the maps in standardised units from level to level (a global factor aligns nothing).
-        // The paper applies its fields as they are.
-        if params.energy == Energy::Normalized {
-            let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
-            for v in &mut fields {
-                *v /= mean_scale;
-            }
-        }
-        apply_fields(layout, maps, &fields, params);
-        levels.push(Level {
-            params: *params,
-            fields,
-            report,
-            build_seconds: (t1 - t0).as_secs_f64(),
-            solve_seconds: t1.elapsed().as_secs_f64(),
-        });
+        levels.push(solve_level(layout, maps, problem, options, t0)?);
     }
-    let n = stats.len() as f64;
-    let median = stats.iter().map(|s| s.0).sum::<f64>() / n;
-    let spread = stats.iter().map(|s| s.1).sum::<f64>() / n;
+    let mut fallback = if skipped {
+        Fallback::CoarserGrid
+    } else {
+        Fallback::None
+    };
+    if levels.is_empty() {
+        let t0 = std::time::Instant::now();
+        let mut params = options.level_params()[0];
+        params.cols = 2;
+        params.rows = 2;
+        params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
+        let problem = Problem::new(layout, maps, overlaps, params);
+        if problem.samples() * NODES_PER_SAMPLE >= n * 4 {
+            levels.push(solve_level(layout, maps, problem, options, t0)?);
+            fallback = Fallback::Affine;
+        } else {
+            fallback = Fallback::Unaligned;
+        }
+    }
+    let count = stats.len() as f64;
+    let median = stats.iter().map(|s| s.0).sum::<f64>() / count;
+    let spread = stats.iter().map(|s| s.1).sum::<f64>() / count;
     maps.par_iter_mut()
         .for_each(|v| *v = (f64::from(*v) * spread + median) as f32);
-    Ok(levels)
+    Ok(Alignment { levels, fallback })
+}
+
+/// Solve one level's `problem` (built from `t0` on), reweighting it for a robust loss, and
+/// apply its fields to `maps`.
+fn solve_level(
+    layout: &Layout,
+    maps: &mut [f32],
+    mut problem: Problem,
+    options: &Options,
+    t0: std::time::Instant,
+) -> Result<Level> {
+    let params = problem.params;
+    let t1 = std::time::Instant::now();
+    let (mut fields, mut report) = solve(
+        &problem,
+        &problem.identity(),
+        options.solver,
+        options.iterations,
+        options.tolerance,
+    )?;
+    let mut robust_scale = 0.0;
+    if options.loss != Loss::Squared {
+        for _ in 0..ROBUST_ROUNDS {
+            robust_scale = problem.reweight(&fields, options.loss);
+            let (next, next_report) = solve(
+                &problem,
+                &fields,
+                options.solver,
+                options.iterations,
+                options.tolerance,
+            )?;
+            fields = next;
+            report = SolveReport {
+                iterations: report.iterations + next_report.iterations,
+                initial_energy: report.initial_energy,
+                ..next_report
+            };
+        }
+    }
+    // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
+    // the maps in standardised units from level to level (a global factor aligns nothing).
+    // The paper applies its fields as they are.
+    if params.energy == Energy::Normalized {
+        let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
+        for v in &mut fields {
+            *v /= mean_scale;
+        }
+    }
+    apply_fields(layout, maps, &fields, &params);
+    Ok(Level {
+        params,
+        fields,
+        report,
+        build_seconds: (t1 - t0).as_secs_f64(),
+        solve_seconds: t1.elapsed().as_secs_f64(),
+        sample_weights: problem.weights().iter().map(|&w| w as f32).collect(),
+        sample_origins: problem.origins().to_vec(),
+        robust_scale,
+    })
 }
 
 #[cfg(test)]

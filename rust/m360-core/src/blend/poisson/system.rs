@@ -139,6 +139,8 @@ fn target_of(stats: &RowStats, j: usize, fidelity: Fidelity) -> f64 {
         Fidelity::Nearest => stats.nearest[j],
         Fidelity::Frustum => stats.weighted[j],
         Fidelity::Mean => stats.mean[j],
+        // Given as an image by the caller (Target::Given).
+        Fidelity::Consensus => stats.weighted[j],
     })
 }
 
