@@ -50,7 +50,7 @@ from pathlib import Path, PurePath
 from typing import Any
 
 from . import models as _models
-from ._validate import MAX_THREADS, integer
+from ._validate import MAX_THREADS, flag, integer
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
@@ -310,6 +310,7 @@ class _Settings:
     fingerprint: dict[str, Any]
     run_id: str
     threads: int | None
+    confidence: bool = False
 
 
 class _Worker:
@@ -364,6 +365,7 @@ class _Worker:
                     formats=s.formats,
                     preview=s.preview,
                     extra={"input": source, "batch": batch},
+                    confidence=s.confidence,
                 )
                 t_write = time.perf_counter()
             except M360Error as exc:
@@ -484,6 +486,7 @@ def run(
     options: StitchOptions | None = None,
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
+    confidence: bool = False,
     workers: int = 1,
     threads: int | None = None,
     resume: bool = True,
@@ -512,6 +515,8 @@ def run(
         The stitching options, as for :func:`m360.stitch`.
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
+    confidence : bool
+        Also write each image's confidence map (``STEM.confidence.EXT``, see :func:`m360.save`).
     workers : int
         Processes working on images at once (1 = in this process).
     threads : int, optional
@@ -587,10 +592,16 @@ def run(
         fix_aspect=bool(fix_aspect),
         resume=bool(resume),
         fingerprint=fingerprint(
-            estimator, opts, chosen, preview=bool(preview), fix_aspect=bool(fix_aspect)
+            estimator,
+            opts,
+            chosen,
+            preview=bool(preview),
+            fix_aspect=bool(fix_aspect),
+            confidence=flag(confidence, "confidence"),
         ),
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
+        confidence=confidence,
     )
     if workers > 1:
         _check_picklable(settings)
@@ -656,6 +667,7 @@ def fingerprint(
     *,
     preview: bool,
     fix_aspect: bool,
+    confidence: bool = False,
 ) -> dict[str, Any]:
     """Every option that can change a byte of an image's outputs (not threads or workers).
 
@@ -674,6 +686,9 @@ def fingerprint(
         The array formats written.
     preview, fix_aspect : bool
         Whether the preview is written and the aspect fixed.
+    confidence : bool
+        Whether the confidence map is written (recorded only when it is, so the fingerprints
+        of runs without it are unchanged).
 
     Returns
     -------
@@ -695,13 +710,16 @@ def fingerprint(
             std=[float(v) for v in estimator.std],
             providers=list(estimator.providers),
         )
-    return {
+    result = {
         "model": model,
         "stitch": options.as_dict(),
         "formats": sorted(formats),
         "preview": bool(preview),
         "fix_aspect": bool(fix_aspect),
     }
+    if confidence:
+        result["confidence"] = True
+    return result
 
 
 def _check_picklable(settings: _Settings) -> None:

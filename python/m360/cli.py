@@ -83,6 +83,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
+    run.add_argument(
+        "--confidence",
+        action="store_true",
+        help="also write OUT/STEM.confidence.EXT (overlap disagreement left, lower = better)",
+    )
     run.add_argument("--workers", type=int, default=1, help="processes working at once")
     run.add_argument(
         "--threads",
@@ -400,6 +405,7 @@ def _run(args: argparse.Namespace) -> int:
         options=_options(args),
         formats=args.formats,
         preview=not args.no_preview,
+        confidence=args.confidence,
         workers=args.workers,
         threads=args.threads,
         resume=args.resume,

@@ -301,11 +301,7 @@ impl Overlaps {
     /// Sample k: (tangent a, pixel index in a, tangent b).
     #[must_use]
     pub fn sample(&self, k: usize) -> (usize, usize, usize) {
-        (
-            self.a[k] as usize,
-            self.pa[k] as usize,
-            self.b[k] as usize,
-        )
+        (self.a[k] as usize, self.pa[k] as usize, self.b[k] as usize)
     }
 
     /// Whether there are no samples.
@@ -378,11 +374,13 @@ fn offset_factor(offsets: Offsets, cam: &crate::TangentCamera, x: f64, y: f64) -
 /// Standardise each tangent in place to (d − median)/mean|d − median| over its finite values,
 /// measured in the space where offsets act (`offsets`: perspective values are d·|q|), so that
 /// standardising is itself one of the affine maps the alignment can represent.
-/// Returns the (median, spread) used per tangent; a tangent without finite values or with zero
-/// spread is an error naming it.
+/// Returns the (median, spread) used per tangent. A constant tangent (zero spread: a network
+/// that failed on a featureless tile) is only shifted to median 0 (its spread is returned as 0):
+/// its
+/// disagreement with its neighbours is left to the robust loss and the blend, not an error.
 ///
 /// # Errors
-/// [`CoreError::Degenerate`] naming a tangent without finite values or with zero spread.
+/// [`CoreError::Degenerate`] naming a tangent without finite values.
 pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
     let (h, w) = layout.tangent_shape();
     let factors = FactorTable::new(layout, offsets);
@@ -407,11 +405,7 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
     for (t, s) in stats.into_iter().enumerate() {
         match s {
             Some((m, spread)) if spread > 0.0 && spread.is_finite() => out.push((m, spread)),
-            Some(_) => {
-                return Err(CoreError::Degenerate(format!(
-                    "tangent {t} is constant: it has no disparity variation to align"
-                )))
-            }
+            Some((m, _)) => out.push((m, 0.0)),
             None => {
                 return Err(CoreError::Degenerate(format!(
                     "tangent {t} has no valid pixel (all NaN or masked)"
@@ -424,7 +418,7 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
         |f_row, (face_row, row)| {
             let (t, y) = (face_row / h, face_row % h);
             let (m, spread) = out[t];
-            let inv = 1.0 / spread;
+            let inv = if spread > 0.0 { 1.0 / spread } else { 1.0 };
             factors.row(t, y, f_row);
             for (v, f) in row.iter_mut().zip(f_row.iter()) {
                 *v = ((f64::from(*v) - m * f) * inv) as f32;
@@ -600,21 +594,24 @@ impl Problem {
                 let (ca, ra, ax, ay) =
                     grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
                 let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
-                Some((k as u32, Sample {
-                    node_a: (a * per + ra * cols + ca) as u32,
-                    node_b: (b * per + rb * cols + cb) as u32,
-                    frac_a: [ax, ay],
-                    frac_b: [bx, by],
-                    da: f64::from(da),
-                    fa: offset_factor(
-                        params.offsets,
-                        &layout.cameras[a],
-                        (pa % w) as f64,
-                        (pa / w) as f64,
-                    ),
-                    db,
-                    fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
-                }))
+                Some((
+                    k as u32,
+                    Sample {
+                        node_a: (a * per + ra * cols + ca) as u32,
+                        node_b: (b * per + rb * cols + cb) as u32,
+                        frac_a: [ax, ay],
+                        frac_b: [bx, by],
+                        da: f64::from(da),
+                        fa: offset_factor(
+                            params.offsets,
+                            &layout.cameras[a],
+                            (pa % w) as f64,
+                            (pa / w) as f64,
+                        ),
+                        db,
+                        fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
+                    },
+                ))
             })
             .unzip();
 
@@ -1530,7 +1527,13 @@ pub fn align(
     }
     let count = stats.len() as f64;
     let median = stats.iter().map(|s| s.0).sum::<f64>() / count;
-    let spread = stats.iter().map(|s| s.1).sum::<f64>() / count;
+    // Constant tangents (spread 0) say nothing about the scale.
+    let varied = stats.iter().filter(|s| s.1 > 0.0).count();
+    let spread = if varied == 0 {
+        1.0
+    } else {
+        stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
+    };
     maps.par_iter_mut()
         .for_each(|v| *v = (f64::from(*v) * spread + median) as f32);
     Ok(Alignment { levels, fallback })
@@ -1663,6 +1666,122 @@ mod tests {
     }
 
     #[test]
+    fn weighted_gradient_matches_finite_differences() {
+        for energy in [Energy::Paper, Energy::Normalized] {
+            let (_, _, mut problem) = setup(energy, 4, 3);
+            let weights = (0..problem.samples()).map(|k| random(7, k)).collect();
+            problem.set_weights(weights);
+            let x: Vec<f64> = (0..problem.len())
+                .map(|i| {
+                    if i % 2 == 0 {
+                        0.7 + 0.6 * random(3, i)
+                    } else {
+                        random(4, i) - 0.5
+                    }
+                })
+                .collect();
+            let mut g = vec![0.0; x.len()];
+            let e = problem.energy(&x, Some(&mut g));
+            // The data term is the weighted mean of r², independently of the assembled Hessian.
+            let r = problem.residuals(&x);
+            let w = problem.weights();
+            let data = r.iter().zip(w).map(|(r, w)| w * r * r).sum::<f64>() / w.iter().sum::<f64>();
+            let unweighted = {
+                let mut p = problem.clone();
+                p.set_weights(vec![0.0; p.samples()]);
+                p.energy(&x, None)
+            };
+            assert!(
+                (e - (unweighted + data)).abs() <= 1e-9 * e.abs(),
+                "{e} vs {data}"
+            );
+            for i in (0..x.len()).step_by(7) {
+                let h = 1e-6;
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i] += h;
+                xm[i] -= h;
+                let fd = (problem.energy(&xp, None) - problem.energy(&xm, None)) / (2.0 * h);
+                let rel = (fd - g[i]).abs() / g[i].abs().max(1e-3);
+                assert!(rel < 1e-6, "{energy:?} unknown {i}: {} vs fd {fd}", g[i]);
+            }
+        }
+    }
+
+    fn cam_shape(cam: &crate::TangentCamera) -> (usize, usize) {
+        (cam.height, cam.width)
+    }
+
+    #[test]
+    fn reweighting_gives_planted_outliers_small_weights() {
+        for loss in [Loss::Cauchy, Loss::Huber] {
+            // Tangents that agree up to a per-tangent affine map in spherical disparity.
+            let layout = Layout::icosahedron(512, 0.3, None).expect("layout");
+            let mut maps: Vec<f32> = layout
+                .cameras
+                .iter()
+                .enumerate()
+                .flat_map(|(t, cam)| {
+                    let (h, w) = cam_shape(cam);
+                    let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
+                    (0..h * w).map(move |p| {
+                        let d = cam.pixel_direction((p % w) as f64, (p / w) as f64);
+                        (sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z) + sh) as f32
+                    })
+                })
+                .collect();
+            standardize(&layout, &mut maps, Offsets::Spherical).expect("standardize");
+            let (h, w) = layout.tangent_shape();
+            // A disc in tangent 5, in its overlap with its left neighbour, off by 2 standardised
+            // units (a content error).
+            let inside = |p: usize| {
+                let (x, y) = (
+                    (p % w) as f64 - w as f64 / 10.0,
+                    (p / w) as f64 - h as f64 / 2.0,
+                );
+                x * x + y * y < (w as f64 / 6.0).powi(2)
+            };
+            for p in (0..h * w).filter(|&p| inside(p)) {
+                maps[5 * h * w + p] += 2.0;
+            }
+            let overlaps = Overlaps::build(&layout, 0.1, 0.0);
+            // A 2x2 grid cannot bend around the disc, so the disc stays in the residuals.
+            let params = LevelParams {
+                cols: 2,
+                rows: 2,
+                energy: Energy::Normalized,
+                smoothness: 1.0,
+                scale_weight: 0.01,
+                offsets: Offsets::Spherical,
+            };
+            let mut problem = Problem::new(&layout, &maps, &overlaps, params);
+            let mut x = problem.identity();
+            for _ in 0..3 {
+                x = solve(&problem, &x, Solver::Newton, 100, 1e-9)
+                    .expect("solve")
+                    .0;
+                let sigma = problem.reweight(&x, loss);
+                assert!(sigma > 0.0);
+            }
+            let (mut planted, mut clean) = (Vec::new(), Vec::new());
+            for (&k, &wgt) in problem.origins().iter().zip(problem.weights()) {
+                let (a, pa, b) = overlaps.sample(k as usize);
+                if a == 5 && inside(pa) {
+                    planted.push(wgt);
+                } else if a != 5 && b != 5 {
+                    clean.push(wgt);
+                }
+            }
+            let median = |v: &mut Vec<f64>| {
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            };
+            assert!(planted.len() >= 10, "{}", planted.len());
+            let (mp, mc) = (median(&mut planted), median(&mut clean));
+            assert!(mp < 0.2 && mc > 0.8, "{loss:?}: planted {mp}, clean {mc}");
+        }
+    }
+
+    #[test]
     fn newton_and_lbfgs_reach_the_same_minimum() {
         let (_, _, problem) = setup(Energy::Normalized, 4, 3);
         let x0 = problem.identity();
@@ -1735,7 +1854,7 @@ mod tests {
     }
 
     #[test]
-    fn standardize_rejects_empty_and_constant_tangents() {
+    fn standardize_rejects_empty_tangents_and_shifts_constant_ones() {
         let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
         let (h, w) = layout.tangent_shape();
         let mut maps: Vec<f32> = (0..20 * h * w).map(|i| (i % 97) as f32).collect();
@@ -1743,7 +1862,12 @@ mod tests {
         let err = standardize(&layout, &mut maps, Offsets::Spherical).expect_err("tangent 3");
         assert!(matches!(err, CoreError::Degenerate(m) if m.contains("tangent 3")));
         let mut flat = vec![2.0f32; 20 * h * w];
-        assert!(standardize(&layout, &mut flat, Offsets::Spherical).is_err());
+        let stats = standardize(&layout, &mut flat, Offsets::Spherical).expect("constant");
+        assert!(
+            stats.iter().all(|&(m, s)| m == 2.0 && s == 0.0),
+            "{stats:?}"
+        );
+        assert!(flat.iter().all(|&v| v == 0.0));
     }
 
     #[test]

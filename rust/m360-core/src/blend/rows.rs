@@ -440,7 +440,9 @@ pub fn consensus_blend(
 ) -> f32 {
     let (eh, ew) = (layout.erp_height, layout.erp_width);
     assert!(disparity.len() == eh * ew);
-    assert!(confidence.as_ref().is_none_or(|s| s.len() == disparity.len()));
+    assert!(confidence
+        .as_ref()
+        .is_none_or(|s| s.len() == disparity.len()));
     // σ: rows in parallel, their subsamples concatenated in row order (thread-count independent).
     let distances: Vec<Vec<f32>> = (0..eh)
         .into_par_iter()
