@@ -68,11 +68,11 @@ from . import _core
 __all__ = [
     "ALIGN_MODES",
     "DEFAULT_ITERATIONS",
+    "DEFAULT_LOSS",
     "DEFAULT_OFFSETS",
     "ENERGIES",
     "ENERGY_WEIGHTS",
     "LOSSES",
-    "DEFAULT_LOSS",
     "MULTISCALE",
     "OFFSETS",
     "SCHEDULES",
@@ -124,7 +124,9 @@ DEFAULT_OFFSETS: dict[str, str] = {
 
 
 #: The data-term loss by default for each energy.
-DEFAULT_LOSS: dict[str, str] = {energy: str(loss) for energy, loss in _core.DEFAULTS["losses"].items()}
+DEFAULT_LOSS: dict[str, str] = {
+    energy: str(loss) for energy, loss in _core.DEFAULTS["losses"].items()
+}
 
 
 class AlignLevelReport(TypedDict):

@@ -18,11 +18,12 @@ Methods
     ``"frustum"``. The ``confidence`` output is the disagreement left, √(Σ p·e²/(1 + (e/c)²) /
     Σ p) with p the frustum weights: a tangent voted down still marks its footprint there.
     Measured on synthetic rooms with content errors it beats ``"poisson"`` on AbsRel at about
-    half the time (benches/bench_blend.py; README).
+    half the time (benches/bench_align.py ``--robust``; README).
 ``"poisson"``
-    The paper's gradient-domain blend minimising ``Σ_a Σ_x ω_a(x)‖∇B(x) - ∇D_a(x)‖² + λ Σ_x (B(x) - T(x))²``
-    with ω_a the frustum weights (taken at each difference's midpoint, the mean of its two ends,
-    so both poles and both longitude directions are treated alike), forward differences on the
+    The paper's gradient-domain blend, minimising
+    ``Σ_a Σ_x ω_a(x)‖∇B(x) - ∇D_a(x)‖² + λ Σ_x (B(x) - T(x))²`` with ω_a the frustum weights
+    (taken at each difference's midpoint, the mean of its two ends, so both poles and both
+    longitude directions are treated alike), forward differences on the
     ERP grid (periodic in longitude, no edge across a pole), λ = ``lam`` and T the fidelity
     target; solved (matrix-free, float64, warm-started from the target) to a relative residual
     ≤ ``tolerance``. A solve that does not reach it raises :class:`m360.SolverError`.

@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ._validate import flag
 from .decode import (
     IMAGE_SUFFIXES,
     decode_image,
@@ -35,7 +36,6 @@ from .decode import (
     read_image,
     read_input_bytes,
 )
-from ._validate import flag
 from .errors import InputError, ReadError
 
 __all__ = [

@@ -55,8 +55,11 @@ class _StitchReportBase(TypedDict):
 
 
 class StitchReport(_StitchReportBase, total=False):
-    """Solver reports of one stitch: ``blend`` always, ``align`` (per level) and
-    ``align_fallback`` (what the overlap samples allowed, see :mod:`m360.align`) with alignment."""
+    """Solver reports of one stitch.
+
+    ``blend`` always; with alignment ``align`` (per level) and ``align_fallback`` (what the
+    overlap samples allowed, see :mod:`m360.align`).
+    """
 
     align: list[AlignLevelReport]
     align_fallback: str
@@ -202,8 +205,8 @@ def stitch(
         Alignment options (:mod:`m360.align`); None takes the core's default.
     blend_options : mapping, optional
         Options of ``blend="poisson"`` (which they select when ``blend`` is None):
-        ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (:mod:`m360.blend`). A solve that does not reach ``tolerance`` raises
-        :class:`m360.SolverError`.
+        ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (:mod:`m360.blend`).
+        A solve that does not reach ``tolerance`` raises :class:`m360.SolverError`.
     options : StitchOptions, optional
         All of the above at once (then leave the keywords at their defaults).
     return_details : bool

@@ -894,7 +894,7 @@ def _blur(d: np.ndarray, sigma: float) -> np.ndarray:
     den = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
     with np.errstate(invalid="ignore", divide="ignore"):
         out = num / den
-    return np.where(valid, out, np.nan)  # type: ignore[no-any-return]  # numpy stubs: Any
+    return np.where(valid, out, np.nan)
 
 
 def content_errors(

@@ -549,6 +549,10 @@ impl Problem {
     /// The problem of aligning `maps` (N·h·w, NaN = invalid) with `params` over `overlaps`.
     /// Samples whose a-pixel or any of the four b-neighbours is invalid are dropped.
     #[must_use]
+    #[expect(
+        clippy::too_many_lines,
+        reason = "sample filter, edges and weights of one problem read best together"
+    )]
     pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -1854,6 +1858,7 @@ mod tests {
     }
 
     #[test]
+    #[expect(clippy::float_cmp, reason = "a constant's median and shift are exact")]
     fn standardize_rejects_empty_tangents_and_shifts_constant_ones() {
         let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
         let (h, w) = layout.tangent_shape();

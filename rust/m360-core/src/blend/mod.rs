@@ -27,7 +27,7 @@ use crate::error::{CoreError, Result};
 use std::str::FromStr;
 
 /// How the tangents that see an ERP pixel are combined.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum Method {
     /// Gradient-domain blend (the paper's): frustum-weighted gradients of the tangents, held to a
     /// fidelity target with weight λ.
@@ -39,6 +39,7 @@ pub enum Method {
     /// Measured on synthetic rooms with content errors (benches/bench_blend.py) it beats the
     /// Poisson blend's AbsRel at about half its time, which on them differed from the frustum
     /// blend by a median relative 1e-5.
+    #[default]
     Consensus,
     /// Radially weighted mean.
     Radial,
@@ -87,12 +88,6 @@ impl Method {
             params.validate()?;
         }
         Ok(self)
-    }
-}
-
-impl Default for Method {
-    fn default() -> Self {
-        Self::Consensus
     }
 }
 

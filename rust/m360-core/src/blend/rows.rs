@@ -457,7 +457,7 @@ pub fn consensus_blend(
                     let cols = run.columns();
                     for (k, (&v, j)) in values.iter().zip(cols).enumerate() {
                         let seen_twice = stats.count[j] >= 2.0;
-                        if (run.start_tap as usize + k) % SCALE_STRIDE == 0
+                        if (run.start_tap as usize + k).is_multiple_of(SCALE_STRIDE)
                             && seen_twice
                             && v.is_finite()
                         {
