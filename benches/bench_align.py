@@ -34,6 +34,17 @@ Tables:
 Tangents are ray-cast exactly, then distorted per tangent as a network errs: scale ×[0.5, 2],
 shift ±30 % of the median, a smooth ±10 % multiplicative field and 1 % noise.
 
+With ``--robust`` only one table runs instead: robustness to content errors. On ``--scenes``
+rooms per size, under two distortions — the affine one above, and content errors
+(``m360.synthetic.content_errors``: 1-3 regions per tangent of 3-17 % of the tile, ±10-30 %,
+blur of 1 px per 2048 of ERP width) followed by the same affine one — the median AbsRel and
+median stitch time (alignment + blend) of: the defaults before robustness (least squares,
+Poisson blend), robust alignment alone (Cauchy loss), the consensus blend alone, both (the
+default), the frustum blend with least squares (what Poisson is compared with), Poisson with
+the consensus target, and the default with icosahedron layouts of larger padding (more
+overlap; the same 20 tangents, so the same network cost: 20 tiles × the stand-in's ~50 ms of
+benches/bench_estimate.py).
+
 Run: ``.venv/bin/python benches/bench_align.py [--sizes 2048 4096 8192] [--repeats 3]``.
 """
 
@@ -109,7 +120,7 @@ class CappedSolver:
 
     def run(self, cap: int) -> tuple[dict, np.ndarray]:
         """(level report, node values x in align_scipy's order) after at most ``cap`` steps."""
-        _, levels, grids = plan_align(self.plan, self.maps, [GRID], PAPER, self.solver, cap, 0.0)
+        _, levels, grids, _ = plan_align(self.plan, self.maps, [GRID], PAPER, self.solver, cap, 0.0)
         return levels[0], np.asarray(grids[0], np.float64).reshape(-1)
 
     def energy(self, cap: int) -> float:
@@ -187,7 +198,7 @@ def solver_race(
     lbfgs = CappedSolver(plan, maps, "lbfgs")
     newton = CappedSolver(plan, maps, "newton")
     # E*: Newton to convergence (tolerance 1e-9).
-    _, levels, grids = plan_align(plan, maps, [GRID], PAPER, "newton", NEWTON_CAP, 1e-9)
+    _, levels, grids, _ = plan_align(plan, maps, [GRID], PAPER, "newton", NEWTON_CAP, 1e-9)
     e_star, e_star_converged = float(levels[0]["energy"]), bool(levels[0]["converged"])
     e0 = lbfgs.energy(0)
     targets = [("m360 L-BFGS after 50 its", lbfgs.energy(50))]
@@ -300,6 +311,63 @@ def bench_size(
     return rows, level_rows, problem_rows, race_rows, json_rows
 
 
+#: (label, stitch keywords, icosahedron padding) of the robustness table.
+ROBUST_METHODS = [
+    ("before: least squares + poisson", {"loss": "squared", "blend": "poisson"}, 0.3),
+    ("robust alignment alone (cauchy + poisson)", {"blend": "poisson"}, 0.3),
+    ("consensus blend alone (least squares)", {"loss": "squared", "blend": "consensus"}, 0.3),
+    ("both: cauchy + consensus (default)", {}, 0.3),
+    ("least squares + frustum", {"loss": "squared", "blend": "frustum"}, 0.3),
+    ("cauchy + poisson, consensus target", {"blend_options": {"fidelity": "consensus"}}, 0.3),
+    ("default, padding 0.5", {}, 0.5),
+    ("default, padding 0.7", {}, 0.7),
+    ("default, padding 1.0", {}, 1.0),
+]
+
+
+def robust_table(sizes: list[int], scenes: int, repeats: int) -> list[list]:
+    """Median AbsRel and stitch seconds per (size, distortion, method) over ``scenes`` rooms."""
+    rows = []
+    for width in sizes:
+        results: dict[tuple[str, str], tuple[list[float], list[float]]] = {}
+        for seed in range(scenes):
+            scene = syn.room(seed)
+            depth = scene.distance(sph.erp_directions(width // 2, width))
+            inputs: dict[float, tuple[Any, list[tuple[str, np.ndarray]]]] = {}
+            for label, kwargs, padding in ROBUST_METHODS:
+                if padding not in inputs:  # ray cast and distort once per layout
+                    lay = m360.Layout.icosahedron(width, padding=padding)
+                    exact = syn.tangent_perspective_disparity(scene, lay.cameras)
+                    wrong = syn.content_errors(exact, seed + 200, blur=width / 2048)
+                    inputs[padding] = (lay, [
+                        (name, syn.distort(base, seed + 100, scale=(0.5, 2.0), shift=0.3,
+                                           field=0.1, noise=0.01))
+                        for name, base in (("affine", exact), ("content errors", wrong))
+                    ])  # fmt: skip
+                layout, distorted = inputs[padding]
+                for distortion, tiles in distorted:
+                    out: list[np.ndarray] = []
+
+                    def run(
+                        tiles: np.ndarray = tiles,
+                        kw: dict = kwargs,
+                        lay: Any = layout,
+                        out: list = out,
+                    ) -> None:
+                        out[:] = [m360.stitch(tiles, lay, **kw)]  # fmt: skip
+
+                    t = h.measure(run, repeats=repeats)
+                    err = m360.eval.depth_metrics(out[0], depth)["abs_rel"]
+                    acc = results.setdefault((distortion, label), ([], []))
+                    acc[0].append(err)
+                    acc[1].append(t.median)
+        for (distortion, label), (errs, times) in results.items():
+            rows.append([width, distortion, label, statistics.median(errs), max(errs),
+                         statistics.median(times)])  # fmt: skip
+        print(f"  done {width}", flush=True)
+    return rows
+
+
 def main() -> None:
     parser = h.bench_argparser(__doc__.splitlines()[0])
     parser.set_defaults(repeats=3)
@@ -317,8 +385,23 @@ def main() -> None:
     parser.add_argument(
         "--no-race", action="store_true", help="skip the time-to-energy solver comparison"
     )
+    parser.add_argument(
+        "--robust", action="store_true", help="only the robustness-to-content-errors table"
+    )
+    parser.add_argument("--scenes", type=int, default=4, help="rooms per size of --robust (4)")
     args = parser.parse_args()
     meta = h.metadata()
+    if args.robust:
+        rows = robust_table(args.sizes, args.scenes, args.repeats)
+        h.print_table(
+            f"robustness: median AbsRel (and worst scene) over {args.scenes} rooms and median "
+            f"stitch seconds (median of {args.repeats} runs per room), by distortion",
+            ["ERP", "distortion", "method", "AbsRel", "worst", "stitch s"],
+            rows,
+        )
+        if args.json:
+            h.write_json(args.json, rows, meta)
+        return
     print(
         f"m360 {m360.__version__} @ {meta.get('git_commit')}, {meta.get('cpu_model')}, "
         f"threads {m360.get_num_threads()}; median of {args.repeats} runs"

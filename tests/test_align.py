@@ -109,7 +109,10 @@ def test_details_report_and_grids() -> None:
 def test_converged_only_when_the_gradient_criterion_holds() -> None:
     lay = layout(512)
     tangents = syn.distort(tangent_disparity(1, 512), 3, field=0.1)
-    stopped = m360.stitch(tangents, lay, (8, 7), "mean", iterations=1, return_details=True)
+    # Least squares: one solve per level (a robust loss solves each level again per reweighting).
+    stopped = m360.stitch(
+        tangents, lay, (8, 7), "mean", iterations=1, loss="squared", return_details=True
+    )
     assert isinstance(stopped, m360.StitchResult)
     level = stopped.report["align"][0]
     assert level["iterations"] == 1
@@ -120,13 +123,17 @@ def test_converged_only_when_the_gradient_criterion_holds() -> None:
 def test_lbfgs_and_newton_reach_the_same_energy() -> None:
     lay = layout(512)
     tangents = syn.distort(tangent_disparity(2, 512), 4, field=0.1)
-    newton = m360.stitch(tangents, lay, (4, 3), "mean", solver="newton", return_details=True)
+    # Least squares: the robust loss's weights come from each solver's own first answer.
+    newton = m360.stitch(
+        tangents, lay, (4, 3), "mean", solver="newton", loss="squared", return_details=True
+    )
     lbfgs = m360.stitch(
         tangents,
         lay,
         (4, 3),
         "mean",
         solver="lbfgs",
+        loss="squared",
         iterations=20000,
         tolerance=1e-8,
         return_details=True,

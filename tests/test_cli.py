@@ -191,7 +191,8 @@ def test_run_passes_every_stitching_flag(
             "--input-size", "64", "96", "--align", "4x3,6x5", "--energy", "paper",
             "--solver", "lbfgs", "--iterations", "9", "--tolerance", "1e-5",
             "--sample-fraction", "0.02", "--pole-cap-deg", "2", "--smoothness", "3",
-            "--scale-weight", "0.05", "--offsets", "perspective", "--blend", "poisson",
+            "--scale-weight", "0.05", "--offsets", "perspective", "--loss", "huber",
+            "--blend", "poisson",
             "--fidelity", "nn", "--poisson-lam", "0.2", "--poisson-tolerance", "1e-5",
             "--poisson-iterations", "800", "--poisson-solver", "fused",
         ]
@@ -209,6 +210,7 @@ def test_run_passes_every_stitching_flag(
         "smoothness": 3.0,
         "scale_weight": 0.05,
         "offsets": "perspective",
+        "loss": "huber",
     }
     assert options["blend"] == {
         "method": "poisson",

@@ -79,7 +79,7 @@ def test_options_are_frozen_and_hand_out_copies() -> None:
 @pytest.mark.parametrize(
     ("kwargs", "match"),
     [
-        ({"blend": "bogus"}, r"choose one of [\"']poisson"),
+        ({"blend": "bogus"}, r"choose one of [\"']consensus"),
         ({"blend_options": {"lam": 0}}, "lam"),
         ({"blend_options": {"lam": True}}, "lam"),
         ({"blend_options": {"tolerance": 1e-20}}, "tolerance"),
@@ -212,7 +212,9 @@ def test_input_decoding_moved_but_io_still_has_it() -> None:
 
 def test_old_report_keys_are_gone() -> None:
     lay = layout(256)
-    res = m360.stitch(tangent_disparity(0, 256), lay, align="none", return_details=True)
+    res = m360.stitch(
+        tangent_disparity(0, 256), lay, align="none", blend="poisson", return_details=True
+    )
     report = res.report["blend"]
     assert report["method"] == "poisson" and "lam" in report
     assert "mode" not in report and "lambda" not in report
@@ -226,7 +228,7 @@ def test_cli_help_shows_the_cores_defaults(capsys: pytest.CaptureFixture[str]) -
 
     assert main(["run", "--help"]) == 0
     text = " ".join(capsys.readouterr().out.split())
-    blend = _core.DEFAULTS["blend"]
+    blend = _core.DEFAULTS["poisson"]
     for flag in (
         "--energy",
         "--solver",
@@ -246,7 +248,8 @@ def test_cli_help_shows_the_cores_defaults(capsys: pytest.CaptureFixture[str]) -
     ):
         assert flag in text
     assert f"default {blend['lam']:g}" in text and f"default {blend['solver']}" in text
-    assert f"default {blend['method']}" in text
+    assert f"default {_core.DEFAULTS['blend']['method']}" in text
+    assert "--loss" in text and f"normalized {_core.DEFAULTS['losses']['normalized']}" in text
 
 
 def test_cli_engine_ray_without_ray_is_a_usage_error(

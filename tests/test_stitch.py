@@ -163,9 +163,9 @@ def test_details() -> None:
     ("kwargs", "match"),
     [
         ({"align": "bogus"}, "not supported"),
-        ({"blend": "bogus"}, r"choose one of [\"']poisson"),
+        ({"blend": "bogus"}, r"choose one of [\"']consensus"),
         ({"blend": "mean", "blend_options": {"fidelity": "nn"}}, "blend='poisson' only"),
-        ({"blend": 3}, r"choose one of [\"']poisson"),
+        ({"blend": 3}, r"choose one of [\"']consensus"),
         ({"mask": np.ones((20, 2, 2), bool)}, "mask"),
         ({"mask": "yes"}, "mask"),
         ({"return_details": "yes"}, "return_details"),

@@ -19,12 +19,12 @@ __all__ = [
 ]
 __version__: str
 # Option names per kind, the first the default: blend, fidelity, poisson_solver, energy, solver,
-# offsets, weights.
+# offsets, loss, weights.
 CHOICES: dict[str, tuple[str, ...]]
 # max_threads, max_iterations, min_poisson_tolerance, max_pole_cap_deg.
 LIMITS: dict[str, Any]
-# align, blend (the resolved defaults), and per energy or solver: schedules, iterations,
-# weights (smoothness, scale_weight), offsets.
+# align, blend (the resolved defaults), poisson (the Poisson blend's options), and per energy or
+# solver: schedules, iterations, weights (smoothness, scale_weight), offsets, losses.
 DEFAULTS: dict[str, Any]
 
 def set_num_threads(threads: int | None = None) -> None: ...
@@ -62,7 +62,9 @@ class Plan:
     def ray_lengths(self) -> npt.NDArray[np.float32]: ...
     def align(
         self, maps: npt.NDArray[np.float32], align: dict[str, Any]
-    ) -> tuple[npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]]]: ...
+    ) -> tuple[
+        npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]], str
+    ]: ...
     def alignment_problem(
         self, maps: npt.NDArray[np.float32], grid: tuple[int, int], align: dict[str, Any]
     ) -> dict[str, Any]: ...

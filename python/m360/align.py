@@ -43,20 +43,37 @@ offsets
     disparity, which a spherical offset cannot represent exactly. ``"perspective"`` models
     D̃ = s·D + o/|q| (and standardises in perspective space); ``"spherical"`` is the paper's
     D̃ = s·D + o. None: perspective for the normalized energy, spherical for the paper's.
+loss
+    The loss on each overlap residual. ``"cauchy"`` (the normalized energy's default) and
+    ``"huber"`` are robust: each level is solved, every sample reweighted from its residual
+    (scale: 1.4826 × the median absolute residual) and solved again, three times, so a region
+    one tangent got wrong (a content error its neighbours do not share) stops pulling the grids.
+    ``"squared"``: least squares, the paper's (the paper energy's default). The weights are
+    reported per sample (``sample_weights``, ``sample_pixels`` in each level's report).
+
+When the tangents leave too few valid overlap samples for a level's grid (fewer than one per
+four grid nodes: a noisy or featureless panorama), the level is left out; when none is left, one
+per-tangent affine level runs if it can, else the tangents are only standardised. The stitch
+report's ``align_fallback`` says which (``"none"``, ``"coarser_grid"``, ``"affine"``,
+``"unaligned"``) and a warning is logged.
 """
 
 from __future__ import annotations
 
 from typing import Literal, TypedDict
 
+import numpy as np
+
 from . import _core
 
 __all__ = [
     "ALIGN_MODES",
     "DEFAULT_ITERATIONS",
+    "DEFAULT_LOSS",
     "DEFAULT_OFFSETS",
     "ENERGIES",
     "ENERGY_WEIGHTS",
+    "LOSSES",
     "MULTISCALE",
     "OFFSETS",
     "SCHEDULES",
@@ -65,6 +82,7 @@ __all__ = [
     "AlignMode",
     "AlignSolver",
     "Energy",
+    "Loss",
     "Offsets",
 ]
 
@@ -76,11 +94,14 @@ Energy = Literal["normalized", "paper"]
 AlignSolver = Literal["newton", "lbfgs"]
 #: Where the offset acts (the core's ``CHOICES["offsets"]``).
 Offsets = Literal["perspective", "spherical"]
+#: Losses of the data term (the core's ``CHOICES["loss"]``).
+Loss = Literal["cauchy", "huber", "squared"]
 
 ALIGN_MODES: tuple[str, ...] = ("multiscale", "none")
 ENERGIES: tuple[str, ...] = tuple(_core.CHOICES["energy"])
 SOLVERS: tuple[str, ...] = tuple(_core.CHOICES["solver"])
 OFFSETS: tuple[str, ...] = tuple(_core.CHOICES["offsets"])
+LOSSES: tuple[str, ...] = tuple(_core.CHOICES["loss"])
 #: What ``align="multiscale"`` runs for each energy: (cols, rows) nodes per level.
 SCHEDULES: dict[str, tuple[tuple[int, int], ...]] = {
     energy: tuple((int(c), int(r)) for c, r in levels)
@@ -103,6 +124,12 @@ DEFAULT_OFFSETS: dict[str, str] = {
 }
 
 
+#: The data-term loss by default for each energy.
+DEFAULT_LOSS: dict[str, str] = {
+    energy: str(loss) for energy, loss in _core.DEFAULTS["losses"].items()
+}
+
+
 class AlignLevelReport(TypedDict):
     """The solver's report of one alignment level (``StitchResult.report["align"][k]``)."""
 
@@ -115,3 +142,10 @@ class AlignLevelReport(TypedDict):
     samples: int
     build_seconds: float
     solve_seconds: float
+    #: The data term's loss and, for a robust one, the residual scale of the last reweighting.
+    loss: str
+    robust_scale: float
+    #: (K,) float32 weight of each valid overlap sample after the last reweighting, and (K, 3)
+    #: int64 where it is: (tangent a, pixel index row·w + col in a, tangent b).
+    sample_weights: np.ndarray
+    sample_pixels: np.ndarray

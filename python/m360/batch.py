@@ -59,9 +59,9 @@ from . import models as _models
 from ._gpano import place as place_crop
 from ._gpano import read_gpano
 from ._interrupt import MainThreadInterrupts, install_for_process
-from ._validate import MAX_THREADS, integer, one_of
+from ._validate import MAX_THREADS, flag, integer, one_of
 from ._validate import threads as check_threads
-from .align import AlignSolver, Energy, Offsets
+from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
@@ -333,6 +333,7 @@ class _Settings:
     scale: Any = None
     masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
     sky: str = "keep"
+    confidence: bool = False
 
 
 class _Worker:
@@ -490,6 +491,7 @@ def _write_job(
         preview=s.preview,
         extra={**records, "batch": {"fingerprint": s.fingerprint, "run": s.run_id}},
         rgb=rgb,
+        confidence=s.confidence,
     )
 
 
@@ -605,10 +607,12 @@ def run(
     smoothness: float | None = None,
     scale_weight: float | None = None,
     offsets: Offsets | None = None,
+    loss: Loss | None = None,
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
+    confidence: bool = False,
     workers: int = 1,
     threads: int | None = None,
     resume: bool = True,
@@ -639,10 +643,12 @@ def run(
         picklable.
     align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
         The stitching options, as for :func:`m360.stitch`.
-    pole_cap_deg, smoothness, scale_weight, offsets, blend_options, options : optional
+    pole_cap_deg, smoothness, scale_weight, offsets, loss, blend_options, options : optional
         The stitching options, as for :func:`m360.stitch`.
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
+    confidence : bool
+        Also write each image's confidence map (``STEM.confidence.EXT``, see :func:`m360.save`).
     workers : int
         Processes working on images at once (1 = in this process); with ``engine="ray"`` the
         number of model actors (one network session each).
@@ -699,6 +705,7 @@ def run(
     threads = check_threads(threads)
     chosen = check_formats(formats)
     masks = _check_masks(mask)
+    confidence = flag(confidence, "confidence")
     sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,
@@ -713,6 +720,7 @@ def run(
         smoothness=smoothness,
         scale_weight=scale_weight,
         offsets=offsets,
+        loss=loss,
         blend_options=blend_options,
     )
     if on_outcome is not None and not callable(on_outcome):
@@ -738,13 +746,19 @@ def run(
         fix_aspect=bool(fix_aspect),
         resume=bool(resume),
         fingerprint=fingerprint(
-            estimator, opts, chosen, preview=bool(preview), fix_aspect=bool(fix_aspect)
+            estimator,
+            opts,
+            chosen,
+            preview=bool(preview),
+            fix_aspect=bool(fix_aspect),
+            confidence=confidence,
         ),
         run_id=uuid.uuid4().hex[:12],
         threads=threads,
         scale=scale,
         masks=masks,
         sky=sky,
+        confidence=confidence,
     )
     # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
     # fingerprints of earlier runs stay valid).
@@ -868,6 +882,7 @@ def fingerprint(
     *,
     preview: bool,
     fix_aspect: bool,
+    confidence: bool = False,
 ) -> dict[str, Any]:
     """Every option that can change a byte of an image's outputs (not threads or workers).
 
@@ -886,6 +901,9 @@ def fingerprint(
         The array formats written.
     preview, fix_aspect : bool
         Whether the preview is written and the aspect fixed.
+    confidence : bool
+        Whether the confidence map is written (recorded only when it is, so the fingerprints
+        of runs without it are unchanged).
 
     Returns
     -------
@@ -907,13 +925,16 @@ def fingerprint(
             std=[float(v) for v in estimator.std],
             providers=list(estimator.providers),
         )
-    return {
+    result = {
         "model": model,
         "stitch": options.as_dict(),
         "formats": sorted(formats),
         "preview": bool(preview),
         "fix_aspect": bool(fix_aspect),
     }
+    if confidence:
+        result["confidence"] = True
+    return result
 
 
 def _check_picklable(settings: _Settings) -> None:

@@ -20,7 +20,7 @@ import numpy as np
 from . import __version__, _core, batch, models, synthetic
 from . import masks as m360_masks
 from . import scale as m360_scale
-from .align import ALIGN_MODES, DEFAULT_OFFSETS, ENERGY_WEIGHTS
+from .align import ALIGN_MODES, DEFAULT_LOSS, DEFAULT_OFFSETS, ENERGY_WEIGHTS
 from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
@@ -94,6 +94,11 @@ def main(argv: Sequence[str] | None = None) -> int:
         f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
+    run.add_argument(
+        "--confidence",
+        action="store_true",
+        help="also write OUT/STEM.confidence.EXT (overlap disagreement left, lower = better)",
+    )
     run.add_argument(
         "--workers",
         type=int,
@@ -308,7 +313,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
 
     The help texts show the core's defaults.
     """
-    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["blend"]
+    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["poisson"]
     choices = _core.CHOICES
     schedules = "; ".join(
         f"{energy}: {','.join(f'{c}x{r}' for c, r in levels)}"
@@ -327,7 +332,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "--blend",
         choices=choices["blend"],
         default=None,
-        help=f"blending (default {blend['method']})",
+        help=f"blending (default {_core.DEFAULTS['blend']['method']})",
     )
     group.add_argument(
         "--energy", choices=choices["energy"], help=f"alignment energy (default {align['energy']})"
@@ -359,6 +364,7 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "smoothness": ", ".join(f"{e} {w[0]:g}" for e, w in ENERGY_WEIGHTS.items()),
         "scale_weight": ", ".join(f"{e} {w[1]:g}" for e, w in ENERGY_WEIGHTS.items()),
         "offsets": ", ".join(f"{e} {o}" for e, o in DEFAULT_OFFSETS.items()),
+        "loss": ", ".join(f"{e} {o}" for e, o in DEFAULT_LOSS.items()),
     }
     group.add_argument(
         "--smoothness",
@@ -374,6 +380,11 @@ def _stitch_options(parser: argparse.ArgumentParser) -> None:
         "--offsets",
         choices=choices["offsets"],
         help=f"where the offset acts (default per energy: {per_energy['offsets']})",
+    )
+    group.add_argument(
+        "--loss",
+        choices=choices["loss"],
+        help=f"data-term loss (default per energy: {per_energy['loss']})",
     )
     group.add_argument(
         "--poisson-fidelity",
@@ -425,6 +436,7 @@ def _options(args: argparse.Namespace) -> StitchOptions:
         smoothness=args.smoothness,
         scale_weight=args.scale_weight,
         offsets=args.offsets,
+        loss=args.loss,
         blend_options={k: v for k, v in poisson.items() if v is not None} or None,
     )
 
@@ -500,6 +512,7 @@ def _run(args: argparse.Namespace) -> int:
         options=_options(args),
         formats=args.formats,
         preview=not args.no_preview,
+        confidence=args.confidence,
         workers=args.workers,
         threads=args.threads,
         resume=args.resume,

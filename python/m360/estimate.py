@@ -23,7 +23,7 @@ from . import memory as _memory
 from . import models as _models
 from ._compat import moved
 from ._validate import as_array, check_erp_shape, one_of
-from .align import AlignSolver, Energy, Offsets
+from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
 from .geometry import Layout, erp_to_tangents
@@ -135,6 +135,7 @@ def estimate(
     smoothness: float | None = None,
     scale_weight: float | None = None,
     offsets: Offsets | None = None,
+    loss: Loss | None = None,
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     layout: Layout | None = None,
@@ -163,9 +164,9 @@ def estimate(
         ``predict(tangents) -> (N, h, w)`` and ``output_kind``.
     align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
         The stitching options, as for :func:`m360.stitch`.
-    pole_cap_deg, smoothness, scale_weight, offsets, blend_options : optional
+    pole_cap_deg, smoothness, scale_weight, offsets, loss, blend_options : optional
         The stitching options, as for :func:`m360.stitch` (defaults: the core's, the method's
-        ``"multiscale"`` alignment and ``"poisson"`` blend).
+        ``"multiscale"`` alignment and ``"consensus"`` blend).
     options : StitchOptions, optional
         All stitching options at once (then leave their keywords at their defaults).
     layout : Layout, optional
@@ -218,6 +219,7 @@ def estimate(
         smoothness=smoothness,
         scale_weight=scale_weight,
         offsets=offsets,
+        loss=loss,
         blend_options=blend_options,
     )
     if layout is None:

@@ -25,6 +25,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from ._validate import flag
 from .decode import (
     IMAGE_SUFFIXES,
     decode_image,
@@ -338,6 +339,7 @@ def save(
     preview: bool = True,
     extra: Mapping[str, Any] | None = None,
     rgb: np.ndarray | None = None,
+    confidence: bool = False,
 ) -> dict[str, Path]:
     """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
 
@@ -367,6 +369,10 @@ def save(
         More JSON-serialisable fields for the sidecar.
     rgb : (H, W, 3) uint8, optional
         The panorama: colours of the 3D files.
+    confidence : bool
+        Also write ``result.confidence`` (the overlap disagreement left, in disparity units,
+        lower = more consistent; NaN = unseen) as ``STEM.confidence.EXT`` in every format, and
+        describe it in the sidecar.
 
     Returns
     -------
@@ -381,6 +387,17 @@ def save(
             q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
             for q in QUANTITIES
         }
+    flag(confidence, "confidence")
+    if confidence:
+        with np.errstate(over="ignore"):
+            arrays["confidence"] = np.ascontiguousarray(
+                _check_map(getattr(result, "confidence", None), "confidence"), dtype=np.float32
+            )
+        if arrays["confidence"].shape != arrays["disparity"].shape:
+            raise InputError(
+                f"result.confidence {arrays['confidence'].shape} and result.disparity "
+                f"{arrays['disparity'].shape} differ in shape"
+            )
     if arrays["disparity"].shape != arrays["depth"].shape:
         raise InputError(
             f"result.disparity {arrays['disparity'].shape} and result.depth "
@@ -389,7 +406,7 @@ def save(
     base = Path(stem)
     sidecar_path = base.with_name(base.name + ".json")
     written: dict[str, Path] = {}
-    files: dict[str, Any] = {q: {} for q in QUANTITIES}
+    files: dict[str, Any] = {q: {} for q in arrays}
     png16: dict[str, Any] = {}
     with contextlib.suppress(FileNotFoundError):
         sidecar_path.unlink()  # the old set is incomplete from here on
@@ -494,6 +511,16 @@ def _sidecar(
         "timings_s": {k: round(float(v), 6) for k, v in getattr(result, "timings", {}).items()},
         "valid_fraction": float(np.isfinite(disparity).mean()),
     }
+    if "confidence" in files:
+        sidecar["quantities"]["confidence"] = {
+            "meaning": "overlap disagreement left after blending (lower = more consistent)",
+            "units": "disparity units",
+            "dtype": "float32",
+            "invalid": "NaN (png16: 0)",
+        }
+    report = getattr(getattr(result, "stitch", None), "report", None)
+    if isinstance(report, Mapping) and "align_fallback" in report:
+        sidecar["alignment"] = {"fallback": report["align_fallback"]}
     if png16:
         sidecar["png16"] = png16
     if getattr(result, "scale", None) is not None:
@@ -621,7 +648,8 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     base = Path(stem)
     if not base.parent.is_dir():
         return []
-    names = [f"{base.name}.{q}{suffix}" for q in QUANTITIES for suffix in FORMAT_SUFFIXES.values()]
+    quantities = (*QUANTITIES, "confidence")
+    names = [f"{base.name}.{q}{suffix}" for q in quantities for suffix in FORMAT_SUFFIXES.values()]
     names += [f"{base.name}.preview.png", f"{base.name}.json"]
     names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
     removed = []

@@ -18,7 +18,7 @@ import numpy as np
 
 from . import _core
 from ._validate import count, real, text
-from .align import AlignSolver, Energy, Offsets
+from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod, Fidelity, PoissonSolver
 from .errors import InputError
 
@@ -29,7 +29,7 @@ AlignSpec = str | tuple[int, int] | Sequence[tuple[int, int]]
 
 _LIMIT_ITERATIONS = int(_core.LIMITS["max_iterations"])
 #: The Poisson keys of ``blend_options``, named by the core.
-_POISSON_KEYS = tuple(k for k in _core.DEFAULTS["blend"] if k != "method")
+_POISSON_KEYS = tuple(k for k in _core.DEFAULTS["poisson"] if k != "method")
 #: Old spellings of ``blend_options`` keys, still accepted with a DeprecationWarning.
 _RENAMED_BLEND_KEYS = {"tol": "tolerance", "max_iterations": "iterations"}
 
@@ -47,6 +47,7 @@ class AlignOptions(TypedDict):
     smoothness: float
     scale_weight: float
     offsets: Offsets
+    loss: Loss
 
 
 class _BlendMethodOnly(TypedDict):
@@ -79,15 +80,16 @@ class StitchOptions:
         ``"multiscale"`` (default: the energy's schedule), ``"none"`` (no alignment), one grid
         or a schedule of grids (see :mod:`m360.align`).
     blend : str, optional
-        Blend method (default: the core's, ``"poisson"``; see :mod:`m360.blend`).
+        Blend method (default: the core's, ``"consensus"``; see :mod:`m360.blend`).
     energy, solver, iterations, tolerance, sample_fraction : optional
         Alignment options; None takes the core's default (see :mod:`m360.align`).
-    pole_cap_deg, smoothness, scale_weight, offsets : optional
+    pole_cap_deg, smoothness, scale_weight, offsets, loss : optional
         Alignment options; None takes the core's default (see :mod:`m360.align`). Ignored with
         ``align="none"``.
     blend_options : mapping, optional
         Poisson options ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (see
-        :mod:`m360.blend`); refused for another method.
+        :mod:`m360.blend`); refused for another method; given without ``blend``, they select
+        ``"poisson"``.
 
     Raises
     ------
@@ -120,6 +122,7 @@ class StitchOptions:
         scale_weight: float | None = None,
         offsets: Offsets | None = None,
         blend_options: Mapping[str, Any] | None = None,
+        loss: Loss | None = None,
     ) -> None:
         levels = _levels(align)
         raw_align: dict[str, Any] | None = None
@@ -135,13 +138,15 @@ class StitchOptions:
                 "smoothness": _real(smoothness, "smoothness"),
                 "scale_weight": _real(scale_weight, "scale_weight"),
                 "offsets": _choice(offsets, "offsets", "offsets"),
+                "loss": _choice(loss, "loss", "loss"),
             }
             raw_align = {k: v for k, v in raw_align.items() if v is not None}
-        method = (
-            _core.CHOICES["blend"][0]
-            if blend is None
-            else text(blend, "blend", _core.CHOICES["blend"])
-        )
+        if blend is not None:
+            method = text(blend, "blend", _core.CHOICES["blend"])
+        elif blend_options:  # Poisson options without a method ask for the Poisson blend
+            method = "poisson"
+        else:
+            method = _core.CHOICES["blend"][0]
         raw_blend = {"method": method, **_blend_options(blend_options)}
         resolved_align, resolved_blend = _core.stitch_options(raw_align, raw_blend)
         self._set(resolved_align, resolved_blend)

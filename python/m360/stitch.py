@@ -7,6 +7,7 @@ docs/method.md.
 
 from __future__ import annotations
 
+import logging
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
@@ -18,13 +19,15 @@ from . import align as _align
 from . import blend as _blend
 from ._compat import moved, renamed
 from ._validate import as_array, check_shape, flag
-from .align import AlignLevelReport, AlignSolver, Energy, Offsets
+from .align import AlignLevelReport, AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod, BlendReport
 from .errors import InputError
 from .geometry import Layout, check_tangents, plan_for
 from .options import AlignSpec, StitchOptions, build
 
 __all__ = ["StitchReport", "StitchResult", "stitch"]
+
+_log = logging.getLogger("m360")
 
 #: Module constants that moved to :mod:`m360.align` / :mod:`m360.blend` (old name → new home).
 _MOVED = {
@@ -52,9 +55,14 @@ class _StitchReportBase(TypedDict):
 
 
 class StitchReport(_StitchReportBase, total=False):
-    """Solver reports of one stitch: ``blend`` always, ``align`` (per level) with alignment."""
+    """Solver reports of one stitch.
+
+    ``blend`` always; with alignment ``align`` (per level) and ``align_fallback`` (what the
+    overlap samples allowed, see :mod:`m360.align`).
+    """
 
     align: list[AlignLevelReport]
+    align_fallback: str
 
 
 @dataclass
@@ -68,7 +76,8 @@ class StitchResult:
         no tangent has a valid estimate.
     confidence : (H, W) float32
         Overlap disagreement: the standard deviation of the (aligned) tangents' values at each
-        pixel, 0 where one tangent sees it, NaN where none does. Lower means more consistent.
+        pixel, 0 where one tangent sees it, NaN where none does; with ``blend="consensus"`` the
+        disagreement left after the vote (:mod:`m360.blend`). Lower means more consistent.
     coverage : (H, W) uint8
         Number of tangents whose image contains each pixel.
     grids : list of (N, rows, cols, 2) float64
@@ -112,6 +121,7 @@ def stitch(
     smoothness: float | None = ...,
     scale_weight: float | None = ...,
     offsets: Offsets | None = ...,
+    loss: Loss | None = ...,
     blend_options: Mapping[str, Any] | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[False] = ...,
@@ -135,6 +145,7 @@ def stitch(
     smoothness: float | None = ...,
     scale_weight: float | None = ...,
     offsets: Offsets | None = ...,
+    loss: Loss | None = ...,
     blend_options: Mapping[str, Any] | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[True],
@@ -158,6 +169,7 @@ def stitch(
     smoothness: float | None = None,
     scale_weight: float | None = None,
     offsets: Offsets | None = None,
+    loss: Loss | None = None,
     blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     return_details: bool = False,
@@ -182,18 +194,19 @@ def stitch(
         grid of (cols, rows) nodes per tangent, a list of grids, or ``"none"`` (values pass
         through unchanged).
     blend : str, optional
-        ``"poisson"`` (the core's default), ``"frustum"``, ``"radial"``, ``"mean"`` or ``"nn"``.
+        ``"consensus"`` (the core's default), ``"poisson"``, ``"frustum"``, ``"radial"``,
+        ``"mean"`` or ``"nn"``.
     mask : (N, h, w) bool, optional
         False marks pixels with no estimate (sky, tripod). They never contribute, not even
         through a bilinear neighbour, and are left out of standardisation and overlaps.
     energy, solver, iterations, tolerance, sample_fraction : optional
         Alignment options (:mod:`m360.align`); None takes the core's default.
-    pole_cap_deg, smoothness, scale_weight, offsets : optional
+    pole_cap_deg, smoothness, scale_weight, offsets, loss : optional
         Alignment options (:mod:`m360.align`); None takes the core's default.
     blend_options : mapping, optional
-        Options of ``blend="poisson"``: ``fidelity``, ``lam``, ``tolerance``, ``iterations``,
-        ``solver`` (:mod:`m360.blend`). A solve that does not reach ``tolerance`` raises
-        :class:`m360.SolverError`.
+        Options of ``blend="poisson"`` (which they select when ``blend`` is None):
+        ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (:mod:`m360.blend`).
+        A solve that does not reach ``tolerance`` raises :class:`m360.SolverError`.
     options : StitchOptions, optional
         All of the above at once (then leave the keywords at their defaults).
     return_details : bool
@@ -228,6 +241,7 @@ def stitch(
         smoothness=smoothness,
         scale_weight=scale_weight,
         offsets=offsets,
+        loss=loss,
         blend_options=blend_options,
     ).checked_for(layout.tangent_shape)
     valid = None if mask is None else _check_mask(mask, layout)
@@ -240,8 +254,14 @@ def stitch(
     levels: list[AlignLevelReport] = []
     align_options = opts.align
     if align_options is not None:
-        spherical, reports, grids = plan.align(spherical, dict(align_options))
+        spherical, reports, grids, fallback = plan.align(spherical, dict(align_options))
         levels = [_level_report(r) for r in reports]
+        if fallback != "none":
+            _log.warning(
+                "too few overlap samples for the alignment schedule: fell back to %s (%s)",
+                fallback,
+                ", ".join(f"{c}x{r}" for c, r in (lv["grid"] for lv in levels)) or "no level",
+            )
     t2 = time.perf_counter()
     # The confidence costs a second pass: only computed when returned.
     disparity, confidence, raw_blend = plan.blend(
@@ -256,6 +276,7 @@ def stitch(
     report = StitchReport(blend=blend_report)
     if align_options is not None:
         report["align"] = levels
+        report["align_fallback"] = fallback
     return StitchResult(
         disparity=disparity,
         confidence=confidence,

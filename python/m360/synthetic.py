@@ -8,7 +8,8 @@ convention (docs/conventions.md: x right, y down, z forward; depth = |P|).
 ``room(seed)`` builds a random but deterministic scene; :func:`render` gives an ERP image and its
 depth; :func:`tangent_distance` / :func:`tangent_perspective_disparity` give exact per-tangent
 ground truth for any duck-typed pinhole cameras; :func:`distort` simulates the per-tangent affine
-ambiguity of a monocular network.
+ambiguity of a monocular network and :func:`content_errors` the local, tangent-specific mistakes
+(a region too near or too far, lost fine detail) that no affine map explains.
 """
 
 from __future__ import annotations
@@ -37,6 +38,7 @@ __all__ = [
     "Material",
     "Scene",
     "Sphere",
+    "content_errors",
     "distort",
     "render",
     "room",
@@ -877,3 +879,113 @@ def distort(
         with np.errstate(over="ignore"):  # beyond float32: ±inf, as documented
             out[k] = d
     return out
+
+
+# -------------------------------------------------------------------- content errors
+
+
+def _blur(d: np.ndarray, sigma: float) -> np.ndarray:
+    """Gaussian blur of std ``sigma`` pixels that ignores NaN (normalised convolution)."""
+    import cv2  # opencv is a core dependency; imported here to keep `import m360` light
+
+    valid = np.isfinite(d)
+    filled = np.where(valid, d, 0.0)
+    num = cv2.GaussianBlur(filled, (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    den = cv2.GaussianBlur(valid.astype(np.float64), (0, 0), sigma, borderType=cv2.BORDER_REFLECT)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        out = num / den
+    return np.where(valid, out, np.nan)
+
+
+def content_errors(
+    tangents: np.ndarray,
+    seed: int,
+    *,
+    regions: tuple[int, int] = (1, 3),
+    size: tuple[float, float] = (0.03, 1 / 6),
+    amplitude: tuple[float, float] = (0.1, 0.3),
+    blur: float = 0.0,
+    return_regions: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Simulate a network's content errors: local regions of a tangent too near or too far.
+
+    Each tangent independently gets between ``regions[0]`` and ``regions[1]`` (inclusive)
+    elliptic regions at random positions (centres anywhere in the tile), each covering a
+    fraction of the tile's area drawn uniformly from ``size``, with a random aspect ratio in
+    [1/2, 2] and orientation; inside, the disparity is multiplied by ``1 ± a`` with ``a``
+    uniform in ``amplitude`` and a random sign, fading to 1 over the outer fifth of the
+    ellipse's radius (a flat-topped bump). The overlapping tangents do not share the error:
+    every tangent's draws are its own. Then, if ``blur > 0``, every tangent is blurred with a
+    gaussian of std ``blur`` pixels (lost fine detail of a low-resolution network input; NaN are
+    ignored and stay NaN). Apply it to exact tangents before :func:`distort` to get both kinds of
+    network error.
+
+    Parameters
+    ----------
+    tangents : np.ndarray
+        (N, h, w) floating array (typically perspective disparity).
+    seed : int
+        Seed of ``np.random.default_rng``.
+    regions : (int, int)
+        Range (0 ≤ lo ≤ hi ≤ 64) of the number of regions per tangent.
+    size : (float, float)
+        Range (0 < lo ≤ hi ≤ 1) of each region's area as a fraction of the tile's.
+    amplitude : (float, float)
+        Range (0 ≤ lo ≤ hi < 1) of the relative error a.
+    blur : float
+        Gaussian std in pixels (≥ 0, at most 1000); 0 = none.
+    return_regions : bool
+        Also return the (N, h, w) float32 map of the relative error factor minus 1 (0 outside
+        every region), the ground truth of where the tangents are wrong.
+
+    Returns
+    -------
+    np.ndarray or (np.ndarray, np.ndarray)
+        (N, h, w) float32 tangents with content errors, and the error map if asked.
+    """
+    t = as_array(tangents, "tangents")
+    if t.ndim != 3:
+        raise InputError(f"tangents must have shape (N, h, w), got {t.shape}")
+    if not np.issubdtype(t.dtype, np.floating):
+        raise InputError(f"tangents must be a float array (float32 expected), got dtype {t.dtype}")
+    pairs = {"regions": regions, "size": size, "amplitude": amplitude}
+    for name, pair in pairs.items():
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+            raise InputError(f"{name} must be a pair (lo, hi), got {pair!r}")
+    r_lo, r_hi = (integer(v, "regions", low=0, high=64) for v in regions)
+    s_lo, s_hi = (number(v, "size", low=0.0, high=1.0) for v in size)
+    a_lo, a_hi = (number(v, "amplitude", low=0.0, high=1.0) for v in amplitude)
+    if not r_lo <= r_hi:
+        raise InputError(f"regions must satisfy lo <= hi, got {regions!r}")
+    if not 0 < s_lo <= s_hi:
+        raise InputError(f"size must satisfy 0 < lo <= hi <= 1, got {size!r}")
+    if not a_lo <= a_hi < 1:
+        raise InputError(f"amplitude must satisfy 0 <= lo <= hi < 1, got {amplitude!r}")
+    blur = number(blur, "blur", low=0.0, high=1000.0)
+    rng = np.random.default_rng(check_seed(seed))
+    n, h, w = t.shape
+    y = np.arange(h, dtype=np.float64)[:, None]
+    x = np.arange(w, dtype=np.float64)[None, :]
+    out = np.empty((n, h, w), dtype=np.float32)
+    errors = np.zeros((n, h, w), dtype=np.float32)
+    for k in range(n):
+        factor = np.ones((h, w))
+        for _ in range(int(rng.integers(r_lo, r_hi + 1))):
+            area = rng.uniform(s_lo, s_hi) * h * w
+            aspect = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
+            ra = np.sqrt(area * aspect / np.pi)  # semi-axes with π·ra·rb = area
+            rb = area / (np.pi * ra)
+            cx, cy = rng.uniform(0, w), rng.uniform(0, h)
+            angle = rng.uniform(0, np.pi)
+            a = rng.uniform(a_lo, a_hi) * rng.choice([-1.0, 1.0])
+            u = (x - cx) * np.cos(angle) + (y - cy) * np.sin(angle)
+            v = -(x - cx) * np.sin(angle) + (y - cy) * np.cos(angle)
+            radius = np.sqrt((u / ra) ** 2 + (v / rb) ** 2)
+            bump = np.clip((1.0 - radius) / 0.2, 0.0, 1.0)
+            factor *= 1.0 + a * bump
+        d = t[k].astype(np.float64) * factor
+        if blur > 0:
+            d = _blur(d, blur)
+        out[k] = d
+        errors[k] = factor - 1.0
+    return (out, errors) if return_regions else out

@@ -60,7 +60,8 @@ fn blends(c: &mut Criterion) {
         Method::Mean,
         Method::Nearest,
         Method::Frustum,
-        Method::default(),
+        Method::Consensus,
+        Method::Poisson(PoissonParams::default()),
     ] {
         let (mut out, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
         plan.blend(&values, &method, &mut out, None)

@@ -50,6 +50,16 @@ impl Energy {
         }
     }
 
+    /// Default data-term loss: Cauchy for the normalized energy (content errors of one tangent
+    /// measured to halve the AbsRel, benches/bench_align.py), least squares for the paper's.
+    #[must_use]
+    pub fn default_loss(self) -> Loss {
+        match self {
+            Self::Normalized => Loss::Cauchy,
+            Self::Paper => Loss::Squared,
+        }
+    }
+
     /// Default offset space: perspective for the normalized energy, the paper's spherical.
     #[must_use]
     pub fn default_offsets(self) -> Offsets {
@@ -92,6 +102,67 @@ choice!(
         (Offsets::Spherical, "spherical"),
     ]
 );
+
+/// The loss on each overlap residual of the data term.
+///
+/// A robust loss is minimised by iteratively reweighted least squares: after each solve every
+/// sample gets the weight ψ(r)/r of its residual r, with the residuals' scale σ = 1.4826·median|r|
+/// (the MAD, robust to up to half the samples being wrong), and the level is solved again from
+/// where it stands, [`ROBUST_ROUNDS`] times. A content error of one tangent (a region the network
+/// got too near or too far, which its neighbours do not share) then stops pulling the grids of
+/// its neighbours: its samples' weights fall towards 0.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Loss {
+    /// Cauchy: ρ(r) = c²/2·ln(1 + (r/c)²), weight 1/(1 + (r/c)²), c = 2.385·σ (95 % efficiency
+    /// on gaussian residuals); outliers lose their pull entirely. The normalized energy's default.
+    Cauchy,
+    /// Huber: quadratic up to k = 1.345·σ, linear beyond, weight min(1, k/|r|); outliers keep a
+    /// bounded pull.
+    Huber,
+    /// Plain least squares r², as the paper (the paper energy's default).
+    Squared,
+}
+
+choice!(
+    Loss,
+    "loss",
+    [
+        (Loss::Cauchy, "cauchy"),
+        (Loss::Huber, "huber"),
+        (Loss::Squared, "squared"),
+    ]
+);
+
+/// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
+/// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
+pub const ROBUST_ROUNDS: usize = 3;
+
+/// Residual scale floor (standardised units): exact tangents have residuals near rounding, and a
+/// scale of 0 would weigh every sample 0.
+const MIN_ROBUST_SCALE: f64 = 1e-4;
+
+impl Loss {
+    /// IRLS weight of residual `r` at residual scale `sigma` (> 0).
+    #[inline]
+    #[must_use]
+    pub fn weight(self, r: f64, sigma: f64) -> f64 {
+        match self {
+            Self::Cauchy => {
+                let u = r / (2.385 * sigma);
+                1.0 / (1.0 + u * u)
+            }
+            Self::Huber => {
+                let k = 1.345 * sigma;
+                if r.abs() <= k {
+                    1.0
+                } else {
+                    k / r.abs()
+                }
+            }
+            Self::Squared => 1.0,
+        }
+    }
+}
 
 /// Weights and shape of one alignment level.
 #[derive(Debug, Clone, Copy, PartialEq)]
@@ -235,6 +306,12 @@ impl Overlaps {
         self.a.len()
     }
 
+    /// Sample k: (tangent a, pixel index in a, tangent b).
+    #[must_use]
+    pub fn sample(&self, k: usize) -> (usize, usize, usize) {
+        (self.a[k] as usize, self.pa[k] as usize, self.b[k] as usize)
+    }
+
     /// Whether there are no samples.
     #[must_use]
     pub fn is_empty(&self) -> bool {
@@ -338,11 +415,13 @@ fn offset_factor(offsets: Offsets, cam: &crate::TangentCamera, x: f64, y: f64) -
 /// Standardise each tangent in place to (d − median)/mean|d − median| over its finite values,
 /// measured in the space where offsets act (`offsets`: perspective values are d·|q|), so that
 /// standardising is itself one of the affine maps the alignment can represent.
-/// Returns the (median, spread) used per tangent; a tangent without finite values or with zero
-/// spread is an error naming it.
+/// Returns the (median, spread) used per tangent. A constant tangent (zero spread: a network
+/// that failed on a featureless tile) is only shifted to median 0 (its spread is returned as 0):
+/// its
+/// disagreement with its neighbours is left to the robust loss and the blend, not an error.
 ///
 /// # Errors
-/// [`CoreError::Degenerate`] naming a tangent without finite values or with zero spread.
+/// [`CoreError::Degenerate`] naming a tangent without finite values.
 pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
     let (h, w) = layout.tangent_shape();
     let factors = FactorTable::new(layout, offsets);
@@ -367,11 +446,7 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
     for (t, s) in stats.into_iter().enumerate() {
         match s {
             Some((m, spread)) if spread > 0.0 && spread.is_finite() => out.push((m, spread)),
-            Some(_) => {
-                return Err(CoreError::Degenerate(format!(
-                    "tangent {t} is constant: it has no disparity variation to align"
-                )))
-            }
+            Some((m, _)) => out.push((m, 0.0)),
             None => {
                 return Err(CoreError::Degenerate(format!(
                     "tangent {t} has no valid pixel (all NaN or masked)"
@@ -384,7 +459,7 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
         |f_row, (face_row, row)| {
             let (t, y) = (face_row / h, face_row % h);
             let (m, spread) = out[t];
-            let inv = 1.0 / spread;
+            let inv = if spread > 0.0 { 1.0 / spread } else { 1.0 };
             factors.row(t, y, f_row);
             for (v, f) in row.iter_mut().zip(f_row.iter()) {
                 *v = ((f64::from(*v) - m * f) * inv) as f32;
@@ -481,6 +556,12 @@ pub struct Problem {
     params: LevelParams,
     tangents: usize,
     samples: Vec<Sample>,
+    /// Index of each sample in the [`Overlaps`] it came from.
+    origin: Vec<u32>,
+    /// Per-sample weight of the data term (1 until [`Problem::reweight`]).
+    weights: Vec<f64>,
+    /// Σ weights: the data term is the weighted mean of r² (with all weights 1, the plain mean).
+    weight_total: f64,
     /// (node p, node q, weight): smoothness adds weight·((s_p − s_q)² + (o_p − o_q)²).
     edges: Vec<(u32, u32, f64)>,
     /// Weight of Σ 1/s.
@@ -509,6 +590,10 @@ impl Problem {
     /// The problem of aligning `maps` (N·h·w, NaN = invalid) with `params` over `overlaps`.
     /// Samples whose a-pixel or any of the four b-neighbours is invalid are dropped.
     #[must_use]
+    #[expect(
+        clippy::too_many_lines,
+        reason = "sample filter, edges and weights of one problem read best together"
+    )]
     pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -516,7 +601,7 @@ impl Problem {
         let per = cols * rows;
         let tp = h * w;
         // Rayon's collect keeps the index order, so the samples are in overlap order.
-        let samples: Vec<Sample> = (0..overlaps.len())
+        let (origin, samples): (Vec<u32>, Vec<Sample>) = (0..overlaps.len())
             .into_par_iter()
             .filter_map(|k| {
                 let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
@@ -554,23 +639,26 @@ impl Problem {
                 let (ca, ra, ax, ay) =
                     grid_cell((pa % w) as f64, (pa / w) as f64, w, h, cols, rows);
                 let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
-                Some(Sample {
-                    node_a: (a * per + ra * cols + ca) as u32,
-                    node_b: (b * per + rb * cols + cb) as u32,
-                    frac_a: [ax, ay],
-                    frac_b: [bx, by],
-                    da: f64::from(da),
-                    fa: offset_factor(
-                        params.offsets,
-                        &layout.cameras[a],
-                        (pa % w) as f64,
-                        (pa / w) as f64,
-                    ),
-                    db,
-                    fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
-                })
+                Some((
+                    k as u32,
+                    Sample {
+                        node_a: (a * per + ra * cols + ca) as u32,
+                        node_b: (b * per + rb * cols + cb) as u32,
+                        frac_a: [ax, ay],
+                        frac_b: [bx, by],
+                        da: f64::from(da),
+                        fa: offset_factor(
+                            params.offsets,
+                            &layout.cameras[a],
+                            (pa % w) as f64,
+                            (pa / w) as f64,
+                        ),
+                        db,
+                        fb: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
+                    },
+                ))
             })
-            .collect();
+            .unzip();
 
         // Smoothness edges between 4-neighbours, and the term weights.
         let (hx, hy) = (1.0 / (cols - 1) as f64, 1.0 / (rows - 1) as f64);
@@ -602,7 +690,10 @@ impl Problem {
         let mut problem = Self {
             params,
             tangents: n,
+            weights: vec![1.0; samples.len()],
+            weight_total: samples.len() as f64,
             samples,
+            origin,
             edges,
             scale_weight,
             gauge_weight: GAUGE,
@@ -632,7 +723,7 @@ impl Problem {
             })
             .collect();
         order.par_sort_unstable();
-        let two_over_z = 2.0 / self.samples().max(1) as f64;
+        let two_over_z = 2.0 / self.weight_total.max(f64::MIN_POSITIVE);
         let groups: Vec<&[(u64, u32)]> = order.chunk_by(|p, q| p.0 == q.0).collect();
         let group_blocks: Vec<([u32; 8], [f64; 256])> = groups
             .par_iter()
@@ -641,12 +732,14 @@ impl Problem {
                 let mut block = [0.0; 256];
                 for &(_, k) in *group {
                     let (coef_s, coef_o) = self.samples[k as usize].coefficients();
+                    let weight = self.weights[k as usize];
                     let mut c = [0.0; 16];
                     for j in 0..8 {
                         c[2 * j] = coef_s[j];
                         c[2 * j + 1] = coef_o[j];
                     }
                     for (u, &cu) in c.iter().enumerate() {
+                        let cu = weight * cu;
                         for (b, &cv) in block[16 * u + u..16 * u + 16].iter_mut().zip(&c[u..]) {
                             *b += cu * cv;
                         }
@@ -767,6 +860,56 @@ impl Problem {
         )
     }
 
+    /// The data-term weight of each sample (all 1 until [`Problem::reweight`]).
+    #[must_use]
+    pub fn weights(&self) -> &[f64] {
+        &self.weights
+    }
+
+    /// Index of each sample in the [`Overlaps`] the problem was built from.
+    #[must_use]
+    pub fn origins(&self) -> &[u32] {
+        &self.origin
+    }
+
+    /// Residual of every sample at `x`, in sample order.
+    #[must_use]
+    pub fn residuals(&self, x: &[f64]) -> Vec<f64> {
+        (0..self.samples())
+            .into_par_iter()
+            .map(|k| self.residual(k, x))
+            .collect()
+    }
+
+    /// Set every sample's weight to `loss`'s IRLS weight of its residual at `x`, with the scale
+    /// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]), and reassemble the Hessian.
+    /// Returns σ.
+    pub fn reweight(&mut self, x: &[f64], loss: Loss) -> f64 {
+        let residuals = self.residuals(x);
+        let mut magnitudes: Vec<f64> = residuals.iter().map(|r| r.abs()).collect();
+        let sigma = if magnitudes.is_empty() {
+            1.0
+        } else {
+            let mid = magnitudes.len() / 2;
+            let (_, &mut median, _) = magnitudes.select_nth_unstable_by(mid, f64::total_cmp);
+            (1.4826 * median).max(MIN_ROBUST_SCALE)
+        };
+        self.set_weights(residuals.iter().map(|&r| loss.weight(r, sigma)).collect());
+        sigma
+    }
+
+    /// Set the data term's per-sample weights (≥ 0, one per sample) and reassemble.
+    ///
+    /// # Panics
+    /// If `weights` does not have one entry per sample.
+    pub fn set_weights(&mut self, weights: Vec<f64>) {
+        assert_eq!(weights.len(), self.samples(), "one weight per sample");
+        // Sequential sum: the same for any thread count.
+        self.weight_total = weights.iter().sum();
+        self.weights = weights;
+        self.assemble();
+    }
+
     /// Identity fields: s = 1, o = 0.
     #[must_use]
     pub fn identity(&self) -> Vec<f64> {
@@ -805,11 +948,11 @@ impl Problem {
             .into_par_iter()
             .map(|c| {
                 (c * CHUNK..((c + 1) * CHUNK).min(samples))
-                    .map(|k| self.residual(k, x).powi(2))
+                    .map(|k| self.weights[k] * self.residual(k, x).powi(2))
                     .sum()
             })
             .collect();
-        let mut energy = partial.iter().sum::<f64>() / samples.max(1) as f64;
+        let mut energy = partial.iter().sum::<f64>() / self.weight_total.max(f64::MIN_POSITIVE);
         for &(p, q, wgt) in &self.edges {
             let (p, q) = (2 * p as usize, 2 * q as usize);
             let (ds, dof) = (x[p] - x[q], x[p + 1] - x[q + 1]);
@@ -1197,7 +1340,61 @@ pub struct Level {
     pub build_seconds: f64,
     /// Seconds spent solving it.
     pub solve_seconds: f64,
+    /// The data-term weight of each valid overlap sample after the last reweighting (all 1
+    /// with [`Loss::Squared`]).
+    pub sample_weights: Vec<f32>,
+    /// Index in the [`Overlaps`] of each entry of `sample_weights`.
+    pub sample_origins: Vec<u32>,
+    /// The residual scale σ of the last reweighting (0 with [`Loss::Squared`]).
+    pub robust_scale: f64,
 }
+
+/// What an alignment could do with the overlap samples it had.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Fallback {
+    /// Every level of the schedule ran.
+    None,
+    /// Some levels had too few samples for their grid and were left out; the coarser ones ran.
+    CoarserGrid,
+    /// No level of the schedule had enough samples; one per-tangent affine level ran (a 2x2
+    /// grid held flat by a strong smoothness).
+    Affine,
+    /// Too few samples even for a per-tangent affine map: the tangents are only standardised
+    /// (each one's median and mean absolute deviation matched), not aligned.
+    Unaligned,
+}
+
+impl Fallback {
+    /// The name reports and sidecars use.
+    #[must_use]
+    pub fn name(self) -> &'static str {
+        match self {
+            Self::None => "none",
+            Self::CoarserGrid => "coarser_grid",
+            Self::Affine => "affine",
+            Self::Unaligned => "unaligned",
+        }
+    }
+}
+
+/// The result of [`align`]: the levels solved and the fallback taken.
+#[derive(Debug, Clone)]
+pub struct Alignment {
+    /// The levels that ran, coarse to fine.
+    pub levels: Vec<Level>,
+    /// Whether the schedule had to be cut short for lack of overlap samples.
+    pub fallback: Fallback,
+}
+
+/// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
+/// (all tangents together); below it the data cannot support the grid. (The smoothness term
+/// carries sparse data between samples: the paper's 16x14 level at ERP width 512 has about one
+/// sample per two nodes and still aligns.)
+pub const NODES_PER_SAMPLE: usize = 4;
+
+/// Smoothness of the per-tangent affine fallback level: with it the 2x2 grid stays flat (one
+/// scale and offset per tangent) to well below the data's resolution.
+const AFFINE_SMOOTHNESS: f64 = 1e4;
 
 /// Options of a whole alignment, every default resolved.
 #[derive(Debug, Clone, PartialEq)]
@@ -1222,6 +1419,8 @@ pub struct Options {
     pub scale_weight: f64,
     /// Where the offset acts.
     pub offsets: Offsets,
+    /// The data term's loss.
+    pub loss: Loss,
 }
 
 impl Options {
@@ -1245,6 +1444,7 @@ impl Options {
             smoothness,
             scale_weight,
             offsets: energy.default_offsets(),
+            loss: energy.default_loss(),
         }
     }
 
@@ -1321,61 +1521,126 @@ impl Default for Options {
 ///
 /// Each tangent is standardised, then every level is solved from identity fields on the maps
 /// as the previous level left them, and its fields are applied before the next level (so no
-/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md).
+/// deformation is ever applied twice: reference pitfall B3, docs/reference-pitfalls.md). With a
+/// robust [`Loss`] each level is reweighted and solved again [`ROBUST_ROUNDS`] times.
 /// Finally the common standardisation is undone with the mean median and spread of the inputs,
 /// so the result is in the inputs' range.
 ///
+/// Degrades instead of failing: a level with fewer than one valid overlap sample per
+/// [`NODES_PER_SAMPLE`] grid nodes is left out; when no level is left, one per-tangent affine level runs
+/// if the samples support it, else the tangents stay standardised only ([`Fallback`]).
+///
 /// # Errors
-/// Those of [`standardize`] and [`solve`], and [`CoreError::Degenerate`] when the tangents
-/// have no valid overlapping pixels.
+/// Those of [`standardize`] and [`solve`].
 pub fn align(
     layout: &Layout,
     maps: &mut [f32],
     overlaps: &Overlaps,
     options: &Options,
-) -> Result<Vec<Level>> {
+) -> Result<Alignment> {
     let stats = standardize(layout, maps, options.offsets)?;
+    let n = layout.cameras.len();
     let mut levels = Vec::with_capacity(options.levels.len());
+    let mut skipped = false;
     for params in &options.level_params() {
         let t0 = std::time::Instant::now();
         let problem = Problem::new(layout, maps, overlaps, *params);
-        if problem.samples() == 0 {
-            return Err(CoreError::Degenerate(
-                "the tangents have no valid overlapping pixels to align".into(),
-            ));
+        if problem.samples() * NODES_PER_SAMPLE < n * params.cols * params.rows {
+            skipped = true;
+            continue;
         }
-        let t1 = std::time::Instant::now();
-        let (mut fields, report) = solve(
-            &problem,
-            &problem.identity(),
-            options.solver,
-            options.iterations,
-            options.tolerance,
-        )?;
-        // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
-        // the maps in standardised units from level to level (a global factor aligns nothing).
-        // The paper applies its fields as they are.
-        if params.energy == Energy::Normalized {
-            let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
-            for v in &mut fields {
-                *v /= mean_scale;
-            }
-        }
-        apply_fields(layout, maps, &fields, params);
-        levels.push(Level {
-            params: *params,
-            fields,
-            report,
-            build_seconds: (t1 - t0).as_secs_f64(),
-            solve_seconds: t1.elapsed().as_secs_f64(),
-        });
+        levels.push(solve_level(layout, maps, problem, options, t0)?);
     }
-    let n = stats.len() as f64;
-    let median = stats.iter().map(|s| s.0).sum::<f64>() / n;
-    let spread = stats.iter().map(|s| s.1).sum::<f64>() / n;
+    let mut fallback = if skipped {
+        Fallback::CoarserGrid
+    } else {
+        Fallback::None
+    };
+    if levels.is_empty() {
+        let t0 = std::time::Instant::now();
+        let mut params = options.level_params()[0];
+        params.cols = 2;
+        params.rows = 2;
+        params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
+        let problem = Problem::new(layout, maps, overlaps, params);
+        if problem.samples() * NODES_PER_SAMPLE >= n * 4 {
+            levels.push(solve_level(layout, maps, problem, options, t0)?);
+            fallback = Fallback::Affine;
+        } else {
+            fallback = Fallback::Unaligned;
+        }
+    }
+    let count = stats.len() as f64;
+    let median = stats.iter().map(|s| s.0).sum::<f64>() / count;
+    // Constant tangents (spread 0) say nothing about the scale.
+    let varied = stats.iter().filter(|s| s.1 > 0.0).count();
+    let spread = if varied == 0 {
+        1.0
+    } else {
+        stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
+    };
     maps.par_iter_mut()
         .for_each(|v| *v = (f64::from(*v) * spread + median) as f32);
-    Ok(levels)
+    Ok(Alignment { levels, fallback })
+}
+
+/// Solve one level's `problem` (built from `t0` on), reweighting it for a robust loss, and
+/// apply its fields to `maps`.
+fn solve_level(
+    layout: &Layout,
+    maps: &mut [f32],
+    mut problem: Problem,
+    options: &Options,
+    t0: std::time::Instant,
+) -> Result<Level> {
+    let params = problem.params;
+    let t1 = std::time::Instant::now();
+    let (mut fields, mut report) = solve(
+        &problem,
+        &problem.identity(),
+        options.solver,
+        options.iterations,
+        options.tolerance,
+    )?;
+    let mut robust_scale = 0.0;
+    if options.loss != Loss::Squared {
+        for _ in 0..ROBUST_ROUNDS {
+            robust_scale = problem.reweight(&fields, options.loss);
+            let (next, next_report) = solve(
+                &problem,
+                &fields,
+                options.solver,
+                options.iterations,
+                options.tolerance,
+            )?;
+            fields = next;
+            report = SolveReport {
+                iterations: report.iterations + next_report.iterations,
+                initial_energy: report.initial_energy,
+                ..next_report
+            };
+        }
+    }
+    // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
+    // the maps in standardised units from level to level (a global factor aligns nothing).
+    // The paper applies its fields as they are.
+    if params.energy == Energy::Normalized {
+        let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
+        for v in &mut fields {
+            *v /= mean_scale;
+        }
+    }
+    apply_fields(layout, maps, &fields, &params);
+    Ok(Level {
+        params,
+        fields,
+        report,
+        build_seconds: (t1 - t0).as_secs_f64(),
+        solve_seconds: t1.elapsed().as_secs_f64(),
+        sample_weights: problem.weights().iter().map(|&w| w as f32).collect(),
+        sample_origins: problem.origins().to_vec(),
+        robust_scale,
+    })
 }
 
 #[cfg(test)]
@@ -1442,6 +1707,122 @@ mod tests {
                     g[i]
                 );
             }
+        }
+    }
+
+    #[test]
+    fn weighted_gradient_matches_finite_differences() {
+        for energy in [Energy::Paper, Energy::Normalized] {
+            let (_, _, mut problem) = setup(energy, 4, 3);
+            let weights = (0..problem.samples()).map(|k| random(7, k)).collect();
+            problem.set_weights(weights);
+            let x: Vec<f64> = (0..problem.len())
+                .map(|i| {
+                    if i % 2 == 0 {
+                        0.7 + 0.6 * random(3, i)
+                    } else {
+                        random(4, i) - 0.5
+                    }
+                })
+                .collect();
+            let mut g = vec![0.0; x.len()];
+            let e = problem.energy(&x, Some(&mut g));
+            // The data term is the weighted mean of r², independently of the assembled Hessian.
+            let r = problem.residuals(&x);
+            let w = problem.weights();
+            let data = r.iter().zip(w).map(|(r, w)| w * r * r).sum::<f64>() / w.iter().sum::<f64>();
+            let unweighted = {
+                let mut p = problem.clone();
+                p.set_weights(vec![0.0; p.samples()]);
+                p.energy(&x, None)
+            };
+            assert!(
+                (e - (unweighted + data)).abs() <= 1e-9 * e.abs(),
+                "{e} vs {data}"
+            );
+            for i in (0..x.len()).step_by(7) {
+                let h = 1e-6;
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i] += h;
+                xm[i] -= h;
+                let fd = (problem.energy(&xp, None) - problem.energy(&xm, None)) / (2.0 * h);
+                let rel = (fd - g[i]).abs() / g[i].abs().max(1e-3);
+                assert!(rel < 1e-6, "{energy:?} unknown {i}: {} vs fd {fd}", g[i]);
+            }
+        }
+    }
+
+    fn cam_shape(cam: &crate::TangentCamera) -> (usize, usize) {
+        (cam.height, cam.width)
+    }
+
+    #[test]
+    fn reweighting_gives_planted_outliers_small_weights() {
+        for loss in [Loss::Cauchy, Loss::Huber] {
+            // Tangents that agree up to a per-tangent affine map in spherical disparity.
+            let layout = Layout::icosahedron(512, 0.3, None).expect("layout");
+            let mut maps: Vec<f32> = layout
+                .cameras
+                .iter()
+                .enumerate()
+                .flat_map(|(t, cam)| {
+                    let (h, w) = cam_shape(cam);
+                    let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
+                    (0..h * w).map(move |p| {
+                        let d = cam.pixel_direction((p % w) as f64, (p / w) as f64);
+                        (sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z) + sh) as f32
+                    })
+                })
+                .collect();
+            standardize(&layout, &mut maps, Offsets::Spherical).expect("standardize");
+            let (h, w) = layout.tangent_shape();
+            // A disc in tangent 5, in its overlap with its left neighbour, off by 2 standardised
+            // units (a content error).
+            let inside = |p: usize| {
+                let (x, y) = (
+                    (p % w) as f64 - w as f64 / 10.0,
+                    (p / w) as f64 - h as f64 / 2.0,
+                );
+                x * x + y * y < (w as f64 / 6.0).powi(2)
+            };
+            for p in (0..h * w).filter(|&p| inside(p)) {
+                maps[5 * h * w + p] += 2.0;
+            }
+            let overlaps = Overlaps::build(&layout, 0.1, 0.0);
+            // A 2x2 grid cannot bend around the disc, so the disc stays in the residuals.
+            let params = LevelParams {
+                cols: 2,
+                rows: 2,
+                energy: Energy::Normalized,
+                smoothness: 1.0,
+                scale_weight: 0.01,
+                offsets: Offsets::Spherical,
+            };
+            let mut problem = Problem::new(&layout, &maps, &overlaps, params);
+            let mut x = problem.identity();
+            for _ in 0..3 {
+                x = solve(&problem, &x, Solver::Newton, 100, 1e-9)
+                    .expect("solve")
+                    .0;
+                let sigma = problem.reweight(&x, loss);
+                assert!(sigma > 0.0);
+            }
+            let (mut planted, mut clean) = (Vec::new(), Vec::new());
+            for (&k, &wgt) in problem.origins().iter().zip(problem.weights()) {
+                let (a, pa, b) = overlaps.sample(k as usize);
+                if a == 5 && inside(pa) {
+                    planted.push(wgt);
+                } else if a != 5 && b != 5 {
+                    clean.push(wgt);
+                }
+            }
+            let median = |v: &mut Vec<f64>| {
+                v.sort_by(f64::total_cmp);
+                v[v.len() / 2]
+            };
+            assert!(planted.len() >= 10, "{}", planted.len());
+            let (mp, mc) = (median(&mut planted), median(&mut clean));
+            assert!(mp < 0.2 && mc > 0.8, "{loss:?}: planted {mp}, clean {mc}");
         }
     }
 
@@ -1518,7 +1899,8 @@ mod tests {
     }
 
     #[test]
-    fn standardize_rejects_empty_and_constant_tangents() {
+    #[expect(clippy::float_cmp, reason = "a constant's median and shift are exact")]
+    fn standardize_rejects_empty_tangents_and_shifts_constant_ones() {
         let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
         let (h, w) = layout.tangent_shape();
         let mut maps: Vec<f32> = (0..20 * h * w).map(|i| (i % 97) as f32).collect();
@@ -1526,7 +1908,12 @@ mod tests {
         let err = standardize(&layout, &mut maps, Offsets::Spherical).expect_err("tangent 3");
         assert!(matches!(err, CoreError::Degenerate(m) if m.contains("tangent 3")));
         let mut flat = vec![2.0f32; 20 * h * w];
-        assert!(standardize(&layout, &mut flat, Offsets::Spherical).is_err());
+        let stats = standardize(&layout, &mut flat, Offsets::Spherical).expect("constant");
+        assert!(
+            stats.iter().all(|&(m, s)| m == 2.0 && s == 0.0),
+            "{stats:?}"
+        );
+        assert!(flat.iter().all(|&v| v == 0.0));
     }
 
     #[test]

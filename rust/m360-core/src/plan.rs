@@ -201,6 +201,11 @@ impl Plan {
                 blend::weighted_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
+            Method::Consensus => {
+                let weights = self.tap_weights(Weighting::Frustum);
+                blend::consensus_blend(taps, layout, tangents, weights, disparity, confidence);
+                None
+            }
             Method::Poisson(params) => {
                 let weights = self.tap_weights(Weighting::Frustum);
                 let report = blend::poisson_blend(
@@ -314,7 +319,7 @@ mod tests {
         assert!(plan.is_built(Need::ErpTaps));
         assert!(!plan.is_built(Need::TangentTaps));
         assert!(!plan.is_built(Need::TapWeights(Weighting::Frustum)));
-        plan.prepare(&Plan::blend_needs(&Method::default()), |build| build());
+        plan.prepare(&Plan::blend_needs(&Method::Frustum), |build| build());
         assert!(plan.is_built(Need::TapWeights(Weighting::Frustum)));
     }
 }

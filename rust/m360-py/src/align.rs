@@ -5,6 +5,7 @@ use crate::errors::core;
 use crate::options::align_options;
 use crate::threads::on_pool;
 use m360_core::align::{self, LevelParams, Problem};
+use m360_core::options::Choice;
 use m360_core::plan::{Need, Plan};
 use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
@@ -20,6 +21,7 @@ pub(crate) fn align<'py>(
     Bound<'py, PyArrayDyn<f32>>,
     Vec<Bound<'py, PyDict>>,
     Vec<Bound<'py, PyArrayDyn<f64>>>,
+    &'static str,
 )> {
     let layout = plan.layout();
     let options = align_options(options, Some(layout.tangent_shape()))?;
@@ -29,19 +31,36 @@ pub(crate) fn align<'py>(
         options.sample_fraction,
         options.pole_cap_deg,
     )];
-    let solved = {
+    let (solved, origins) = {
         let mut rw = out.readwrite();
         let dst = writable(&mut rw)?;
         dst.copy_from_slice(data);
         core(on_pool(py, Some((plan, &needs)), || {
             let overlaps = plan.overlaps(options.sample_fraction, options.pole_cap_deg);
-            align::align(layout, dst, &overlaps, &options)
+            let solved = align::align(layout, dst, &overlaps, &options)?;
+            // Each weighted sample as (tangent a, pixel index in a, tangent b).
+            let origins: Vec<Vec<i64>> = solved
+                .levels
+                .iter()
+                .map(|level| {
+                    level
+                        .sample_origins
+                        .iter()
+                        .flat_map(|&k| {
+                            let (a, pa, b) = overlaps.sample(k as usize);
+                            [a as i64, pa as i64, b as i64]
+                        })
+                        .collect()
+                })
+                .collect();
+            Ok::<_, m360_core::CoreError>((solved, origins))
         })?)?
     };
+    let fallback = solved.fallback.name();
     let n = layout.cameras.len();
-    let mut reports = Vec::with_capacity(solved.len());
-    let mut grids = Vec::with_capacity(solved.len());
-    for level in solved {
+    let mut reports = Vec::with_capacity(solved.levels.len());
+    let mut grids = Vec::with_capacity(solved.levels.len());
+    for (level, origin) in solved.levels.into_iter().zip(origins) {
         let r = &level.report;
         let d = PyDict::new(py);
         d.set_item("grid", (level.params.cols, level.params.rows))?;
@@ -53,11 +72,16 @@ pub(crate) fn align<'py>(
         d.set_item("samples", r.samples)?;
         d.set_item("build_seconds", level.build_seconds)?;
         d.set_item("solve_seconds", level.solve_seconds)?;
+        d.set_item("loss", options.loss.name())?;
+        d.set_item("robust_scale", level.robust_scale)?;
+        let k = level.sample_weights.len();
+        d.set_item("sample_weights", to_numpy(py, level.sample_weights, &[k])?)?;
+        d.set_item("sample_pixels", to_numpy(py, origin, &[k, 3])?)?;
         reports.push(d);
         let shape = [n, level.params.rows, level.params.cols, 2];
         grids.push(to_numpy(py, level.fields, &shape)?);
     }
-    Ok((out, reports, grids))
+    Ok((out, reports, grids, fallback))
 }
 
 pub(crate) fn alignment_problem<'py>(

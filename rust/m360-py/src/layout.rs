@@ -213,7 +213,8 @@ impl Plan {
 
     /// Align spherical disparity maps (N,h,w) float32 (NaN = invalid) with the options in the
     /// dict `align` (see `stitch_options`): the aligned maps, and per level a report dict and
-    /// the fields (N, rows, cols, 2) as (s, o).
+    /// the fields (N, rows, cols, 2) as (s, o), and the fallback taken for lack of overlap
+    /// samples (`"none"`, `"coarser_grid"`, `"affine"` or `"unaligned"`).
     #[allow(clippy::type_complexity)]
     fn align<'py>(
         &self,
@@ -224,6 +225,7 @@ impl Plan {
         Bound<'py, PyArrayDyn<f32>>,
         Vec<Bound<'py, PyDict>>,
         Vec<Bound<'py, PyArrayDyn<f64>>>,
+        &'static str,
     )> {
         self.check_tangents("maps", maps.shape())?;
         align::align(py, &self.inner, &maps, align)

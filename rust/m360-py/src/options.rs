@@ -2,7 +2,7 @@
 //! and limits Python reads (`CHOICES`, `LIMITS`, `DEFAULTS`) come from the core's types.
 
 use crate::errors::{core, input_error};
-use m360_core::align::{self, Energy, Offsets, Solver};
+use m360_core::align::{self, Energy, Loss, Offsets, Solver};
 use m360_core::blend::{Fidelity, Method, PoissonParams, PoissonSolver, Weighting};
 use m360_core::layout;
 use m360_core::options::{
@@ -22,6 +22,7 @@ const ALIGN_KEYS: &[&str] = &[
     "smoothness",
     "scale_weight",
     "offsets",
+    "loss",
 ];
 const POISSON_KEYS: &[&str] = &["fidelity", "lam", "tolerance", "iterations", "solver"];
 
@@ -96,6 +97,9 @@ pub(crate) fn align_options(
     if let Some(v) = get_choice::<Offsets>(dict, "offsets")? {
         options.offsets = v;
     }
+    if let Some(v) = get_choice::<Loss>(dict, "loss")? {
+        options.loss = v;
+    }
     core(options.validate(tangent_shape))
 }
 
@@ -127,7 +131,10 @@ pub(crate) fn blend_method(dict: &Bound<'_, PyDict>) -> PyResult<Method> {
     known.extend_from_slice(POISSON_KEYS);
     refuse_unknown(dict, &known, "blend")?;
     let name = get::<String>(dict, "method", "a string")?;
-    let method: Method = core(name.as_deref().unwrap_or("poisson").parse())?;
+    let method: Method = match name {
+        Some(name) => core(name.parse())?,
+        None => Method::default(),
+    };
     if let Method::Poisson(_) = method {
         return Ok(Method::Poisson(poisson_params(dict)?));
     }
@@ -147,6 +154,11 @@ pub(crate) fn poisson_only(dict: Option<&Bound<'_, PyDict>>) -> PyResult<Poisson
     let Some(dict) = dict else {
         return Ok(PoissonParams::default());
     };
+    if dict.get_item("method")?.is_none_or(|m| m.is_none()) {
+        // No method named: these are Poisson options (the default blend is another method).
+        refuse_unknown(dict, POISSON_KEYS, "Poisson")?;
+        return poisson_params(dict);
+    }
     match blend_method(dict)? {
         Method::Poisson(params) => Ok(params),
         other => Err(input_error(format!(
@@ -170,6 +182,7 @@ pub(crate) fn align_dict<'py>(py: Python<'py>, o: &align::Options) -> PyResult<B
     d.set_item("smoothness", o.smoothness)?;
     d.set_item("scale_weight", o.scale_weight)?;
     d.set_item("offsets", o.offsets.name())?;
+    d.set_item("loss", o.loss.name())?;
     Ok(d)
 }
 
@@ -225,6 +238,7 @@ pub(crate) fn choices(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("energy", names::<Energy>(py)?)?;
     d.set_item("solver", names::<Solver>(py)?)?;
     d.set_item("offsets", names::<Offsets>(py)?)?;
+    d.set_item("loss", names::<Loss>(py)?)?;
     d.set_item("weights", names::<Weighting>(py)?)?;
     Ok(d)
 }
@@ -245,16 +259,23 @@ pub(crate) fn limits(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
 
 /// `DEFAULTS`: the resolved default options (`align`, `blend`), and the defaults that depend on
 /// another option: `schedules` per energy, `iterations` per alignment solver, `weights`
-/// (smoothness, scale_weight) and `offsets` per energy.
+/// (smoothness, scale_weight), `offsets` and `loss` per energy; `poisson`, the Poisson blend's
+/// options.
 pub(crate) fn defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     let d = PyDict::new(py);
     d.set_item("align", align_dict(py, &align::Options::default())?)?;
     d.set_item("blend", blend_dict(py, &Method::default())?)?;
+    d.set_item(
+        "poisson",
+        blend_dict(py, &Method::Poisson(PoissonParams::default()))?,
+    )?;
     let (schedules, weights, offsets) = (PyDict::new(py), PyDict::new(py), PyDict::new(py));
+    let losses = PyDict::new(py);
     for &(energy, name) in Energy::ALL {
         schedules.set_item(name, PyList::new(py, energy.default_schedule())?)?;
         weights.set_item(name, energy.default_weights())?;
         offsets.set_item(name, energy.default_offsets().name())?;
+        losses.set_item(name, energy.default_loss().name())?;
     }
     let iterations = PyDict::new(py);
     for &(solver, name) in Solver::ALL {
@@ -264,5 +285,6 @@ pub(crate) fn defaults(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("iterations", iterations)?;
     d.set_item("weights", weights)?;
     d.set_item("offsets", offsets)?;
+    d.set_item("losses", losses)?;
     Ok(d)
 }

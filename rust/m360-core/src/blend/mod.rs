@@ -20,20 +20,27 @@ mod tests;
 pub use poisson::{
     poisson_blend, poisson_blend_layers, Fidelity, PoissonParams, PoissonReport, PoissonSolver,
 };
-pub use rows::{mean_blend, nearest_blend, weighted_blend};
+pub use rows::{consensus_blend, mean_blend, nearest_blend, weighted_blend};
 pub use weights::{weight_maps, Weighting};
 
 use crate::error::{CoreError, Result};
 use std::str::FromStr;
 
 /// How the tangents that see an ERP pixel are combined.
-#[derive(Debug, Clone, Copy, PartialEq)]
+#[derive(Debug, Clone, Copy, PartialEq, Default)]
 pub enum Method {
-    /// Gradient-domain blend (the default): frustum-weighted gradients of the tangents, held to a
+    /// Gradient-domain blend (the paper's): frustum-weighted gradients of the tangents, held to a
     /// fidelity target with weight λ.
     Poisson(PoissonParams),
     /// Frustum-weighted mean: the fast seam-free choice.
     Frustum,
+    /// Disagreement-aware frustum blend ([`rows::consensus_blend`], the default): where three or
+    /// more faces see a pixel, one that disagrees with the others' consensus is voted down.
+    /// Measured on synthetic rooms with content errors (benches/bench_blend.py) it beats the
+    /// Poisson blend's AbsRel at about half its time, which on them differed from the frustum
+    /// blend by a median relative 1e-5.
+    #[default]
+    Consensus,
     /// Radially weighted mean.
     Radial,
     /// Unweighted mean of every valid sample.
@@ -45,7 +52,8 @@ pub enum Method {
 
 impl Method {
     /// The names of the methods, the default first.
-    pub const NAMES: &'static [&'static str] = &["poisson", "frustum", "radial", "mean", "nn"];
+    pub const NAMES: &'static [&'static str] =
+        &["consensus", "poisson", "frustum", "radial", "mean", "nn"];
 
     /// The method's name.
     #[must_use]
@@ -53,6 +61,7 @@ impl Method {
         match self {
             Self::Poisson(_) => "poisson",
             Self::Frustum => "frustum",
+            Self::Consensus => "consensus",
             Self::Radial => "radial",
             Self::Mean => "mean",
             Self::Nearest => "nn",
@@ -64,7 +73,7 @@ impl Method {
     #[must_use]
     pub fn weighting(&self) -> Option<Weighting> {
         match self {
-            Self::Poisson(_) | Self::Frustum => Some(Weighting::Frustum),
+            Self::Poisson(_) | Self::Frustum | Self::Consensus => Some(Weighting::Frustum),
             Self::Radial => Some(Weighting::Radial),
             Self::Mean | Self::Nearest => None,
         }
@@ -82,20 +91,15 @@ impl Method {
     }
 }
 
-impl Default for Method {
-    fn default() -> Self {
-        Self::Poisson(PoissonParams::default())
-    }
-}
-
 impl FromStr for Method {
     type Err = CoreError;
 
     /// The method called `name`, Poisson with its default parameters.
     fn from_str(name: &str) -> Result<Self> {
         Ok(match name {
-            "poisson" => Self::default(),
+            "poisson" => Self::Poisson(PoissonParams::default()),
             "frustum" => Self::Frustum,
+            "consensus" => Self::Consensus,
             "radial" => Self::Radial,
             "mean" => Self::Mean,
             "nn" => Self::Nearest,

@@ -405,3 +405,138 @@ pub fn nearest_blend(
         spread,
     );
 }
+
+/// Reweighting rounds of the consensus blend: measured on synthetic rooms with content errors,
+/// the consensus moves by less than 1e-3 of the disparity after the third.
+pub const CONSENSUS_ROUNDS: usize = 3;
+/// Cauchy constant of the consensus blend, in units of the residual scale σ (95 % efficiency
+/// on gaussian disagreement).
+const CONSENSUS_CAUCHY: f32 = 2.385;
+/// Every how many taps one enters the estimate of σ (a median over a regular subsample).
+const SCALE_STRIDE: usize = 4;
+
+/// Disagreement-aware blend: per ERP pixel, an iteratively reweighted mean of the valid samples
+/// with the per-face `weights` (at the taps) as prior, each sample's weight multiplied by the
+/// Cauchy weight 1/(1 + (e/c)²) of its distance e from the current consensus (c = 2.385·σ,
+/// σ = 1.4826 × the median distance of a sample from its pixel's prior-weighted mean, over the
+/// pixels at least two faces see), [`CONSENSUS_ROUNDS`] times from the prior-weighted mean. A
+/// face that disagrees with the others where three or more see a pixel loses its say there.
+///
+/// `disparity` (H·W) gets the consensus, NaN where no face has a valid sample. `confidence`
+/// (H·W, if given) the disagreement left: √(Σ p·e²/(1 + (e/c)²) / Σ p) with p the prior
+/// weights and e the distance from the consensus, in disparity units (0 with one sample, NaN
+/// with none). An outlier's term is bounded by c², so a face that was voted down still marks its
+/// footprint, without one wild value swamping the map. Returns σ.
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn consensus_blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: &TapWeights,
+    disparity: &mut [f32],
+    confidence: Option<&mut [f32]>,
+) -> f32 {
+    let (eh, ew) = (layout.erp_height, layout.erp_width);
+    assert!(disparity.len() == eh * ew);
+    assert!(confidence
+        .as_ref()
+        .is_none_or(|s| s.len() == disparity.len()));
+    // σ: rows in parallel, their subsamples concatenated in row order (thread-count independent).
+    let distances: Vec<Vec<f32>> = (0..eh)
+        .into_par_iter()
+        .map_init(
+            || (RowSamples::default(), RowStats::default()),
+            |(row, stats), i| {
+                row.fill_from_taps(taps, tangents, Some(weights), false, i);
+                stats.compute(row, ew, false);
+                let mut out = Vec::new();
+                for run in &row.runs {
+                    let values = &row.values[run.taps()];
+                    let cols = run.columns();
+                    for (k, (&v, j)) in values.iter().zip(cols).enumerate() {
+                        let seen_twice = stats.count[j] >= 2.0;
+                        if (run.start_tap as usize + k).is_multiple_of(SCALE_STRIDE)
+                            && seen_twice
+                            && v.is_finite()
+                        {
+                            out.push((v - stats.weighted[j]).abs());
+                        }
+                    }
+                }
+                out
+            },
+        )
+        .collect();
+    let mut all: Vec<f32> = distances.into_iter().flatten().collect();
+    let sigma = if all.is_empty() {
+        1.0
+    } else {
+        let mid = all.len() / 2;
+        let (_, &mut median, _) = all.select_nth_unstable_by(mid, f32::total_cmp);
+        (1.4826 * median).max(f32::MIN_POSITIVE)
+    };
+    let inv_c = 1.0 / (CONSENSUS_CAUCHY * sigma);
+    disparity
+        .par_chunks_mut(ew)
+        .zip(optional_chunks(confidence, ew, eh))
+        .enumerate()
+        .for_each_init(
+            || {
+                (
+                    RowSamples::default(),
+                    RowStats::default(),
+                    vec![0.0f32; ew],
+                    vec![0.0f32; ew],
+                )
+            },
+            |(row, stats, num, den), (i, (out, out_confidence))| {
+                row.fill_from_taps(taps, tangents, Some(weights), false, i);
+                stats.compute(row, ew, false);
+                out.copy_from_slice(&stats.weighted);
+                for _ in 0..CONSENSUS_ROUNDS {
+                    num.fill(0.0);
+                    den.fill(0.0);
+                    for run in &row.runs {
+                        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
+                        let cols = run.columns();
+                        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
+                        // Branch-free: an invalid sample adds zeros.
+                        for (((n, d), &m), (&v, &p)) in sums.zip(&out[cols]).zip(samples) {
+                            let ok = v.is_finite();
+                            let e = (v - m) * inv_c;
+                            let r = if ok { p / (1.0 + e * e) } else { 0.0 };
+                            *n += r * if ok { v } else { 0.0 };
+                            *d += r;
+                        }
+                    }
+                    for ((m, &n), &d) in out.iter_mut().zip(num.iter()).zip(den.iter()) {
+                        *m = if d > 0.0 { n / d } else { *m };
+                    }
+                }
+                if let Some(conf) = out_confidence {
+                    num.fill(0.0);
+                    den.fill(0.0);
+                    for run in &row.runs {
+                        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
+                        let cols = run.columns();
+                        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
+                        for (((n, d), &m), (&v, &p)) in sums.zip(&out[cols]).zip(samples) {
+                            let ok = v.is_finite();
+                            let e = if ok { v - m } else { 0.0 };
+                            let u = e * inv_c;
+                            // Unweighted (p = 1) where the prior weighs every sample 0.
+                            let p = if ok { p.max(1e-6) } else { 0.0 };
+                            *n += p * e * e / (1.0 + u * u);
+                            *d += p;
+                        }
+                    }
+                    for ((c, &n), &d) in conf.iter_mut().zip(num.iter()).zip(den.iter()) {
+                        *c = (n / d).sqrt(); // NaN where no sample (0/0)
+                    }
+                }
+            },
+        );
+    sigma
+}

@@ -566,3 +566,102 @@ fn parallel_equals_sequential() {
         .zip(&par)
         .all(|(a, b)| a.to_bits() == b.to_bits()));
 }
+
+// The consensus blend.
+
+/// An independent per-pixel evaluation of the consensus: the frustum weights and samples of each
+/// face at an ERP pixel, reweighted as the documentation says, with σ taken from the blend.
+fn consensus_at(samples: &[(f32, f32)], sigma: f32) -> f32 {
+    let total: f32 = samples.iter().map(|s| s.1).sum();
+    let mut m = if total > 0.0 {
+        samples.iter().map(|s| s.0 * s.1).sum::<f32>() / total
+    } else {
+        samples.iter().map(|s| s.0).sum::<f32>() / samples.len() as f32
+    };
+    for _ in 0..rows::CONSENSUS_ROUNDS {
+        let (mut num, mut den) = (0.0f32, 0.0f32);
+        for &(v, p) in samples {
+            let e = (v - m) / (2.385 * sigma);
+            let r = p / (1.0 + e * e);
+            num += r * v;
+            den += r;
+        }
+        if den > 0.0 {
+            m = num / den;
+        }
+    }
+    m
+}
+
+#[test]
+fn consensus_matches_a_direct_evaluation_and_votes_down_a_wrong_face() {
+    let plan = plan(256);
+    let l = plan.layout();
+    let (h, w) = l.tangent_shape();
+    let mut tangents = tangent_field(&plan);
+    // Face 3 is 40 % too high everywhere: a content error its neighbours do not share.
+    for v in &mut tangents[3 * h * w..4 * h * w] {
+        *v *= 1.4;
+    }
+    let n = l.erp_height * l.erp_width;
+    let (mut out, mut conf) = (vec![0.0f32; n], vec![0.0f32; n]);
+    let taps = plan.erp_taps();
+    let weights = plan.tap_weights(Weighting::Frustum);
+    let sigma = consensus_blend(taps, l, &tangents, weights, &mut out, Some(&mut conf));
+    assert!(sigma > 0.0 && sigma.is_finite());
+    let mut values = Vec::new();
+    let (mut checked, mut voted) = (0, 0);
+    let mut errors = Vec::new();
+    for i in (0..l.erp_height).step_by(7) {
+        taps.sample(&tangents, i, &mut values);
+        let row_weights = weights.row(i);
+        for j in (0..l.erp_width).step_by(5) {
+            let samples: Vec<(f32, f32)> = taps
+                .runs(i)
+                .iter()
+                .filter(|r| r.columns().contains(&j))
+                .map(|r| {
+                    let t = r.taps().start + (j - r.start as usize);
+                    (values[t], row_weights[t])
+                })
+                .filter(|s| s.0.is_finite())
+                .collect();
+            let expected = consensus_at(&samples, sigma);
+            let got = out[i * l.erp_width + j];
+            assert!(
+                (got - expected).abs() <= 1e-4 * expected.abs(),
+                "({i}, {j}): {got} vs {expected}"
+            );
+            checked += 1;
+            // Where face 3 and at least two others see the pixel, the others win.
+            let dir = crate::sphere::lonlat_direction(
+                crate::sphere::column_longitude(j as f64, l.erp_width),
+                crate::sphere::row_latitude(i as f64, l.erp_height),
+            );
+            let truth = field(&dir) as f32;
+            let faces = taps.runs(i).iter().filter(|r| r.columns().contains(&j));
+            if samples.len() >= 3 && faces.clone().any(|r| r.face == 3) {
+                let frustum: f32 = samples.iter().map(|s| s.0 * s.1).sum::<f32>()
+                    / samples
+                        .iter()
+                        .map(|s| s.1)
+                        .sum::<f32>()
+                        .max(f32::MIN_POSITIVE);
+                voted += 1;
+                errors.push(((got - truth).abs(), (frustum - truth).abs()));
+                assert!(conf[i * l.erp_width + j] > 0.0);
+            }
+        }
+    }
+    assert!(checked > 500 && voted > 20, "{checked} {voted}");
+    let median = |mut v: Vec<f32>| {
+        v.sort_by(f32::total_cmp);
+        v[v.len() / 2]
+    };
+    let consensus_error = median(errors.iter().map(|e| e.0).collect());
+    let frustum_error = median(errors.iter().map(|e| e.1).collect());
+    assert!(
+        consensus_error < 0.25 * frustum_error,
+        "consensus {consensus_error}, frustum {frustum_error}"
+    );
+}

@@ -25,6 +25,9 @@ pub enum Fidelity {
     Nearest,
     /// The unweighted mean of the valid samples.
     Mean,
+    /// The disagreement-aware blend ([`crate::blend::consensus_blend`]): a face that disagrees
+    /// with the others is voted down in the target too.
+    Consensus,
 }
 
 choice!(
@@ -34,6 +37,7 @@ choice!(
         (Fidelity::Frustum, "frustum"),
         (Fidelity::Nearest, "nn"),
         (Fidelity::Mean, "mean"),
+        (Fidelity::Consensus, "consensus"),
     ]
 );
 
@@ -197,14 +201,20 @@ pub fn poisson_blend(
         ranks: params.fidelity == Fidelity::Nearest,
     };
     let (h, w) = (layout.erp_height, layout.erp_width);
-    let system = assemble(
-        &source,
-        h,
-        w,
-        params.lam,
-        Target::FromSamples(params.fidelity),
-        spread,
-    );
+    let system = if params.fidelity == Fidelity::Consensus {
+        let mut consensus = vec![0.0f32; h * w];
+        crate::blend::consensus_blend(taps, layout, tangents, weights, &mut consensus, spread);
+        assemble(&source, h, w, params.lam, Target::Given(&consensus), None)
+    } else {
+        assemble(
+            &source,
+            h,
+            w,
+            params.lam,
+            Target::FromSamples(params.fidelity),
+            spread,
+        )
+    };
     let assemble_seconds = t0.elapsed().as_secs_f64();
     solve_assembled(&system, params, assemble_seconds, disparity, None)
 }

@@ -137,7 +137,8 @@ impl RowEdges {
 fn target_of(stats: &RowStats, j: usize, fidelity: Fidelity) -> f64 {
     f64::from(match fidelity {
         Fidelity::Nearest => stats.nearest[j],
-        Fidelity::Frustum => stats.weighted[j],
+        // Consensus is given as an image by the caller (Target::Given); frustum stands in.
+        Fidelity::Frustum | Fidelity::Consensus => stats.weighted[j],
         Fidelity::Mean => stats.mean[j],
     })
 }
