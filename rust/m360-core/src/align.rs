@@ -1679,19 +1679,24 @@ mod tests {
         (layout, maps, problem)
     }
 
+    /// A point away from the identity: scales in [0.7, 1.3], offsets in [-0.5, 0.5].
+    fn trial_point(len: usize) -> Vec<f64> {
+        (0..len)
+            .map(|i| {
+                if i % 2 == 0 {
+                    0.7 + 0.6 * random(3, i)
+                } else {
+                    random(4, i) - 0.5
+                }
+            })
+            .collect()
+    }
+
     #[test]
     fn gradient_matches_finite_differences() {
         for energy in [Energy::Paper, Energy::Normalized] {
             let (_, _, problem) = setup(energy, 4, 3);
-            let x: Vec<f64> = (0..problem.len())
-                .map(|i| {
-                    if i % 2 == 0 {
-                        0.7 + 0.6 * random(3, i)
-                    } else {
-                        random(4, i) - 0.5
-                    }
-                })
-                .collect();
+            let x = trial_point(problem.len());
             let mut g = vec![0.0; x.len()];
             let _ = problem.energy(&x, Some(&mut g));
             for i in (0..x.len()).step_by(7) {
@@ -1716,15 +1721,7 @@ mod tests {
             let (_, _, mut problem) = setup(energy, 4, 3);
             let weights = (0..problem.samples()).map(|k| random(7, k)).collect();
             problem.set_weights(weights);
-            let x: Vec<f64> = (0..problem.len())
-                .map(|i| {
-                    if i % 2 == 0 {
-                        0.7 + 0.6 * random(3, i)
-                    } else {
-                        random(4, i) - 0.5
-                    }
-                })
-                .collect();
+            let x = trial_point(problem.len());
             let mut g = vec![0.0; x.len()];
             let e = problem.energy(&x, Some(&mut g));
             // The data term is the weighted mean of r², independently of the assembled Hessian.
