@@ -517,3 +517,30 @@ def test_ctrl_c_while_writing_leaves_no_partial_set(
     assert [o.stem for o in again.skipped] == ["pano_00"] and again.exit_code == 0
     _assert_clean(out, (256, 512))
     assert len(inputs) == 3
+
+
+def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
+    """--working-width runs the method at that width and writes the image's resolution; the
+    result is m360.estimate's, and another working width is another result (redone)."""
+    (path,) = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 1)
+    out = tmp_path / "out"
+    args = ["run", str(path), "-o", str(out), "--model", str(model), "--formats", "npy"]
+    args += ["--align", "none", "--blend", "mean", "--input-size", "32", "48"]
+    assert main([*args, "--working-width", "256"]) == 0
+    saved = m360.load(out / path.stem)
+    assert saved.disparity.shape == (256, 512)
+    assert saved.metadata["options"]["working_width"] == 256
+    rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    direct = m360.estimate(
+        rgb, str(model), align="none", blend="mean", input_size=(32, 48), working_width=256
+    )
+    np.testing.assert_array_equal(saved.disparity, direct.disparity)
+    report = m360.batch.run(
+        path, out, model=str(model), align="none", blend="mean", formats=("npy",),
+        input_size=(32, 48), working_width=256, progress=False,
+    )  # fmt: skip
+    assert len(report.skipped) == 1
+    assert main([*args, "--working-width", "native"]) == 0  # another result: redone
+    assert m360.load(out / path.stem).metadata["options"]["working_width"] == 512
+    assert main([*args, "--working-width", "63"]) == 2  # odd: InputError, a usage error
+    assert main([*args, "--working-width", "wide"]) == 2

@@ -96,7 +96,7 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     meta is a failed ImageOutcome or (read, ERP shape, working width, timings); ``read.rgb`` is
     kept only when the 3D formats need its colours or a working width smaller than the image's
     needs it as the upsampling guide: otherwise only the tangents travel on. The working width
-    is :func:`m360.estimate`'s default, so both engines make the same bytes.
+    is chosen as :func:`m360.estimate` chooses it, so both engines make the same bytes.
     """
     import cv2
 
@@ -110,7 +110,7 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
         read = _batch._read_job(job, settings)
         rgb = _check_erp_rgb(read.rgb)
         height, width = rgb.shape[:2]
-        work_width = working_width_for(None, width)
+        work_width = working_width_for(settings.working_width, width)
         working = rgb
         if work_width != width:
             size = (work_width, work_width // 2)

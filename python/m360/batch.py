@@ -76,6 +76,7 @@ from .io import (
     save,
 )
 from .masks import SKY_MODES
+from .memory import working_width_for
 from .options import AlignSpec, StitchOptions, build
 
 __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
@@ -334,6 +335,7 @@ class _Settings:
     masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
     sky: str = "keep"
     confidence: bool = False
+    working_width: int | str | None = None  # m360.estimate's, per image
 
 
 class _Worker:
@@ -371,6 +373,7 @@ class _Worker:
                     scale=s.scale,
                     mask=_image_mask(read, s),
                     sky=s.sky,
+                    working_width=s.working_width,
                 )
                 t_estimate = time.perf_counter()
                 _write_job(job, result, read.records, s, read.rgb)
@@ -626,6 +629,7 @@ def run(
     scale: Any = None,
     mask: Any = None,
     sky: str = "keep",
+    working_width: int | str | None = None,
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
@@ -676,6 +680,9 @@ def run(
         or a list of them; combined with a partial panorama's own mask.
     sky : {"keep", "nan"}
         As for :func:`m360.estimate`: ``"nan"`` gives the sky no depth.
+    working_width : int or "native", optional
+        As for :func:`m360.estimate`: the ERP width the method runs at (default: the image's
+        width up to 8192, above it 4096), upsampled to the image's resolution.
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -706,6 +713,8 @@ def run(
     chosen = check_formats(formats)
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
+    if working_width is not None:
+        working_width_for(working_width, 1 << 15)  # checked once here, not once per image
     sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,
@@ -759,6 +768,7 @@ def run(
         masks=masks,
         sky=sky,
         confidence=confidence,
+        working_width=working_width,
     )
     # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
     # fingerprints of earlier runs stay valid).
@@ -770,6 +780,8 @@ def run(
         settings.fingerprint["mask"] = _describe_masks(masks)
     if sky != "keep":
         settings.fingerprint["sky"] = sky
+    if working_width is not None:
+        settings.fingerprint["working_width"] = working_width
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)

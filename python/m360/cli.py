@@ -190,6 +190,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="leave out the cap within DEG degrees of the top pole",
     )
     run.add_argument(
+        "--working-width",
+        type=_working_width,
+        default=None,
+        metavar="W|native",
+        help="ERP width the method runs at, the result upsampled to the image's resolution along "
+        "its edges (default: the image's width up to 8192, above it 4096)",
+    )
+    run.add_argument(
         "--sky",
         choices=SKY_MODES,
         default="keep",
@@ -490,6 +498,16 @@ def _view(args: argparse.Namespace) -> int:
     return 0
 
 
+def _working_width(text: str) -> int | str:
+    """Parse --working-width: an even width or "native" (checked by m360.memory)."""
+    if text == "native":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a width or 'native', got {text!r}") from None
+
+
 def _caps(nadir: float | None, zenith: float | None) -> list[m360_masks.Cap] | None:
     """Make the polar caps asked for by --nadir / --zenith (None: no mask)."""
     caps = [
@@ -526,6 +544,7 @@ def _run(args: argparse.Namespace) -> int:
         scale=None if args.camera_height is None else m360_scale.camera_height(args.camera_height),
         mask=_caps(args.nadir, args.zenith),
         sky=args.sky,
+        working_width=args.working_width,
         engine=args.engine,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,
