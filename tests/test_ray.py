@@ -36,7 +36,8 @@ def local_ray() -> Iterator[str]:
     """A local Ray of 2 CPUs whose workers can import the test helpers; yields its address."""
     saved = os.environ.get("PYTHONPATH")
     os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE), saved]))
-    ray.init(num_cpus=2, include_dashboard=False, log_to_driver=False)
+    # "local": always a new Ray, never one a stale /tmp/ray/ray_current_cluster points at
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
     try:
         yield ray.get_runtime_context().gcs_address
     finally:
