@@ -146,10 +146,16 @@ def test_import_m360_does_not_import_ray() -> None:
 
 
 class _Driver:
-    """A Ray run in another process (a driver of the module's Ray) with the Gated estimator,
-    whose JSON lines are read as they come (a watchdog fails the test if none comes)."""
+    """A Ray run in another process (a driver of the module's Ray) into ``tmp/out`` with the
+    Gated estimator (its FIFOs ``started`` and ``tokens`` in ``tmp/gate``), whose JSON lines
+    are read as they come (a watchdog fails the test if none comes). A context manager: on
+    exit the driver is killed if still running and the FIFOs are closed."""
 
-    def __init__(self, address: str, photos: Path, out: Path, gate: Path) -> None:
+    def __init__(self, address: str, photos: Path, tmp: Path) -> None:
+        gate = tmp / "gate"
+        gate.mkdir()
+        self.started, self.tokens = batch_helpers.make_gate(str(gate))
+        self.out = out = tmp / "out"
         env = {**os.environ, "RAY_ADDRESS": address}
         job = [
             sys.executable,
@@ -176,14 +182,17 @@ class _Driver:
             if line.startswith(b"{"):  # Ray prints messages of its own to stdout too
                 return dict(json.loads(line))
 
-    def stop(self, *fds: int) -> None:
+    def __enter__(self) -> _Driver:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
         if self.proc.poll() is None:
             self.proc.kill()
         self.proc.wait(WATCHDOG_S)
         assert self.proc.stdout is not None
         self.proc.stdout.close()
-        for fd in fds:
-            os.close(fd)
+        os.close(self.started)
+        os.close(self.tokens)
 
 
 def _read_byte(fd: int) -> None:
@@ -195,19 +204,13 @@ def _read_byte(fd: int) -> None:
 def test_rerun_after_sigkill_of_the_driver_does_only_the_rest(
     local_ray: str, ten: Path, tmp_path: Path
 ) -> None:
-    gate = tmp_path / "gate"
-    gate.mkdir()
-    started, tokens = batch_helpers.make_gate(str(gate))
-    out = tmp_path / "out"
-    driver = _Driver(local_ray, ten, out, gate)
-    try:
-        os.write(tokens, b"ttt")  # three images may pass the network, the fourth waits
+    with _Driver(local_ray, ten, tmp_path) as driver:
+        os.write(driver.tokens, b"ttt")  # three images may pass the network, the fourth waits
         done = [driver.line() for _ in range(3)]
         assert [d["outcome"] for d in done] == ["done"] * 3
         driver.proc.send_signal(signal.SIGKILL)  # no image is being written: the fourth waits
         driver.proc.wait(WATCHDOG_S)
-    finally:
-        driver.stop(started, tokens)
+    out = driver.out
     finished = {p.name: p.stat().st_mtime_ns for p in out.glob("*.json")}
     assert sorted(finished) == sorted(f"{Path(d['input']).stem}.json" for d in done)
     report = m360.batch.run([ten], out, model=batch_helpers.Gated(None), engine="ray", **GATED)
@@ -222,20 +225,14 @@ def test_rerun_after_sigkill_of_the_driver_does_only_the_rest(
 def test_a_local_run_and_a_ray_run_share_a_folder(
     local_ray: str, ten: Path, tmp_path: Path
 ) -> None:
-    gate = tmp_path / "gate"
-    gate.mkdir()
-    started, tokens = batch_helpers.make_gate(str(gate))
-    out = tmp_path / "out"
-    driver = _Driver(local_ray, ten, out, gate)
-    try:
+    with _Driver(local_ray, ten, tmp_path) as driver:
         # The Ray run has claimed its first images and waits in the network on the first.
-        _read_byte(started)
-        local = m360.batch.run([ten], out, model=batch_helpers.Gated(None), **GATED)
-        os.write(tokens, b"t" * 10)
+        _read_byte(driver.started)
+        local = m360.batch.run([ten], driver.out, model=batch_helpers.Gated(None), **GATED)
+        os.write(driver.tokens, b"t" * 10)
         lines = [driver.line() for _ in range(11)]
         assert driver.proc.wait(WATCHDOG_S) == 0
-    finally:
-        driver.stop(started, tokens)
+    out = driver.out
     counts = lines[-1]["report"]
     assert local.exit_code == 0 and counts["exit_code"] == 0
     assert len(local.busy) >= 1 and len(local.done) >= 1
@@ -248,19 +245,13 @@ def test_a_local_run_and_a_ray_run_share_a_folder(
 def test_ctrl_c_of_the_driver_stops_cleanly_and_a_rerun_finishes(
     local_ray: str, ten: Path, tmp_path: Path
 ) -> None:
-    gate = tmp_path / "gate"
-    gate.mkdir()
-    started, tokens = batch_helpers.make_gate(str(gate))
-    out = tmp_path / "out"
-    driver = _Driver(local_ray, ten, out, gate)
-    try:
-        os.write(tokens, b"tt")
+    with _Driver(local_ray, ten, tmp_path) as driver:
+        os.write(driver.tokens, b"tt")
         assert [driver.line()["outcome"] for _ in range(2)] == ["done", "done"]
         driver.proc.send_signal(signal.SIGINT)  # the third image waits in the network
         report = driver.line()["report"]
         assert driver.proc.wait(WATCHDOG_S) == 0
-    finally:
-        driver.stop(started, tokens)
+    out = driver.out
     assert (report["done"], report["exit_code"]) == (2, 130)
     h.assert_clean(out)  # no claim left, no partial file
     again = m360.batch.run([ten], out, model=batch_helpers.Gated(None), engine="ray", **GATED)

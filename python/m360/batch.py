@@ -76,7 +76,7 @@ from .io import (
     save,
 )
 from .masks import SKY_MODES
-from .memory import working_width_for
+from .memory import check_working_width
 from .options import AlignSpec, StitchOptions, build
 
 __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
@@ -713,8 +713,7 @@ def run(
     chosen = check_formats(formats)
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
-    if working_width is not None:
-        working_width_for(working_width, 1 << 15)  # checked once here, not once per image
+    check_working_width(working_width)
     sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,

@@ -363,8 +363,6 @@ def _from_network(
         disparity[~erp_valid] = np.nan
     if sky_mode == "nan":
         disparity[_masks.sky(disparity)] = np.nan
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     st = details.timings
     metric = kind != "affine_disparity" and opts.align is None
     scale_fit = None
@@ -372,9 +370,9 @@ def _from_network(
         from .scale import scale_disparity
 
         disparity, fit = scale_disparity(disparity, scale, affine=kind == "affine_disparity")
-        with np.errstate(divide="ignore", invalid="ignore"):
-            depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
         metric, scale_fit = True, fit.as_dict()
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
     return EstimateResult(
         disparity=disparity,
         depth=depth,

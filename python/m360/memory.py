@@ -19,7 +19,13 @@ import re
 
 from .errors import InputError
 
-__all__ = ["available_memory", "check_memory", "estimate_memory", "working_width_for"]
+__all__ = [
+    "available_memory",
+    "check_memory",
+    "check_working_width",
+    "estimate_memory",
+    "working_width_for",
+]
 
 #: Widest input processed at its own resolution by default; wider inputs run at
 #: :data:`DEFAULT_WORKING_WIDTH` and are upsampled along the photo's edges.
@@ -45,17 +51,27 @@ def working_width_for(working_width: int | str | None, width: int) -> int:
     :data:`DEFAULT_WORKING_WIDTH`; ``"native"``: the input's width; an even integer: that width
     (at most the input's; the input's own width if larger).
     """
+    check_working_width(working_width)
     if working_width is None:
         return width if width <= NATIVE_WIDTH_LIMIT else DEFAULT_WORKING_WIDTH
     if working_width == "native":
         return width
+    return min(int(working_width), width)
+
+
+def check_working_width(working_width: int | str | None) -> None:
+    """Check a ``working_width`` whatever the input's width.
+
+    Raises :class:`m360.InputError` unless it is None, "native" or an even integer >= 64.
+    """
+    if working_width is None or working_width == "native":
+        return
     if isinstance(working_width, bool) or not isinstance(working_width, int):
         raise InputError(
             f"working_width must be None, 'native' or an even integer, got {working_width!r}"
         )
     if working_width < 64 or working_width % 2:
         raise InputError(f"working_width must be an even integer >= 64, got {working_width}")
-    return min(working_width, width)
 
 
 def estimate_memory(width: int, working_width: int | None = None, blend: str = "poisson") -> int:

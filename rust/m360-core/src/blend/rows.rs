@@ -415,6 +415,30 @@ const CONSENSUS_CAUCHY: f32 = 2.385;
 /// Every how many taps one enters the estimate of σ (a median over a regular subsample).
 const SCALE_STRIDE: usize = 4;
 
+/// Per column of a row, the sums over its samples of `term(value, prior weight, estimate)` =
+/// (numerator, denominator) into `num` and `den`, with `at` the current estimate per column.
+/// Branch-free: `term` sees invalid (non-finite) samples too and must add zeros for them.
+fn accumulate_row(
+    row: &RowSamples,
+    at: &[f32],
+    num: &mut [f32],
+    den: &mut [f32],
+    term: impl Fn(f32, f32, f32) -> (f32, f32),
+) {
+    num.fill(0.0);
+    den.fill(0.0);
+    for run in &row.runs {
+        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
+        let cols = run.columns();
+        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
+        for (((n, d), &m), (&v, &p)) in sums.zip(&at[cols]).zip(samples) {
+            let (a, b) = term(v, p, m);
+            *n += a;
+            *d += b;
+        }
+    }
+}
+
 /// Disagreement-aware blend: per ERP pixel, an iteratively reweighted mean of the valid samples
 /// with the per-face `weights` (at the taps) as prior, each sample's weight multiplied by the
 /// Cauchy weight 1/(1 + (e/c)²) of its distance e from the current consensus (c = 2.385·σ,
@@ -496,42 +520,25 @@ pub fn consensus_blend(
                 stats.compute(row, ew, false);
                 out.copy_from_slice(&stats.weighted);
                 for _ in 0..CONSENSUS_ROUNDS {
-                    num.fill(0.0);
-                    den.fill(0.0);
-                    for run in &row.runs {
-                        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
-                        let cols = run.columns();
-                        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
-                        // Branch-free: an invalid sample adds zeros.
-                        for (((n, d), &m), (&v, &p)) in sums.zip(&out[cols]).zip(samples) {
-                            let ok = v.is_finite();
-                            let e = (v - m) * inv_c;
-                            let r = if ok { p / (1.0 + e * e) } else { 0.0 };
-                            *n += r * if ok { v } else { 0.0 };
-                            *d += r;
-                        }
-                    }
+                    accumulate_row(row, out, num, den, |v, p, m| {
+                        let ok = v.is_finite();
+                        let e = (v - m) * inv_c;
+                        let r = if ok { p / (1.0 + e * e) } else { 0.0 };
+                        (r * if ok { v } else { 0.0 }, r)
+                    });
                     for ((m, &n), &d) in out.iter_mut().zip(num.iter()).zip(den.iter()) {
                         *m = if d > 0.0 { n / d } else { *m };
                     }
                 }
                 if let Some(conf) = out_confidence {
-                    num.fill(0.0);
-                    den.fill(0.0);
-                    for run in &row.runs {
-                        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
-                        let cols = run.columns();
-                        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
-                        for (((n, d), &m), (&v, &p)) in sums.zip(&out[cols]).zip(samples) {
-                            let ok = v.is_finite();
-                            let e = if ok { v - m } else { 0.0 };
-                            let u = e * inv_c;
-                            // Unweighted (p = 1) where the prior weighs every sample 0.
-                            let p = if ok { p.max(1e-6) } else { 0.0 };
-                            *n += p * e * e / (1.0 + u * u);
-                            *d += p;
-                        }
-                    }
+                    accumulate_row(row, out, num, den, |v, p, m| {
+                        let ok = v.is_finite();
+                        let e = if ok { v - m } else { 0.0 };
+                        let u = e * inv_c;
+                        // Unweighted (p = 1) where the prior weighs every sample 0.
+                        let p = if ok { p.max(1e-6) } else { 0.0 };
+                        (p * e * e / (1.0 + u * u), p)
+                    });
                     for ((c, &n), &d) in conf.iter_mut().zip(num.iter()).zip(den.iter()) {
                         *c = (n / d).sqrt(); // NaN where no sample (0/0)
                     }
