@@ -28,6 +28,7 @@ from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
 from .geometry import Layout, erp_to_tangents
 from .options import AlignSpec, StitchOptions, build
+from .scale import depth_of, scale_disparity
 from .stitch import StitchResult, stitch
 from .upsample import UPSAMPLE_METHODS, guided_upsample
 
@@ -367,12 +368,9 @@ def _from_network(
     metric = kind != "affine_disparity" and opts.align is None
     scale_fit = None
     if scale is not None:
-        from .scale import scale_disparity
-
         disparity, fit = scale_disparity(disparity, scale, affine=kind == "affine_disparity")
         metric, scale_fit = True, fit.as_dict()
-    with np.errstate(divide="ignore", invalid="ignore"):
-        depth = np.where(disparity > 0, 1.0 / disparity, np.nan).astype(np.float32)
+    depth = depth_of(disparity)
     return EstimateResult(
         disparity=disparity,
         depth=depth,

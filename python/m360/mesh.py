@@ -30,6 +30,7 @@ import numpy as np
 
 from ._validate import as_array, flag, integer, number
 from .errors import InputError
+from .scale import depth_of
 
 __all__ = [
     "DEFAULT_MAX_DEPTH_RATIO",
@@ -136,7 +137,7 @@ def _depth_of(source: Any, quantity: str | None) -> tuple[np.ndarray, str]:
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         depth = array.astype(np.float32)
         if name == "disparity":
-            depth = np.where(depth > 0, 1.0 / depth, np.nan).astype(np.float32)
+            depth = depth_of(depth)
         depth[~(np.isfinite(depth) & (depth > 0))] = np.nan
     return depth, units
 
