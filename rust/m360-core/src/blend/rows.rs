@@ -414,6 +414,10 @@ pub const CONSENSUS_ROUNDS: usize = 3;
 const CONSENSUS_CAUCHY: f32 = 2.385;
 /// Every how many taps one enters the estimate of σ (a median over a regular subsample).
 const SCALE_STRIDE: usize = 4;
+/// ERP rows the estimate of σ reads (evenly spaced; all rows of smaller maps): a fixed budget,
+/// so that the extra pass costs the same at every resolution (at 8K it was a third of the
+/// blend's time when it read every row).
+const SCALE_ROWS: usize = 256;
 
 /// Per column of a row, the sums over its samples of `term(value, prior weight, estimate)` =
 /// (numerator, denominator) into `num` and `den`, with `at` the current estimate per column.
@@ -442,8 +446,8 @@ fn accumulate_row(
 /// Disagreement-aware blend: per ERP pixel, an iteratively reweighted mean of the valid samples
 /// with the per-face `weights` (at the taps) as prior, each sample's weight multiplied by the
 /// Cauchy weight 1/(1 + (e/c)²) of its distance e from the current consensus (c = 2.385·σ,
-/// σ = 1.4826 × the median distance of a sample from its pixel's prior-weighted mean, over the
-/// pixels at least two faces see), [`CONSENSUS_ROUNDS`] times from the prior-weighted mean. A
+/// σ = 1.4826 × the median distance of a sample from its pixel's prior-weighted mean, over a
+/// regular subsample of the pixels at least two faces see), [`CONSENSUS_ROUNDS`] times from the prior-weighted mean. A
 /// face that disagrees with the others where three or more see a pixel loses its say there.
 ///
 /// `disparity` (H·W) gets the consensus, NaN where no face has a valid sample. `confidence`
@@ -468,8 +472,10 @@ pub fn consensus_blend(
         .as_ref()
         .is_none_or(|s| s.len() == disparity.len()));
     // σ: rows in parallel, their subsamples concatenated in row order (thread-count independent).
+    let row_stride = (eh / SCALE_ROWS).max(1);
     let distances: Vec<Vec<f32>> = (0..eh)
         .into_par_iter()
+        .step_by(row_stride)
         .map_init(
             || (RowSamples::default(), RowStats::default()),
             |(row, stats), i| {
