@@ -796,7 +796,7 @@ mod tests {
                 b[last..last + 4].copy_from_slice(&0x0fff_fff0_u32.to_le_bytes());
                 reseal(b);
             })),
-            // A run longer than the row.
+            // A run starting past the row's end.
             ("run past the row, resealed", "a run outside", Box::new(|b: &mut Vec<u8>| {
                 let sections: Vec<u64> = (0..4)
                     .map(|k| {
@@ -807,8 +807,8 @@ mod tests {
                 let runs_at = HEADER_BYTES as u64
                     + padded(sections[0]).expect("pad")
                     + padded(sections[1]).expect("pad");
-                let len_at = runs_at as usize + 8;
-                b[len_at..len_at + 4].copy_from_slice(&u32::MAX.to_le_bytes());
+                let start_at = runs_at as usize + 4;
+                b[start_at..start_at + 4].copy_from_slice(&0xffff_0000_u32.to_le_bytes());
                 reseal(b);
             })),
         ];
