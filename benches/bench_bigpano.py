@@ -261,9 +261,14 @@ def main() -> None:
                 print(f"  done plan cache {width} round {r + 1}", file=sys.stderr)
             med = statistics.median
             warm = med(c["warm"] for c in calls["off"] + calls["cold"] + calls["disk"])
-            cache_rows.append([f"{width}x{width // 2}", warm,
-                               *(med(c["first"] for c in calls[m]) for m in calls),
-                               *(f"{med(c['first'] for c in calls[m]) / warm:.2f}" for m in calls)])
+            cache_rows.append(
+                [
+                    f"{width}x{width // 2}",
+                    warm,
+                    *(med(c["first"] for c in calls[m]) for m in calls),
+                    *(f"{med(c['first'] for c in calls[m]) / warm:.2f}" for m in calls),
+                ]
+            )
             files = preps["cold"][0]["files"]
             prepare_rows.append([f"{width}x{width // 2}",
                                  *(med(p["prepare"] for p in preps[m]) for m in preps),

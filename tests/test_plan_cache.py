@@ -134,9 +134,7 @@ def test_files_of_other_builds_are_ignored_and_cleared_as_stale(home: Path) -> N
 
 
 @pytest.mark.parametrize("switch", ["env", "function"])
-def test_cache_off_writes_nothing(
-    home: Path, switch: str, monkeypatch: pytest.MonkeyPatch
-) -> None:
+def test_cache_off_writes_nothing(home: Path, switch: str, monkeypatch: pytest.MonkeyPatch) -> None:
     if switch == "env":
         monkeypatch.setenv(plan_cache.ENV_SWITCH, "0")
     else:
@@ -217,7 +215,7 @@ def test_two_processes_building_the_same_plan_at_once_both_succeed(home: Path) -
         os.close(writer)
         for b in builders:
             b.kill()
-    for b, (out, err) in zip(builders, outputs, strict=True):
+    for b, (_, err) in zip(builders, outputs, strict=True):
         assert b.returncode == 0, err
     digests = {out.split()[0] for out, _ in outputs}
     assert len(digests) == 1 and all(out.split()[1] == "0" for out, _ in outputs)

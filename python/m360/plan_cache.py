@@ -59,7 +59,7 @@ def set_enabled(on: bool | None) -> None:
 
 
 def directory() -> Path:
-    """The folder of plan files: ``$M360_HOME/plans`` (default: the user cache folder).
+    """Return the folder of plan files: ``$M360_HOME/plans`` (default: the user cache folder).
 
     Returns
     -------
@@ -72,7 +72,7 @@ def directory() -> Path:
 
 
 def current() -> Path | None:
-    """The folder plans use now: :func:`directory` if the cache is on, else ``None``."""
+    """Return the folder plans use now: :func:`directory` if the cache is on, else ``None``."""
     return directory() if enabled() else None
 
 

@@ -27,7 +27,11 @@ fn main() {
     // FNV-1a over (relative path, contents) of every source file: stable across machines.
     let mut hash: u64 = 0xcbf2_9ce4_8422_2325;
     for file in &files {
-        let name = file.strip_prefix(src).unwrap_or(file).to_string_lossy().replace('\\', "/");
+        let name = file
+            .strip_prefix(src)
+            .unwrap_or(file)
+            .to_string_lossy()
+            .replace('\\', "/");
         let contents = fs::read(file).unwrap_or_default();
         for byte in name.bytes().chain([0]).chain(contents) {
             hash ^= u64::from(byte);

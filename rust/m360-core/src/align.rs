@@ -312,7 +312,13 @@ impl Overlaps {
     }
 
     /// Samples from the arrays of [`Overlaps::parts`]; the caller has checked them.
-    pub(crate) fn from_parts(a: Vec<u16>, b: Vec<u16>, pa: Vec<u32>, xb: Vec<f32>, yb: Vec<f32>) -> Self {
+    pub(crate) fn from_parts(
+        a: Vec<u16>,
+        b: Vec<u16>,
+        pa: Vec<u32>,
+        xb: Vec<f32>,
+        yb: Vec<f32>,
+    ) -> Self {
         Self { a, b, pa, xb, yb }
     }
 

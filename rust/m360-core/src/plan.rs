@@ -119,8 +119,10 @@ impl Plan {
 
     /// What the maps built so far came from.
     pub fn disk_stats(&self) -> DiskStats {
-        let [loaded, built, saved, rejected] =
-            self.disk_counts.each_ref().map(|c| c.load(Ordering::Relaxed));
+        let [loaded, built, saved, rejected] = self
+            .disk_counts
+            .each_ref()
+            .map(|c| c.load(Ordering::Relaxed));
         DiskStats {
             loaded,
             built,
@@ -131,13 +133,24 @@ impl Plan {
 
     /// The reasons cache files were rejected or not written since the last call.
     pub fn take_disk_notes(&self) -> Vec<String> {
-        std::mem::take(&mut *self.disk_notes.lock().unwrap_or_else(PoisonError::into_inner))
+        std::mem::take(
+            &mut *self
+                .disk_notes
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        )
     }
 
     /// The path of the cache file of a map of `T` with `options`, if the cache is on.
     pub fn disk_path(&self, kind: plan_cache::Kind, options: [u64; 2]) -> Option<PathBuf> {
-        self.disk_cache()
-            .map(|dir| dir.join(plan_cache::file_name(kind, &self.layout, self.layout_hash, options)))
+        self.disk_cache().map(|dir| {
+            dir.join(plan_cache::file_name(
+                kind,
+                &self.layout,
+                self.layout_hash,
+                options,
+            ))
+        })
     }
 
     fn note(&self, note: String) {
@@ -165,7 +178,10 @@ impl Plan {
                 Ok(None) => {}
                 Err(why) => {
                     count(3);
-                    self.note(format!("plan cache file {} rejected ({why}); rebuilt", show(path)));
+                    self.note(format!(
+                        "plan cache file {} rejected ({why}); rebuilt",
+                        show(path)
+                    ));
                 }
             }
         }

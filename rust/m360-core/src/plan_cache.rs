@@ -26,7 +26,9 @@
 
 use crate::align::Overlaps;
 use crate::layout::Layout;
-use crate::resample::{ErpTaps, Run, Tap, TangentTaps, TapWeights, OFFSET_MASK, RANK_SHIFT, WRAPPED};
+use crate::resample::{
+    ErpTaps, Run, TangentTaps, Tap, TapWeights, OFFSET_MASK, RANK_SHIFT, WRAPPED,
+};
 use memmap2::Mmap;
 use rayon::prelude::*;
 use std::fs::{self, File};
@@ -309,10 +311,7 @@ pub(crate) fn load<T: StoredMap>(
     // read could invalidate the mapping.
     let map = unsafe { Mmap::map(&file) }.map_err(|e| format!("cannot map: {e}"))?;
     let header = Header::decode(&map[..HEADER_BYTES])?;
-    if header.kind != T::KIND as u32
-        || header.layout != layout_hash
-        || header.options != options
-    {
+    if header.kind != T::KIND as u32 || header.layout != layout_hash || header.options != options {
         return Err("written for another map, layout or options".into());
     }
     let payload = &map[HEADER_BYTES..];
@@ -340,7 +339,9 @@ pub(crate) fn save<T: StoredMap>(
     static COUNTER: AtomicU64 = AtomicU64::new(0);
     let dir = path.parent().unwrap_or(Path::new("."));
     fs::create_dir_all(dir)?;
-    let name = path.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
+    let name = path
+        .file_name()
+        .map_or_else(String::new, |n| n.to_string_lossy().into_owned());
     let tmp: PathBuf = dir.join(format!(
         ".{name}.{}.{}.tmp",
         std::process::id(),
@@ -382,7 +383,11 @@ pub(crate) fn save<T: StoredMap>(
     result
 }
 
-fn write_taps<W: Write>(out: &mut SectionWriter<W>, taps: &[Tap], buf: &mut Vec<[u32; 2]>) -> io::Result<()> {
+fn write_taps<W: Write>(
+    out: &mut SectionWriter<W>,
+    taps: &[Tap],
+    buf: &mut Vec<[u32; 2]>,
+) -> io::Result<()> {
     for chunk in taps.chunks(1 << 16) {
         buf.clear();
         buf.extend(chunk.iter().map(|t| t.to_words()));
@@ -408,7 +413,11 @@ impl StoredMap for TangentTaps {
         let words: &[[u32; 2]] = view(section(sections, 0)?, "tangent taps")?;
         let wrapped: &[[u32; 4]] = view(section(sections, 1)?, "wrapped corners")?;
         if words.len() != layout.cameras.len() * h * w {
-            return Err(format!("{} tangent taps, the layout has {} pixels", words.len(), layout.cameras.len() * h * w));
+            return Err(format!(
+                "{} tangent taps, the layout has {} pixels",
+                words.len(),
+                layout.cameras.len() * h * w
+            ));
         }
         if wrapped.iter().flatten().any(|&k| k as usize >= eh * ew) {
             return Err("a wrapped corner outside the ERP grid".into());
@@ -651,7 +660,8 @@ mod tests {
     use crate::plan::{Need, Plan};
 
     fn fresh_dir(name: &str) -> PathBuf {
-        let dir = std::env::temp_dir().join(format!("m360-plan-cache-{name}-{}", std::process::id()));
+        let dir =
+            std::env::temp_dir().join(format!("m360-plan-cache-{name}-{}", std::process::id()));
         drop(fs::remove_dir_all(&dir));
         fs::create_dir_all(&dir).expect("temp dir");
         dir
@@ -694,9 +704,15 @@ mod tests {
         let mut state = 0x9e37_79b9_7f4a_7c15_u64;
         (0..layout.cameras.len() * h * w)
             .map(|_| {
-                state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
+                state = state
+                    .wrapping_mul(6_364_136_223_846_793_005)
+                    .wrapping_add(1);
                 let v = (state >> 40) as f32 / (1u64 << 24) as f32;
-                if v < 0.02 { f32::NAN } else { 0.5 + v }
+                if v < 0.02 {
+                    f32::NAN
+                } else {
+                    0.5 + v
+                }
             })
             .collect()
     }
@@ -704,7 +720,8 @@ mod tests {
     fn blended(plan: &Plan, method: &Method) -> Vec<u32> {
         let layout = plan.layout();
         let mut out = vec![0f32; layout.erp_height * layout.erp_width];
-        plan.blend(&tangents(layout), method, &mut out, None).expect("blend");
+        plan.blend(&tangents(layout), method, &mut out, None)
+            .expect("blend");
         out.iter().map(|v| v.to_bits()).collect()
     }
 
@@ -716,13 +733,19 @@ mod tests {
         let dir = fresh_dir("round-trip");
         let built = cached_plan(&layout, &dir);
         let stats = built.disk_stats();
-        assert_eq!((stats.loaded, stats.built, stats.saved, stats.rejected), (0, 5, 5, 0));
+        assert_eq!(
+            (stats.loaded, stats.built, stats.saved, stats.rejected),
+            (0, 5, 5, 0)
+        );
         let written = files(&dir);
         assert_eq!(written.len(), 5);
 
         let loaded = cached_plan(&layout, &dir);
         let stats = loaded.disk_stats();
-        assert_eq!((stats.loaded, stats.built, stats.saved, stats.rejected), (5, 0, 0, 0));
+        assert_eq!(
+            (stats.loaded, stats.built, stats.saved, stats.rejected),
+            (5, 0, 0, 0)
+        );
         for method in [Method::Frustum, Method::Radial, Method::Mean] {
             assert_eq!(blended(&built, &method), blended(&loaded, &method));
         }
@@ -730,10 +753,25 @@ mod tests {
         let hash = layout_hash(&layout);
         let path = |kind, options| again.join(file_name(kind, &layout, hash, options));
         let fraction = (0.01f64.to_bits(), 5.0f64.to_bits());
-        save(&path(Kind::TangentTaps, [0; 2]), hash, [0; 2], loaded.tangent_taps()).expect("save");
-        save(&path(Kind::ErpTaps, [0; 2]), hash, [0; 2], loaded.erp_taps()).expect("save");
+        save(
+            &path(Kind::TangentTaps, [0; 2]),
+            hash,
+            [0; 2],
+            loaded.tangent_taps(),
+        )
+        .expect("save");
+        save(
+            &path(Kind::ErpTaps, [0; 2]),
+            hash,
+            [0; 2],
+            loaded.erp_taps(),
+        )
+        .expect("save");
         for kind in [Weighting::Frustum, Weighting::Radial] {
-            let slot = Weighting::ALL.iter().position(|(k, _)| *k == kind).expect("slot") as u64;
+            let slot = Weighting::ALL
+                .iter()
+                .position(|(k, _)| *k == kind)
+                .expect("slot") as u64;
             let weights = loaded.tap_weights(kind);
             save(&path(Kind::TapWeights, [slot, 0]), hash, [slot, 0], weights).expect("save");
         }
@@ -767,50 +805,88 @@ mod tests {
             .clone();
         type Damage = Box<dyn Fn(&mut Vec<u8>)>;
         let damages: Vec<(&str, &str, Damage)> = vec![
-            ("truncated", "payload is", Box::new(|b: &mut Vec<u8>| b.truncate(b.len() / 2))),
-            ("header only, cut", "truncated", Box::new(|b: &mut Vec<u8>| b.truncate(100))),
+            (
+                "truncated",
+                "payload is",
+                Box::new(|b: &mut Vec<u8>| b.truncate(b.len() / 2)),
+            ),
+            (
+                "header only, cut",
+                "truncated",
+                Box::new(|b: &mut Vec<u8>| b.truncate(100)),
+            ),
             ("empty", "truncated", Box::new(|b: &mut Vec<u8>| b.clear())),
-            ("flipped payload byte", "payload checksum", Box::new(|b: &mut Vec<u8>| {
-                let at = b.len() - b.len() / 3;
-                b[at] ^= 0x10;
-            })),
-            ("random bytes", "no magic", Box::new(|b: &mut Vec<u8>| {
-                let mut state = 12345u64;
-                for v in b.iter_mut() {
-                    state = state.wrapping_mul(6_364_136_223_846_793_005).wrapping_add(1);
-                    *v = (state >> 56) as u8;
-                }
-            })),
-            ("other format version", "file format", Box::new(|b: &mut Vec<u8>| {
-                b[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
-                reseal(b);
-            })),
-            ("other build", "written by build", Box::new(|b: &mut Vec<u8>| {
-                b[16] ^= 1;
-                reseal(b);
-            })),
-            ("appended bytes", "payload is", Box::new(|b: &mut Vec<u8>| b.extend([0u8; 8]))),
+            (
+                "flipped payload byte",
+                "payload checksum",
+                Box::new(|b: &mut Vec<u8>| {
+                    let at = b.len() - b.len() / 3;
+                    b[at] ^= 0x10;
+                }),
+            ),
+            (
+                "random bytes",
+                "no magic",
+                Box::new(|b: &mut Vec<u8>| {
+                    let mut state = 12345u64;
+                    for v in b.iter_mut() {
+                        state = state
+                            .wrapping_mul(6_364_136_223_846_793_005)
+                            .wrapping_add(1);
+                        *v = (state >> 56) as u8;
+                    }
+                }),
+            ),
+            (
+                "other format version",
+                "file format",
+                Box::new(|b: &mut Vec<u8>| {
+                    b[8..12].copy_from_slice(&(FORMAT_VERSION + 1).to_le_bytes());
+                    reseal(b);
+                }),
+            ),
+            (
+                "other build",
+                "written by build",
+                Box::new(|b: &mut Vec<u8>| {
+                    b[16] ^= 1;
+                    reseal(b);
+                }),
+            ),
+            (
+                "appended bytes",
+                "payload is",
+                Box::new(|b: &mut Vec<u8>| b.extend([0u8; 8])),
+            ),
             // Valid checksums, but a tap index far outside its face: bounds validation.
-            ("index out of bounds, resealed", "a tap outside its face", Box::new(|b: &mut Vec<u8>| {
-                let last = b.len() - 8;
-                b[last..last + 4].copy_from_slice(&0x0fff_fff0_u32.to_le_bytes());
-                reseal(b);
-            })),
+            (
+                "index out of bounds, resealed",
+                "a tap outside its face",
+                Box::new(|b: &mut Vec<u8>| {
+                    let last = b.len() - 8;
+                    b[last..last + 4].copy_from_slice(&0x0fff_fff0_u32.to_le_bytes());
+                    reseal(b);
+                }),
+            ),
             // A run starting past the row's end.
-            ("run past the row, resealed", "a run outside", Box::new(|b: &mut Vec<u8>| {
-                let sections: Vec<u64> = (0..4)
-                    .map(|k| {
-                        let at = SECTIONS_AT + 8 * k;
-                        u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
-                    })
-                    .collect();
-                let runs_at = HEADER_BYTES as u64
-                    + padded(sections[0]).expect("pad")
-                    + padded(sections[1]).expect("pad");
-                let start_at = runs_at as usize + 4;
-                b[start_at..start_at + 4].copy_from_slice(&0xffff_0000_u32.to_le_bytes());
-                reseal(b);
-            })),
+            (
+                "run past the row, resealed",
+                "a run outside",
+                Box::new(|b: &mut Vec<u8>| {
+                    let sections: Vec<u64> = (0..4)
+                        .map(|k| {
+                            let at = SECTIONS_AT + 8 * k;
+                            u64::from_le_bytes(b[at..at + 8].try_into().expect("8 bytes"))
+                        })
+                        .collect();
+                    let runs_at = HEADER_BYTES as u64
+                        + padded(sections[0]).expect("pad")
+                        + padded(sections[1]).expect("pad");
+                    let start_at = runs_at as usize + 4;
+                    b[start_at..start_at + 4].copy_from_slice(&0xffff_0000_u32.to_le_bytes());
+                    reseal(b);
+                }),
+            ),
         ];
         let path = dir.join(&erp_taps.0);
         for (what, reason, damage) in damages {
@@ -821,11 +897,25 @@ mod tests {
             plan.set_disk_cache(Some(dir.clone()));
             plan.prepare(&[Need::ErpTaps], |build| build());
             let stats = plan.disk_stats();
-            assert_eq!((stats.rejected, stats.built, stats.saved), (1, 1, 1), "{what}");
+            assert_eq!(
+                (stats.rejected, stats.built, stats.saved),
+                (1, 1, 1),
+                "{what}"
+            );
             let notes = plan.take_disk_notes();
-            assert!(notes.len() == 1 && notes[0].contains(reason), "{what}: {notes:?}");
-            assert_eq!(fs::read(&path).expect("read"), erp_taps.1, "{what}: rewritten");
-            assert_eq!(blended(&plan, &Method::Mean), blended(&reference, &Method::Mean));
+            assert!(
+                notes.len() == 1 && notes[0].contains(reason),
+                "{what}: {notes:?}"
+            );
+            assert_eq!(
+                fs::read(&path).expect("read"),
+                erp_taps.1,
+                "{what}: rewritten"
+            );
+            assert_eq!(
+                blended(&plan, &Method::Mean),
+                blended(&reference, &Method::Mean)
+            );
         }
         assert_eq!(files(&dir), original, "no temporary files left");
         drop(fs::remove_dir_all(dir));
@@ -840,8 +930,18 @@ mod tests {
         );
         let dir = fresh_dir("foreign");
         drop(cached_plan(&small, &dir));
-        let source = dir.join(file_name(Kind::TangentTaps, &small, layout_hash(&small), [0; 2]));
-        let target = dir.join(file_name(Kind::TangentTaps, &big, layout_hash(&big), [0; 2]));
+        let source = dir.join(file_name(
+            Kind::TangentTaps,
+            &small,
+            layout_hash(&small),
+            [0; 2],
+        ));
+        let target = dir.join(file_name(
+            Kind::TangentTaps,
+            &big,
+            layout_hash(&big),
+            [0; 2],
+        ));
         fs::copy(source, &target).expect("copy");
         let plan = Plan::new(big);
         plan.set_disk_cache(Some(dir.clone()));

@@ -868,7 +868,11 @@ impl ErpTaps {
 
     /// The map of per-pixel `counts` and per-row (runs, taps) of `layout`; the caller has
     /// checked them against the layout.
-    pub(crate) fn from_parts(layout: &Layout, counts: Vec<u8>, rows: Vec<(Vec<Run>, Vec<Tap>)>) -> Self {
+    pub(crate) fn from_parts(
+        layout: &Layout,
+        counts: Vec<u8>,
+        rows: Vec<(Vec<Run>, Vec<Tap>)>,
+    ) -> Self {
         let (h, w) = layout.tangent_shape();
         Self {
             counts,

@@ -68,24 +68,25 @@ pub(crate) fn on_pool<T: Send>(
     work: impl FnOnce() -> T + Send,
 ) -> PyResult<T> {
     let pool = pool()?;
-    let result = py.detach(|| {
-        catch_unwind(AssertUnwindSafe(|| {
-            if let Some((plan, needs)) = plan {
-                plan.prepare(needs, |build| pool.install(build));
-            }
-            pool.install(work)
-        }))
-    })
-    .map_err(|panic| {
-        let msg = panic
-            .downcast_ref::<&str>()
-            .map(|s| (*s).to_string())
-            .or_else(|| panic.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "unknown panic".into());
-        internal_error(format!(
-            "internal error in m360's core (please report): {msg}"
-        ))
-    });
+    let result = py
+        .detach(|| {
+            catch_unwind(AssertUnwindSafe(|| {
+                if let Some((plan, needs)) = plan {
+                    plan.prepare(needs, |build| pool.install(build));
+                }
+                pool.install(work)
+            }))
+        })
+        .map_err(|panic| {
+            let msg = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            internal_error(format!(
+                "internal error in m360's core (please report): {msg}"
+            ))
+        });
     if let Some((plan, _)) = plan {
         log_disk_notes(py, plan)?;
     }
