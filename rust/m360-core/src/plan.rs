@@ -30,7 +30,7 @@ use crate::layout::Layout;
 use crate::options::Choice;
 use crate::plan_cache::{self, StoredMap};
 use crate::resample::{ErpTaps, TangentTaps, TapWeights};
-use std::path::{Path, PathBuf};
+use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
@@ -141,7 +141,7 @@ impl Plan {
         )
     }
 
-    /// The path of the cache file of a map of `T` with `options`, if the cache is on.
+    /// The path of the cache file of a map of `kind` with `options`, if the cache is on.
     pub fn disk_path(&self, kind: plan_cache::Kind, options: [u64; 2]) -> Option<PathBuf> {
         self.disk_cache().map(|dir| {
             dir.join(plan_cache::file_name(
@@ -180,7 +180,7 @@ impl Plan {
                     count(3);
                     self.note(format!(
                         "plan cache file {} rejected ({why}); rebuilt",
-                        show(path)
+                        path.display()
                     ));
                 }
             }
@@ -190,7 +190,10 @@ impl Plan {
         if let Some(path) = &path {
             match plan_cache::save(path, self.layout_hash, options, &map) {
                 Ok(()) => drop(count(2)),
-                Err(e) => self.note(format!("plan cache file {} not written: {e}", show(path))),
+                Err(e) => self.note(format!(
+                    "plan cache file {} not written: {e}",
+                    path.display()
+                )),
             }
         }
         map
@@ -366,10 +369,6 @@ impl Plan {
                 .map(TapWeights::memory_bytes)
                 .sum::<usize>()
     }
-}
-
-fn show(path: &Path) -> std::path::Display<'_> {
-    path.display()
 }
 
 fn weight_slot(kind: Weighting) -> usize {
