@@ -244,7 +244,7 @@ def main() -> None:
             for working in workings:
                 mp_rows.append(run_child(data, MP72, DEFAULT_BLEND, working, args.repeats))
                 print(f"  done 72 MP {working}", file=sys.stderr)
-        cache_rows, prepare_rows = [], []
+        cache_rows, prepare_rows, cache_raw = [], [], []
         for width in args.sizes if args.plan_cache else []:
             calls: dict[str, list[dict[str, Any]]] = {"off": [], "cold": [], "disk": []}
             preps: dict[str, list[dict[str, Any]]] = {"off": [], "cold": [], "disk": []}
@@ -259,6 +259,7 @@ def main() -> None:
                     assert runs["disk"][-1].get("stats", {}).get("built", 0) == 0
                     shutil.rmtree(home, ignore_errors=True)
                 print(f"  done plan cache {width} round {r + 1}", file=sys.stderr)
+            cache_raw.append({"width": width, "plan_cache": calls, "prepare": preps})
             med = statistics.median
             warm = med(c["warm"] for c in calls["off"] + calls["cold"] + calls["disk"])
             cache_rows.append(
@@ -316,7 +317,7 @@ def main() -> None:
         )  # fmt: skip
     print(f"\n{meta['cpu_model']}, {meta['cpu_count']} cores, commit {meta['git_commit']}")
     if args.json:
-        h.write_json(args.json, [*rows, *mp_rows], meta)
+        h.write_json(args.json, [*rows, *mp_rows, *cache_raw], meta)
 
 
 if __name__ == "__main__":
