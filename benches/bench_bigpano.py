@@ -20,8 +20,18 @@ Tables:
 2. with ``--mp72``: a 72 MP photo (11904 x 5952) with ``working_width`` 2048, 4096 and native
    (``--no-native`` leaves native out: it needs about 12 GB with the Poisson blend).
 
+3. with ``--plan-cache N``: the disk plan cache, N rounds per size (default blend), each
+   configuration in a fresh interpreter with its own ``M360_HOME``: the first call with the
+   cache off (``M360_PLAN_CACHE=0``), cold (empty cache: builds and writes the plan), and with
+   the warm disk cache the cold run left (loads it); medians of the first and warm calls. Then
+   ``Layout.prepare()`` alone the same three ways (build, build + write, load) and the files'
+   sizes.
+
+Every child has its own ``M360_HOME`` (a temporary folder), so tables 1-2 measure cold plans
+whatever the user's cache holds.
+
 Run: ``.venv/bin/python benches/bench_bigpano.py [--sizes 2048 4096 8192] [--repeats 3]
-[--mp72]``. Sizes above 8K need ``free -g`` headroom: run them alone.
+[--mp72] [--plan-cache 3]``. Sizes above 8K need ``free -g`` headroom: run them alone.
 """
 
 from __future__ import annotations
@@ -29,6 +39,8 @@ from __future__ import annotations
 import importlib
 import inspect
 import json
+import os
+import shutil
 import statistics
 import subprocess
 import sys
@@ -48,6 +60,7 @@ import m360
 DEFAULT_BLEND = inspect.signature(m360.estimate).parameters["blend"].default or "poisson"
 STAGES = ("load", "project", "network", "convert", "align", "blend", "upsample")
 MP72 = 11904
+PLAN_KINDS = ("tangent", "erp", "tap", "overlaps")  # file name prefixes of the plan maps
 
 
 def _status(field: str) -> int:
@@ -108,6 +121,12 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
     done.set()
     sampler.join()
     hwm = _status("VmHWM")
+    try:  # where the first call's plan came from (an m360 without a disk plan cache: nothing)
+        from m360.geometry import plan_for
+
+        stats = plan_for(m360.Layout.icosahedron(work)).cache_stats()
+    except AttributeError:
+        stats = {}
     stage_peak = {}
     start = t0
     for stage in STAGES:
@@ -126,14 +145,44 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
         "warm": statistics.median(w for w, _ in warm),
         "warm_network": statistics.median(n for _, n in warm),
         "peak_gb": (hwm - baseline) / 2**30, "estimate_gb": predicted / 2**30,
-        "stage_peak_gb": stage_peak, "timings_first": res.timings,
+        "stage_peak_gb": stage_peak, "timings_first": res.timings, "stats": stats,
     }  # fmt: skip
 
 
-def run_child(data: Path, width: int, blend: str, working: str, repeats: int) -> dict[str, Any]:
+def child_prepare(width: int) -> dict[str, Any]:
+    """``Layout.prepare()`` alone in this (fresh) process: its time, the plan's cache counts
+    and the plan files' sizes by kind."""
+    from m360 import plan_cache
+    from m360.geometry import plan_for
+
+    layout = m360.Layout.icosahedron(width)
+    t0 = time.perf_counter()
+    layout.prepare()
+    seconds = time.perf_counter() - t0
+    folder = plan_cache.directory()
+    files = {p.name.split("-")[0]: p.stat().st_size for p in folder.glob("*.m360plan")}
+    return {"width": width, "prepare": seconds, "stats": plan_for(layout).cache_stats(),
+            "files": files}  # fmt: skip
+
+
+def run_child(
+    data: Path,
+    width: int,
+    blend: str,
+    working: str,
+    repeats: int,
+    home: Path | None = None,
+    cache: bool = True,
+    prepare_only: bool = False,
+) -> dict[str, Any]:
+    """One configuration in a fresh interpreter, with plans under ``home`` (default: a new
+    empty folder), the disk plan cache on or off."""
     cmd = [sys.executable, __file__, "--child", str(data), str(width), blend, working,
-           str(repeats)]  # fmt: skip
-    proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600)
+           str(repeats)] + (["prepare"] if prepare_only else [])  # fmt: skip
+    with tempfile.TemporaryDirectory() as fresh:
+        env = {**os.environ, "M360_HOME": str(home or fresh),
+               "M360_PLAN_CACHE": "1" if cache else "0"}  # fmt: skip
+        proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600, env=env)
     if proc.returncode != 0:
         raise RuntimeError(f"{width} {blend} {working} failed:\n{proc.stderr[-3000:]}")
     return json.loads(proc.stdout.strip().splitlines()[-1])  # type: ignore[no-any-return]
@@ -158,7 +207,10 @@ def fmt_gb(v: float | None) -> str:
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         data, width, blend, working, repeats = sys.argv[2:7]
-        out = child(Path(data), int(width), blend, working, int(repeats))
+        if sys.argv[7:] == ["prepare"]:
+            out = child_prepare(int(width))
+        else:
+            out = child(Path(data), int(width), blend, working, int(repeats))
         print(json.dumps(out))
         return
     parser = h.bench_argparser(__doc__.splitlines()[0])
@@ -169,6 +221,11 @@ def main() -> None:
     parser.add_argument(
         "--data", type=Path, default=None, help="keep the inputs here (reused when present)"
     )
+    parser.add_argument(
+        "--plan-cache", type=int, default=0, metavar="N",
+        help="N rounds of first calls with the disk plan cache off, cold and warm",
+    )  # fmt: skip
+    parser.add_argument("--no-default", action="store_true", help="skip table 1")
     args = parser.parse_args()
     meta = h.metadata()
     rows = []
@@ -177,7 +234,7 @@ def main() -> None:
         data.mkdir(parents=True, exist_ok=True)
         if not (data / "tangents.npy").exists():
             inputs(data)
-        for width in args.sizes:
+        for width in [] if args.no_default else args.sizes:
             for blend in args.blends:
                 rows.append(run_child(data, width, blend, "default", args.repeats))
                 print(f"  done {width} {blend}", file=sys.stderr)
@@ -187,6 +244,37 @@ def main() -> None:
             for working in workings:
                 mp_rows.append(run_child(data, MP72, DEFAULT_BLEND, working, args.repeats))
                 print(f"  done 72 MP {working}", file=sys.stderr)
+        cache_rows, prepare_rows, cache_raw = [], [], []
+        for width in args.sizes if args.plan_cache else []:
+            calls: dict[str, list[dict[str, Any]]] = {"off": [], "cold": [], "disk": []}
+            preps: dict[str, list[dict[str, Any]]] = {"off": [], "cold": [], "disk": []}
+            for r in range(args.plan_cache):
+                for kind, runs in (("estimate", calls), ("prepare", preps)):
+                    home = Path(tmp) / f"home-{kind}-{width}-{r}"
+                    common = (data, width, DEFAULT_BLEND, "default", args.repeats)
+                    only = kind == "prepare"
+                    runs["off"].append(run_child(*common, cache=False, prepare_only=only))
+                    runs["cold"].append(run_child(*common, home=home, prepare_only=only))
+                    runs["disk"].append(run_child(*common, home=home, prepare_only=only))
+                    assert runs["disk"][-1].get("stats", {}).get("built", 0) == 0
+                    shutil.rmtree(home, ignore_errors=True)
+                print(f"  done plan cache {width} round {r + 1}", file=sys.stderr)
+            cache_raw.append({"width": width, "plan_cache": calls, "prepare": preps})
+            med = statistics.median
+            warm = med(c["warm"] for c in calls["off"] + calls["cold"] + calls["disk"])
+            cache_rows.append(
+                [
+                    f"{width}x{width // 2}",
+                    warm,
+                    *(med(c["first"] for c in calls[m]) for m in calls),
+                    *(f"{med(c['first'] for c in calls[m]) / warm:.2f}" for m in calls),
+                ]
+            )
+            files = preps["cold"][0]["files"]
+            prepare_rows.append([f"{width}x{width // 2}",
+                                 *(med(p["prepare"] for p in preps[m]) for m in preps),
+                                 *(f"{files.get(k, 0) / 1e6:.1f}" for k in PLAN_KINDS),
+                                 f"{sum(files.values()) / 1e6:.1f}"])  # fmt: skip
 
     def table(title: str, rs: list[dict[str, Any]]) -> None:
         h.print_table(
@@ -203,16 +291,33 @@ def main() -> None:
             ],
         )  # fmt: skip
 
-    table(
-        f"m360.estimate, held-out tangents, first call and median of {args.repeats} warm calls; "
-        "memory above the baseline (imports + input); per-stage = peak RSS while it ran",
-        rows,
-    )
+    if rows:
+        table(
+            f"m360.estimate, held-out tangents, first call and median of {args.repeats} warm "
+            "calls; memory above the baseline (imports + input); per-stage = peak RSS while it ran",
+            rows,
+        )
     if mp_rows:
         table("72 MP (11904x5952), default blend, by working width", mp_rows)
+    if cache_rows:
+        h.print_table(
+            f"Disk plan cache: first call (median of {args.plan_cache} fresh interpreters) with "
+            f"the cache off, cold (build + write) and warm on disk (load); warm = median of all "
+            f"warm calls; default blend",
+            ["ERP", "warm s", "first off s", "first cold s", "first disk s",
+             "off/warm", "cold/warm", "disk/warm"],
+            cache_rows,
+        )  # fmt: skip
+        h.print_table(
+            "Layout.prepare() alone (the 4 maps estimate needs): build (cache off), build + "
+            "write (cold), load (warm disk); plan file sizes in MB",
+            ["ERP", "build s", "build+write s", "load s", *(f"{k} MB" for k in PLAN_KINDS),
+             "total MB"],
+            prepare_rows,
+        )  # fmt: skip
     print(f"\n{meta['cpu_model']}, {meta['cpu_count']} cores, commit {meta['git_commit']}")
     if args.json:
-        h.write_json(args.json, [*rows, *mp_rows], meta)
+        h.write_json(args.json, [*rows, *mp_rows, *cache_raw], meta)
 
 
 if __name__ == "__main__":

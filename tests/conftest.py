@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import functools
 import os
+import shutil
+import tempfile
 from collections.abc import Iterator
 from datetime import timedelta
 
@@ -37,6 +39,12 @@ settings.load_profile(
 
 
 def pytest_configure(config: pytest.Config) -> None:
+    # Plans built by the tests go to the disk plan cache (on by default) under M360_HOME: keep
+    # them out of the user's cache folder unless M360_HOME was chosen explicitly.
+    if not os.environ.get("M360_HOME"):
+        home = tempfile.mkdtemp(prefix="m360-test-home-")
+        os.environ["M360_HOME"] = home
+        config.add_cleanup(lambda: shutil.rmtree(home, ignore_errors=True))
     config.addinivalue_line("markers", "fuzz: hypothesis fuzzing of the public API (test_fuzz.py)")
 
 

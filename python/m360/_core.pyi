@@ -1,4 +1,6 @@
 # Stub of the compiled module m360._core (rust/m360-py); checked by `mypy.stubtest m360._core`.
+import os
+from pathlib import Path
 from typing import Any, final
 
 import numpy as np
@@ -8,6 +10,8 @@ __all__ = [
     "CHOICES",
     "DEFAULTS",
     "LIMITS",
+    "PLAN_FILE_SUFFIX",
+    "PLAN_FORMAT",
     "Plan",
     "__version__",
     "get_num_threads",
@@ -26,6 +30,9 @@ LIMITS: dict[str, Any]
 # align, blend (the resolved defaults), poisson (the Poisson blend's options), and per energy or
 # solver: schedules, iterations, weights (smoothness, scale_weight), offsets, losses.
 DEFAULTS: dict[str, Any]
+# Plan cache files: their extension, and "v<format>-<version>+<core source hash>" in their names.
+PLAN_FILE_SUFFIX: str
+PLAN_FORMAT: str
 
 def set_num_threads(threads: int | None = None) -> None: ...
 def get_num_threads() -> int: ...
@@ -50,6 +57,9 @@ class Plan:
         tangent_shape: tuple[int, int],
     ) -> Plan: ...
     def prepare(self, which: str = "all") -> None: ...
+    def set_cache_dir(self, path: str | os.PathLike[str] | None = None) -> None: ...
+    def cache_dir(self) -> Path | None: ...
+    def cache_stats(self) -> dict[str, int]: ...
     def memory_bytes(self) -> int: ...
     def coverage(self) -> npt.NDArray[np.uint8]: ...
     def erp_to_tangents(

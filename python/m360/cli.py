@@ -247,6 +247,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "--width", type=int, default=models.CHECK_ERP_WIDTH, help="ERP width of the layout"
     )
 
+    plans = commands.add_parser(
+        "plans", help="show where built plans are kept on disk and their size, or clear them"
+    )
+    plans.add_argument("action", nargs="?", choices=("show", "clear"), default="show")
+    plans.add_argument(
+        "--stale", action="store_true", help="clear only files other m360 builds wrote"
+    )
+
     view = commands.add_parser(
         "view",
         help="show a result's point cloud or mesh in the browser (extra m360[3d])",
@@ -277,6 +285,8 @@ def main(argv: Sequence[str] | None = None) -> int:
             return _eval(args)
         if args.command == "view":
             return _view(args)
+        if args.command == "plans":
+            return _plans_command(args.action, args.stale)
         return _models_command(args)
     except ModelError as exc:
         print(f"m360: error: {exc}", file=sys.stderr)
@@ -629,6 +639,21 @@ def _models_check(args: argparse.Namespace) -> int:
         "usable:        yes",
     ]
     print("\n".join(lines))
+    return 0
+
+
+def _plans_command(action: str, stale_only: bool) -> int:
+    from . import plan_cache
+
+    if action == "clear":
+        freed = plan_cache.clear(stale_only=stale_only)
+        print(f"plan cache: freed {freed / 1e6:.1f} MB in {plan_cache.directory()}")
+        return 0
+    use = plan_cache.usage()
+    state = "on" if plan_cache.enabled() else f"off ({plan_cache.ENV_SWITCH}=0)"
+    print(f"plan cache: {use.path}  ({state}; set M360_HOME to move it)")
+    print(f"{use.files} files, {use.bytes / 1e6:.1f} MB ({use.stale_files} of other m360 builds)")
+    print("clear with `m360 plans clear` (`--stale`: only other builds' files)")
     return 0
 
 

@@ -198,7 +198,9 @@ class Layout:
         ERP taps, the frustum weights, the alignment samples.
 
         A later call on the layout then costs as much as a warm one. Plans live in a small
-        in-process cache (:func:`plan_for`), so call it in the process that estimates.
+        in-process cache (:func:`plan_for`) and, unless turned off, on disk under
+        ``$M360_HOME/plans`` (:mod:`m360.plan_cache`): maps found there are loaded instead of
+        built, and maps built are written there, so a later process loads them too.
 
         Returns
         -------
@@ -241,11 +243,15 @@ def plan_for(layout: Layout) -> _core.Plan:
     not wait for each other; two threads missing the same layout at once both build a plan
     and the first one stored wins.
     """
+    from . import plan_cache
+
     with _plans_lock:
         plan = _plans.get(layout.key)
         if plan is not None:
             _plans.move_to_end(layout.key)
-            return plan
+    if plan is not None:
+        plan.set_cache_dir(plan_cache.current())
+        return plan
     rotations = np.stack([np.asarray(c.rotation, dtype=np.float64) for c in layout.cameras])
     intrinsics = np.array([[c.fx, c.fy, c.cx, c.cy] for c in layout.cameras], dtype=np.float64)
     built = _core.Plan(layout.erp_shape, rotations, intrinsics, layout.tangent_shape)
@@ -256,6 +262,9 @@ def plan_for(layout: Layout) -> _core.Plan:
         while len(_plans) > _PLAN_CACHE_SIZE:
             evicted.append(_plans.popitem(last=False))
     del evicted  # the evicted plans' maps are freed here, outside the lock
+    # On disk under $M360_HOME/plans unless turned off (m360.plan_cache); the switch and the
+    # folder are read on every call, so changing them applies to plans already in memory.
+    plan.set_cache_dir(plan_cache.current())
     return plan
 
 

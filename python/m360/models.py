@@ -54,6 +54,7 @@ __all__ = [
     "ensure",
     "fetch",
     "get",
+    "home_dir",
     "input_normalization",
     "is_cached",
     "list_models",
@@ -324,14 +325,19 @@ def get(name: str) -> ModelEntry:
     return entry
 
 
-def cache_dir() -> Path:
-    """Folder of cached model files: ``$M360_HOME/models``, default the user cache dir."""
+def home_dir() -> Path:
+    """m360's cache folder: ``$M360_HOME``, default the platform's user cache dir."""
     home = os.environ.get("M360_HOME")
     if home:
-        return Path(home).expanduser() / "models"
+        return Path(home).expanduser()
     import platformdirs
 
-    return Path(platformdirs.user_cache_dir("m360")) / "models"
+    return Path(platformdirs.user_cache_dir("m360"))
+
+
+def cache_dir() -> Path:
+    """Folder of cached model files: ``$M360_HOME/models``, default the user cache dir."""
+    return home_dir() / "models"
 
 
 def _offline() -> bool:

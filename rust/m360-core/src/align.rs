@@ -300,6 +300,28 @@ impl Overlaps {
         all
     }
 
+    /// (a, b, pa, xb, yb): what a plan file stores (see [`crate::plan_cache`]).
+    pub(crate) fn parts(&self) -> [&[u8]; 5] {
+        [
+            bytemuck::cast_slice(&self.a),
+            bytemuck::cast_slice(&self.b),
+            bytemuck::cast_slice(&self.pa),
+            bytemuck::cast_slice(&self.xb),
+            bytemuck::cast_slice(&self.yb),
+        ]
+    }
+
+    /// Samples from the arrays of [`Overlaps::parts`]; the caller has checked them.
+    pub(crate) fn from_parts(
+        a: Vec<u16>,
+        b: Vec<u16>,
+        pa: Vec<u32>,
+        xb: Vec<f32>,
+        yb: Vec<f32>,
+    ) -> Self {
+        Self { a, b, pa, xb, yb }
+    }
+
     /// Number of samples.
     #[must_use]
     pub fn len(&self) -> usize {

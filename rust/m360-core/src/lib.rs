@@ -4,7 +4,8 @@
 //!
 //! 1. [`sphere`]: the equirectangular (ERP) pixel grid and its viewing directions.
 //! 2. [`camera`] and [`layout`]: pinhole tangent cameras, and the icosahedron layout of the paper.
-//! 3. [`plan`]: per-(layout, ERP size) sampling maps, built once and reused for every image.
+//! 3. [`plan`]: per-(layout, ERP size) sampling maps, built once and reused for every image;
+//!    [`plan_cache`] keeps them on disk for later processes.
 //! 4. [`resample`]: ERP → tangent images and tangent images → ERP, bilinear and parallel.
 //! 5. [`stitch`]: the network's perspective disparity → spherical disparity.
 //! 6. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
@@ -26,6 +27,7 @@ pub mod error;
 pub mod layout;
 pub mod options;
 pub mod plan;
+pub mod plan_cache;
 pub mod resample;
 pub mod sphere;
 pub mod stitch;

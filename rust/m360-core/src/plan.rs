@@ -15,13 +15,23 @@
 //! - The getters ([`Plan::erp_taps`] …) never wait: they return the built map, or, if called
 //!   before `prepare` (core tests, or from inside a pool), build it right there without any
 //!   lock; if two threads race, both build and the first stored copy wins.
+//!
+//! # Disk cache
+//!
+//! With a folder set ([`Plan::set_disk_cache`]), every map is first looked up there and every
+//! map built is written there (see [`crate::plan_cache`]); a file that fails any check is
+//! rebuilt and rewritten, and the reason kept for the caller ([`Plan::take_disk_notes`]).
+//! Loading and saving take no lock that a build holds, so the rules above are unchanged.
 
 use crate::align::Overlaps;
 use crate::blend::{self, BlendReport, Method, Weighting};
 use crate::error::Result;
 use crate::layout::Layout;
 use crate::options::Choice;
+use crate::plan_cache::{self, StoredMap};
 use crate::resample::{ErpTaps, TangentTaps, TapWeights};
+use std::path::PathBuf;
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
 
 /// (sample fraction, pole cap) as bit patterns: the options overlap samples depend on.
@@ -53,6 +63,27 @@ pub struct Plan {
     tap_weights: [OnceLock<TapWeights>; 4],
     /// Held by [`Plan::prepare`] while it builds, so concurrent callers build each map once.
     building: Mutex<()>,
+    /// Hash of the layout that names its files in the disk cache.
+    layout_hash: u128,
+    /// Folder of the disk cache; `None`: maps are only built, never loaded or saved.
+    disk: Mutex<Option<PathBuf>>,
+    /// Why cache files were rejected or could not be written, until the caller takes them.
+    disk_notes: Mutex<Vec<String>>,
+    /// Maps loaded, built, saved, and files rejected.
+    disk_counts: [AtomicUsize; 4],
+}
+
+/// What a plan's maps came from so far (see [`Plan::disk_stats`]).
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+pub struct DiskStats {
+    /// Maps loaded from the disk cache.
+    pub loaded: usize,
+    /// Maps built (with or without a disk cache).
+    pub built: usize,
+    /// Maps written to the disk cache.
+    pub saved: usize,
+    /// Cache files rejected (then rebuilt and rewritten).
+    pub rejected: usize,
 }
 
 impl Plan {
@@ -60,13 +91,112 @@ impl Plan {
     #[must_use]
     pub fn new(layout: Layout) -> Self {
         Self {
-            layout,
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
             tap_weights: Default::default(),
             building: Mutex::new(()),
+            layout_hash: plan_cache::layout_hash(&layout),
+            layout,
+            disk: Mutex::new(None),
+            disk_notes: Mutex::new(Vec::new()),
+            disk_counts: Default::default(),
         }
+    }
+
+    /// Keep maps in the folder `dir` (load before building, save after), or not (`None`).
+    pub fn set_disk_cache(&self, dir: Option<PathBuf>) {
+        *self.disk.lock().unwrap_or_else(PoisonError::into_inner) = dir;
+    }
+
+    /// The folder of the disk cache, if any.
+    pub fn disk_cache(&self) -> Option<PathBuf> {
+        self.disk
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .clone()
+    }
+
+    /// What the maps built so far came from.
+    pub fn disk_stats(&self) -> DiskStats {
+        let [loaded, built, saved, rejected] = self
+            .disk_counts
+            .each_ref()
+            .map(|c| c.load(Ordering::Relaxed));
+        DiskStats {
+            loaded,
+            built,
+            saved,
+            rejected,
+        }
+    }
+
+    /// The reasons cache files were rejected or not written since the last call.
+    pub fn take_disk_notes(&self) -> Vec<String> {
+        std::mem::take(
+            &mut *self
+                .disk_notes
+                .lock()
+                .unwrap_or_else(PoisonError::into_inner),
+        )
+    }
+
+    /// The path of the cache file of a map of `kind` with `options`, if the cache is on.
+    pub fn disk_path(&self, kind: plan_cache::Kind, options: [u64; 2]) -> Option<PathBuf> {
+        self.disk_cache().map(|dir| {
+            dir.join(plan_cache::file_name(
+                kind,
+                &self.layout,
+                self.layout_hash,
+                options,
+            ))
+        })
+    }
+
+    fn note(&self, note: String) {
+        self.disk_notes
+            .lock()
+            .unwrap_or_else(PoisonError::into_inner)
+            .push(note);
+    }
+
+    /// The map of `T` with `options` from the disk cache, else built by `build` (and saved).
+    fn load_or_build<T: StoredMap>(
+        &self,
+        options: [u64; 2],
+        erp: Option<&ErpTaps>,
+        build: impl FnOnce() -> T,
+    ) -> T {
+        let count = |k: usize| self.disk_counts[k].fetch_add(1, Ordering::Relaxed);
+        let path = self.disk_path(T::KIND, options);
+        if let Some(path) = &path {
+            match plan_cache::load::<T>(path, &self.layout, self.layout_hash, options, erp) {
+                Ok(Some(map)) => {
+                    count(0);
+                    return map;
+                }
+                Ok(None) => {}
+                Err(why) => {
+                    count(3);
+                    self.note(format!(
+                        "plan cache file {} rejected ({why}); rebuilt",
+                        path.display()
+                    ));
+                }
+            }
+        }
+        let map = build();
+        count(1);
+        if let Some(path) = &path {
+            match plan_cache::save(path, self.layout_hash, options, &map) {
+                Ok(()) => drop(count(2)),
+                Err(e) => self.note(format!(
+                    "plan cache file {} not written: {e}",
+                    path.display()
+                )),
+            }
+        }
+        map
     }
 
     /// The layout this plan serves.
@@ -117,19 +247,25 @@ impl Plan {
 
     /// Where each tangent pixel samples the ERP image.
     pub fn tangent_taps(&self) -> &TangentTaps {
-        get_or_build(&self.tangent_taps, || TangentTaps::build(&self.layout))
+        get_or_build(&self.tangent_taps, || {
+            self.load_or_build([0; 2], None, || TangentTaps::build(&self.layout))
+        })
     }
 
     /// Which tangents, and where, each ERP pixel sees.
     pub fn erp_taps(&self) -> &ErpTaps {
-        get_or_build(&self.erp_taps, || ErpTaps::build(&self.layout))
+        get_or_build(&self.erp_taps, || {
+            self.load_or_build([0; 2], None, || ErpTaps::build(&self.layout))
+        })
     }
 
     /// Blending weights of `kind` at every ERP tap.
     pub fn tap_weights(&self, kind: Weighting) -> &TapWeights {
         get_or_build(&self.tap_weights[weight_slot(kind)], || {
-            let maps = blend::weight_maps(&self.layout, kind);
-            self.erp_taps().weights_of(&maps)
+            let taps = self.erp_taps();
+            self.load_or_build([weight_slot(kind) as u64, 0], Some(taps), || {
+                taps.weights_of(&blend::weight_maps(&self.layout, kind))
+            })
         })
     }
 
@@ -148,8 +284,10 @@ impl Plan {
             return found;
         }
         // Built with the cache unlocked (the build runs parallel work); a racing copy is dropped.
-        let built = Arc::new(Overlaps::build(&self.layout, fraction, pole_cap_deg));
         let key = (fraction.to_bits(), pole_cap_deg.to_bits());
+        let built = Arc::new(self.load_or_build([key.0, key.1], None, || {
+            Overlaps::build(&self.layout, fraction, pole_cap_deg)
+        }));
         let mut cache = self.overlaps.lock().unwrap_or_else(PoisonError::into_inner);
         if let Some((_, found)) = cache.iter().find(|(k, _)| *k == key) {
             return found.clone();

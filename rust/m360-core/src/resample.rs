@@ -15,7 +15,7 @@ const FRAC_SCALE: f32 = 32768.0;
 /// Flag on [`Tap::index`] of a tangent tap whose four ERP neighbours are not in the plain
 /// 2×2 arrangement (longitude wrap or across a pole); the rest of the index points into
 /// [`TangentTaps::wrapped`].
-const WRAPPED: u32 = 1 << 31;
+pub(crate) const WRAPPED: u32 = 1 << 31;
 
 /// A bilinear sampling position: top-left source index and fractions in units of 2⁻¹⁵.
 ///
@@ -39,6 +39,18 @@ impl Tap {
             fx: q(fx),
             fy: q(fy),
         }
+    }
+
+    /// (index, fx | fy << 16): the tap as two words, the form plan files store.
+    pub(crate) fn to_words(self) -> [u32; 2] {
+        [self.index, u32::from(self.fx) | (u32::from(self.fy) << 16)]
+    }
+
+    /// The tap of [`Tap::to_words`]; `None` if a fraction exceeds one pixel.
+    pub(crate) fn from_words([index, fractions]: [u32; 2]) -> Option<Self> {
+        let (fx, fy) = ((fractions & 0xffff) as u16, (fractions >> 16) as u16);
+        let one = FRAC_SCALE as u16;
+        (fx <= one && fy <= one).then_some(Self { index, fx, fy })
     }
 
     /// Weights of the top-left, top-right, bottom-left and bottom-right neighbours.
@@ -208,6 +220,27 @@ impl TangentTaps {
     #[must_use]
     pub fn memory_bytes(&self) -> usize {
         self.taps.len() * std::mem::size_of::<Tap>() + self.wrapped.len() * 16
+    }
+
+    /// (taps, wrapped corners): what a plan file stores (see [`crate::plan_cache`]).
+    pub(crate) fn parts(&self) -> (&[Tap], &[[u32; 4]]) {
+        (&self.taps, &self.wrapped)
+    }
+
+    /// The map of [`TangentTaps::parts`] for an ERP of `erp_height` × `erp_width`; the caller
+    /// has checked every index against that size.
+    pub(crate) fn from_parts(
+        taps: Vec<Tap>,
+        wrapped: Vec<[u32; 4]>,
+        erp_height: usize,
+        erp_width: usize,
+    ) -> Self {
+        Self {
+            taps,
+            wrapped,
+            erp_width,
+            erp_pixels: erp_height * erp_width,
+        }
     }
 
     /// Sample an ERP image of `C` interleaved channels into `out` ((N·h·w·C), same order as taps).
@@ -700,8 +733,8 @@ impl Run {
 
 /// ERP taps keep the tap's nearness rank at its pixel (0: the face whose axis is nearest) in
 /// the index's top bits; the rest is the offset of the top-left neighbour within the face.
-const RANK_SHIFT: u32 = 28;
-const OFFSET_MASK: u32 = (1 << RANK_SHIFT) - 1;
+pub(crate) const RANK_SHIFT: u32 = 28;
+pub(crate) const OFFSET_MASK: u32 = (1 << RANK_SHIFT) - 1;
 
 /// Tangents → ERP map: for every ERP pixel, the tangent images that see it and where.
 ///
@@ -821,6 +854,36 @@ impl ErpTaps {
             r.taps.len() * std::mem::size_of::<Tap>() + r.runs.len() * std::mem::size_of::<Run>()
         };
         self.rows.iter().map(|r| per_row(r) + 48).sum::<usize>() + self.counts.len()
+    }
+
+    /// The runs and taps of ERP row `i`: what a plan file stores (see [`crate::plan_cache`]).
+    pub(crate) fn row_parts(&self, i: usize) -> (&[Run], &[Tap]) {
+        (&self.rows[i].runs, &self.rows[i].taps)
+    }
+
+    /// Number of ERP rows.
+    pub(crate) fn rows(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// The map of per-pixel `counts` and per-row (runs, taps) of `layout`; the caller has
+    /// checked them against the layout.
+    pub(crate) fn from_parts(
+        layout: &Layout,
+        counts: Vec<u8>,
+        rows: Vec<(Vec<Run>, Vec<Tap>)>,
+    ) -> Self {
+        let (h, w) = layout.tangent_shape();
+        Self {
+            counts,
+            rows: rows
+                .into_iter()
+                .map(|(runs, taps)| ErpRow { runs, taps })
+                .collect(),
+            tangent_width: w,
+            tangent_pixels: h * w,
+            faces: layout.cameras.len(),
+        }
     }
 
     /// Total number of (ERP pixel, tangent) pairs.
@@ -969,6 +1032,16 @@ impl TapWeights {
     #[must_use]
     pub fn memory_bytes(&self) -> usize {
         self.rows.iter().map(|r| r.len() * 4 + 24).sum()
+    }
+
+    /// Number of ERP rows.
+    pub(crate) fn rows(&self) -> usize {
+        self.rows.len()
+    }
+
+    /// Weights from per-row values; the caller has checked the row lengths against the taps.
+    pub(crate) fn from_rows(rows: Vec<Vec<f32>>) -> Self {
+        Self { rows }
     }
 }
 

@@ -121,6 +121,30 @@ impl Plan {
         on_pool(py, Some((&self.inner, needs)), || ())
     }
 
+    /// Keep this plan's maps in the folder `path` (look there before building, write every map
+    /// built), or not (`None`). See `m360.plan_cache`.
+    #[pyo3(signature = (path=None))]
+    fn set_cache_dir(&self, path: Option<std::path::PathBuf>) {
+        self.inner.set_disk_cache(path);
+    }
+
+    /// The folder of the disk cache, or `None`.
+    fn cache_dir(&self) -> Option<std::path::PathBuf> {
+        self.inner.disk_cache()
+    }
+
+    /// How many maps were loaded from disk, built, saved, and how many files were rejected.
+    fn cache_stats(&self) -> std::collections::HashMap<&'static str, usize> {
+        let s = self.inner.disk_stats();
+        [
+            ("loaded", s.loaded),
+            ("built", s.built),
+            ("saved", s.saved),
+            ("rejected", s.rejected),
+        ]
+        .into()
+    }
+
     /// Bytes held by the maps built so far.
     fn memory_bytes(&self) -> usize {
         self.inner.memory_bytes()

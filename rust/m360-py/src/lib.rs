@@ -43,6 +43,15 @@ mod _core {
         m.add("CHOICES", super::options::choices(py)?)?;
         m.add("LIMITS", super::options::limits(py)?)?;
         m.add("DEFAULTS", super::options::defaults(py)?)?;
+        m.add("PLAN_FILE_SUFFIX", m360_core::plan_cache::FILE_SUFFIX)?;
+        m.add(
+            "PLAN_FORMAT",
+            format!(
+                "v{}-{}",
+                m360_core::plan_cache::FORMAT_VERSION,
+                m360_core::plan_cache::BUILD_ID
+            ),
+        )?;
         Ok(())
     }
 }

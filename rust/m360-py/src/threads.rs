@@ -68,24 +68,43 @@ pub(crate) fn on_pool<T: Send>(
     work: impl FnOnce() -> T + Send,
 ) -> PyResult<T> {
     let pool = pool()?;
-    py.detach(|| {
-        catch_unwind(AssertUnwindSafe(|| {
-            if let Some((plan, needs)) = plan {
-                plan.prepare(needs, |build| pool.install(build));
-            }
-            pool.install(work)
-        }))
-    })
-    .map_err(|panic| {
-        let msg = panic
-            .downcast_ref::<&str>()
-            .map(|s| (*s).to_string())
-            .or_else(|| panic.downcast_ref::<String>().cloned())
-            .unwrap_or_else(|| "unknown panic".into());
-        internal_error(format!(
-            "internal error in m360's core (please report): {msg}"
-        ))
-    })
+    let result = py
+        .detach(|| {
+            catch_unwind(AssertUnwindSafe(|| {
+                if let Some((plan, needs)) = plan {
+                    plan.prepare(needs, |build| pool.install(build));
+                }
+                pool.install(work)
+            }))
+        })
+        .map_err(|panic| {
+            let msg = panic
+                .downcast_ref::<&str>()
+                .map(|s| (*s).to_string())
+                .or_else(|| panic.downcast_ref::<String>().cloned())
+                .unwrap_or_else(|| "unknown panic".into());
+            internal_error(format!(
+                "internal error in m360's core (please report): {msg}"
+            ))
+        });
+    if let Some((plan, _)) = plan {
+        log_disk_notes(py, plan)?;
+    }
+    result
+}
+
+/// Report rejected or unwritable plan cache files as warnings of the `m360.plan_cache` logger.
+fn log_disk_notes(py: Python<'_>, plan: &Plan) -> PyResult<()> {
+    let notes = plan.take_disk_notes();
+    if !notes.is_empty() {
+        let logger = py
+            .import("logging")?
+            .call_method1("getLogger", ("m360.plan_cache",))?;
+        for note in notes {
+            logger.call_method1("warning", (note,))?;
+        }
+    }
+    Ok(())
 }
 
 /// Set the number of worker threads of m360's compiled core (None: `M360_NUM_THREADS` or all
