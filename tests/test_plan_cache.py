@@ -19,7 +19,7 @@ import m360
 import m360.synthetic as syn
 import numpy as np
 import pytest
-from m360 import _core, plan_cache
+from m360 import M360Error, _core, plan_cache
 from m360.cli import main
 from m360.estimators import SimulatedEstimator
 from m360.geometry import clear_plan_cache, plan_for
@@ -233,3 +233,46 @@ def test_plans_command_shows_and_clears(home: Path, capsys: pytest.CaptureFixtur
     assert str(home / "plans") in out and f"4 files, {size / 1e6:.1f} MB" in out
     assert main(["plans", "clear"]) == 0
     assert _plan_files(home) == {}
+
+
+def test_the_folder_is_trimmed_to_its_limit_least_recently_used_and_stale_first(
+    home: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    folder = home / "plans"
+    folder.mkdir(parents=True)
+    suffix = f"-{_core.PLAN_FORMAT}{_core.PLAN_FILE_SUFFIX}"
+    # (name, size, last used): a stale file used last, and three current ones.
+    files = {
+        "erp-taps-stale-v1-0.0.1+000000000000" + _core.PLAN_FILE_SUFFIX: (300, 4000),
+        "erp-taps-a" + suffix: (400, 1000),
+        "erp-taps-b" + suffix: (500, 3000),
+        "erp-taps-c" + suffix: (600, 2000),
+    }
+    for name, (size, used) in files.items():
+        (folder / name).write_bytes(b"x" * size)
+        os.utime(folder / name, (used, used))
+    (folder / "unrelated.txt").write_text("not ours")
+    monkeypatch.setenv(plan_cache.ENV_LIMIT, "0.0000012")  # 1200 bytes
+    assert plan_cache.limit_bytes() == 1200
+    # Stale first (300), then the least recently used current file (400); 1100 stay.
+    assert plan_cache.trim() == 700
+    assert sorted(p.name for p in folder.iterdir()) == sorted(
+        ["erp-taps-b" + suffix, "erp-taps-c" + suffix, "unrelated.txt"]
+    )
+    assert plan_cache.trim() == 0
+    assert plan_cache.trim(0) == 1100 and plan_cache.usage().files == 0
+
+
+def test_a_new_plan_trims_the_folder_and_a_bad_limit_is_named(
+    home: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    m360.Layout.icosahedron(WIDTH).prepare()
+    old = set(_plan_files(home))
+    assert old
+    monkeypatch.setenv(plan_cache.ENV_LIMIT, "0")
+    m360.Layout.icosahedron(WIDTH + 64).prepare()  # opening it removes the other layout's files
+    new = set(_plan_files(home))
+    assert new and not (new & old)
+    monkeypatch.setenv(plan_cache.ENV_LIMIT, "lots")
+    with pytest.raises(M360Error, match="M360_PLAN_CACHE_MAX_GB='lots'"):
+        m360.Layout.icosahedron(WIDTH + 128).prepare()

@@ -264,7 +264,10 @@ def plan_for(layout: Layout) -> _core.Plan:
     del evicted  # the evicted plans' maps are freed here, outside the lock
     # On disk under $M360_HOME/plans unless turned off (m360.plan_cache); the switch and the
     # folder are read on every call, so changing them applies to plans already in memory.
-    plan.set_cache_dir(plan_cache.current())
+    folder = plan_cache.current()
+    plan.set_cache_dir(folder)
+    if folder is not None:
+        plan_cache.trim()  # a new plan may write files: keep the folder under its limit
     return plan
 
 

@@ -10,8 +10,10 @@ Files are named by the map, the layout's hash, the options, the file format and 
 m360 that wrote them, so several versions can share the folder. A file that is truncated,
 corrupt, foreign or of another format is never trusted: the map is rebuilt and the file
 rewritten (with a warning on the ``m360.plan_cache`` logger). Writes are atomic, so processes
-may share the folder. The folder only grows when new layouts or sizes are used; :func:`clear`
-empties it (``m360 info`` shows its size), and deleting the folder by hand is always safe.
+may share the folder. The folder is kept under a size limit (``M360_PLAN_CACHE_MAX_GB``, default
+8; an 8K layout's default plan is about 1.9 GB): whenever a process opens a plan, the least
+recently used files beyond it (by access or modification time) are deleted (:func:`trim`). :func:`clear` empties it (``m360 plans``
+shows its size), and deleting the folder by hand is always safe.
 """
 
 from __future__ import annotations
@@ -21,11 +23,16 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from . import _core
+from .errors import InputError
 
-__all__ = ["Usage", "clear", "directory", "enabled", "set_enabled", "usage"]
+__all__ = ["Usage", "clear", "directory", "enabled", "limit_bytes", "set_enabled", "trim", "usage"]
 
 #: Environment variable that turns the cache off ("0", "false", "no", "off").
 ENV_SWITCH = "M360_PLAN_CACHE"
+#: Environment variable of the size limit in GB (10^9 bytes); default :data:`DEFAULT_LIMIT_GB`.
+ENV_LIMIT = "M360_PLAN_CACHE_MAX_GB"
+#: Default size limit of the folder, in GB.
+DEFAULT_LIMIT_GB = 8.0
 
 _override: bool | None = None
 
@@ -147,6 +154,69 @@ def clear(*, stale_only: bool = False) -> int:
             size = p.stat().st_size
             p.unlink()
         except OSError:  # removed meanwhile, or not ours to remove
+            continue
+        freed += size
+    return freed
+
+
+def limit_bytes() -> int:
+    """Return the size limit of the plan folder in bytes (``M360_PLAN_CACHE_MAX_GB``, default 8).
+
+    Raises
+    ------
+    InputError
+        If the variable is not a non-negative number.
+    """
+    raw = os.environ.get(ENV_LIMIT, "").strip()
+    if not raw:
+        return int(DEFAULT_LIMIT_GB * 1e9)
+    try:
+        gb = float(raw)
+    except ValueError:
+        gb = float("nan")
+    if not (gb >= 0 and gb != float("inf")):
+        raise InputError(f"{ENV_LIMIT}={raw!r} must be a non-negative number of GB")
+    return int(gb * 1e9)
+
+
+def _last_used(path: Path) -> float:
+    # Loading maps a file (which updates its access time where the file system records it);
+    # writing sets its modification time.
+    st = path.stat()
+    return max(st.st_atime, st.st_mtime)
+
+
+def trim(limit: int | None = None) -> int:
+    """Delete the least recently used plan files until the folder holds at most ``limit`` bytes.
+
+    Safe at any time: a process that has a file mapped keeps its pages, and one that needs a
+    deleted map rebuilds it. Stale files (other builds of m360) go first.
+
+    Parameters
+    ----------
+    limit : int, optional
+        Bytes; default :func:`limit_bytes`.
+
+    Returns
+    -------
+    int
+        Bytes freed.
+    """
+    limit = limit_bytes() if limit is None else limit
+    entries = []
+    for p in _plan_files(directory()):
+        try:
+            entries.append((not _is_stale(p), _last_used(p), p.stat().st_size, p))
+        except OSError:  # removed meanwhile
+            continue
+    total = sum(e[2] for e in entries)
+    freed = 0
+    for _, _, size, p in sorted(entries, key=lambda e: e[:2]):
+        if total - freed <= limit:
+            break
+        try:
+            p.unlink()
+        except OSError:
             continue
         freed += size
     return freed
