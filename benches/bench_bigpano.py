@@ -37,7 +37,6 @@ Run: ``.venv/bin/python benches/bench_bigpano.py [--sizes 2048 4096 8192] [--rep
 from __future__ import annotations
 
 import importlib
-import inspect
 import json
 import os
 import shutil
@@ -57,7 +56,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as h
 import m360
 
-DEFAULT_BLEND = inspect.signature(m360.estimate).parameters["blend"].default or "poisson"
+DEFAULT_BLEND = m360._core.DEFAULTS["blend"]["method"]  # what blend=None selects
 STAGES = ("load", "project", "network", "convert", "align", "blend", "upsample")
 MP72 = 11904
 PLAN_KINDS = ("tangent", "erp", "tap", "overlaps")  # file name prefixes of the plan maps

@@ -42,7 +42,7 @@ from m360.estimate import OnnxEstimator
 STAGES = ("project", "network", "convert", "align", "blend", "total")
 #: m360.estimate's own defaults, read from its signature (so the labels cannot drift).
 DEFAULT_ALIGN = inspect.signature(m360.estimate).parameters["align"].default
-DEFAULT_BLEND = inspect.signature(m360.estimate).parameters["blend"].default
+DEFAULT_BLEND = m360._core.DEFAULTS["blend"]["method"]  # what blend=None selects
 
 
 def conv_flops(size: int, width: int, layers: int) -> float:
