@@ -4,10 +4,13 @@ Table 1 (accuracy): on ``--scenes`` rooms per size, under two distortions — th
 benches/bench_align.py (scale ×[0.5, 2], shift ±30 % of the median, a smooth ±10 % field, 1 %
 noise) and content errors (``m360.synthetic.content_errors``) followed by the same affine one —
 the median and worst AbsRel over the rooms and the median stitch seconds (alignment + blend, one
-run per room) of each (layout, method) pair. Layouts: the paper's 20 faces at padding 0.3 / 0.7 /
-1.0, and the once-subdivided icosahedron (80 faces) at padding 0.15 / 0.2 / 0.3. Methods: the
-defaults before issue 15 (least squares + Poisson), the default (Cauchy loss + consensus blend),
-the weighted-median blend, and the consensus blend started from the weighted median.
+run per room) of each (layout, method) pair. Layouts (``LAYOUTS``, ``--layouts`` picks by
+index): the paper's 20 faces at padding 0.3 / 0.5 / 0.7 / 1.0 (at the default tangent width,
+so wider padding means larger pixels), the once-subdivided icosahedron (80 faces, the paper's
+angular pixel size) at padding 0.2 / 0.3 with a 2x2 → 4x4 alignment schedule, and the 20 faces
+at padding 0.7 / 1.0 widened to the paper's pixel size. Methods (``--methods``): the
+defaults before issue 15 (least squares + Poisson), Cauchy loss + consensus blend (the default
+blend), and Cauchy loss + the weighted-median blend.
 
 Fairness: ``content_errors`` draws region sizes as fractions of a tile and a number of regions
 per tile, so smaller tiles would get smaller errors and larger tiles larger ones. Every layout
@@ -33,7 +36,6 @@ Run: ``.venv/bin/python benches/bench_layouts.py [--sizes 2048 4096] [--scenes 4
 
 from __future__ import annotations
 
-import os
 import statistics
 import sys
 import tempfile
@@ -54,6 +56,9 @@ import onnx_graphs
 #: Alignment schedule of the 80-face layouts: nodes about as far apart, in angle, as the
 #: default 4x3 → 8x7 on the paper's twice-as-wide tiles (8x7 on them costs 4-5x the time).
 COARSE = {"align": [(2, 2), (4, 4)]}
+#: Marks a 20-face layout whose tangents are widened to keep the paper's angular pixel size
+#: (a wider padding at the default width has larger pixels: 1.6x at 0.7, 2x at 1.0).
+PAPER_PIXELS = {"paper_pixels": True}
 #: (label, subdivisions, padding, extra stitch keywords) of the layouts compared.
 LAYOUTS = [
     ("20 faces, padding 0.3 (paper)", 0, 0.3, {}),
@@ -62,19 +67,26 @@ LAYOUTS = [
     ("20 faces, padding 1.0", 0, 1.0, {}),
     ("80 faces, padding 0.2, 2x2 → 4x4", 1, 0.2, COARSE),
     ("80 faces, padding 0.3, 2x2 → 4x4", 1, 0.3, COARSE),
+    ("20 faces, padding 0.7, paper's pixels", 0, 0.7, PAPER_PIXELS),
+    ("20 faces, padding 1.0, paper's pixels", 0, 1.0, PAPER_PIXELS),
 ]
-#: (label, stitch keywords, consensus started from the weighted median).
+#: (label, stitch keywords) of the methods compared.
 METHODS = [
-    ("before: least squares + poisson", {"loss": "squared", "blend": "poisson"}, False),
-    ("default: cauchy + consensus", {}, False),
-    ("cauchy + median", {"blend": "median"}, False),
-    ("cauchy + consensus from median", {}, True),
+    ("before: least squares + poisson", {"loss": "squared", "blend": "poisson"}),
+    ("cauchy + consensus", {}),
+    ("cauchy + median", {"blend": "median"}),
 ]
-MEDIAN_START = "M360_EXPERIMENT_MEDIAN_START"
 
 
-def layout_of(width: int, subdivisions: int, padding: float) -> m360.Layout:
-    return m360.Layout.icosahedron(width, padding=padding, subdivisions=subdivisions)
+def layout_of(
+    width: int, subdivisions: int, padding: float, extra: dict | None = None
+) -> m360.Layout:
+    layout = m360.Layout.icosahedron(width, padding=padding, subdivisions=subdivisions)
+    if extra and extra.get("paper_pixels"):
+        paper = m360.Layout.icosahedron(width)
+        tangent_width = round(layout.tangent_shape[1] * paper.cameras[0].fx / layout.cameras[0].fx)
+        layout = m360.Layout.icosahedron(width, padding=padding, tangent_width=tangent_width)
+    return layout
 
 
 def distorted_inputs(
@@ -100,7 +112,9 @@ def distorted_inputs(
     ]
 
 
-def accuracy_table(sizes: list[int], scenes: int) -> tuple[list[list], list[list]]:
+def accuracy_table(
+    sizes: list[int], scenes: int, layouts: list[int], methods: list[int]
+) -> tuple[list[list], list[list]]:
     rows, per_scene = [], []
     for width in sizes:
         paper = layout_of(width, 0, 0.3)
@@ -108,19 +122,15 @@ def accuracy_table(sizes: list[int], scenes: int) -> tuple[list[list], list[list
         for seed in range(scenes):
             scene = syn.room(seed)
             depth = scene.distance(sph.erp_directions(width // 2, width))
-            for lname, sub, pad, extra in LAYOUTS:
-                layout = layout_of(width, sub, pad)
+            for lname, sub, pad, extra in (LAYOUTS[k] for k in layouts):
+                layout = layout_of(width, sub, pad, extra)
                 for distortion, tiles in distorted_inputs(layout, paper, scene, seed, width):
-                    for mname, method_kwargs, median_start in METHODS:
+                    for mname, method_kwargs in (METHODS[k] for k in methods):
                         kwargs = {**extra, **method_kwargs}
-                        if median_start:
-                            os.environ[MEDIAN_START] = "1"
-                        try:
-                            start = time.perf_counter()
-                            out = m360.stitch(tiles, layout, **kwargs)
-                            seconds = time.perf_counter() - start
-                        finally:
-                            os.environ.pop(MEDIAN_START, None)
+                        kwargs.pop("paper_pixels", None)
+                        start = time.perf_counter()
+                        out = m360.stitch(tiles, layout, **kwargs)
+                        seconds = time.perf_counter() - start
                         err = m360.eval.depth_metrics(out, depth)["abs_rel"]
                         acc = results.setdefault((distortion, lname, mname), ([], []))
                         acc[0].append(err)
@@ -164,8 +174,8 @@ def network_table(width: int, repeats: int, threads: int) -> list[list]:
 
         per_tile = h.measure(twenty, repeats=repeats).median / 20
     rows = []
-    for lname, sub, pad, _ in LAYOUTS:
-        layout = layout_of(width, sub, pad)
+    for lname, sub, pad, extra in LAYOUTS:
+        layout = layout_of(width, sub, pad, extra)
         mean_cover, max_cover = coverage(layout)
         th, tw = layout.tangent_shape
         rows.append([lname, len(layout), f"{tw}x{th}", mean_cover, max_cover,
@@ -179,6 +189,10 @@ def main() -> None:
     parser.add_argument("--scenes", type=int, default=4, help="rooms per size (4)")
     parser.add_argument("--threads", type=int, default=2, help="ONNX Runtime threads (2)")
     parser.add_argument("--no-accuracy", action="store_true", help="only the network table")
+    parser.add_argument("--layouts", type=int, nargs="+", default=list(range(len(LAYOUTS))),
+                        help="indices into LAYOUTS (all)")  # fmt: skip
+    parser.add_argument("--methods", type=int, nargs="+", default=list(range(len(METHODS))),
+                        help="indices into METHODS (all)")  # fmt: skip
     args = parser.parse_args()
     meta = h.metadata()
     net = network_table(2048, args.repeats, args.threads)
@@ -190,7 +204,7 @@ def main() -> None:
     )
     if args.no_accuracy:
         return
-    rows, per_scene = accuracy_table(args.sizes, args.scenes)
+    rows, per_scene = accuracy_table(args.sizes, args.scenes, args.layouts, args.methods)
     h.print_table(
         f"median AbsRel (and worst room) over {args.scenes} rooms, median stitch seconds (one "
         "run per room)",

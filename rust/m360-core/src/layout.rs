@@ -166,9 +166,8 @@ impl Layout {
             .map(extent)
             .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
         let (width, focal) = match (subdivisions, tangent_width) {
-            (0, Some(w)) => (w, w as f64 / span_x),
-            (0, None) => (reference_width, reference_width as f64 / span_x),
             (_, Some(w)) => (w, w as f64 / span_x),
+            (0, None) => (reference_width, reference_width as f64 / span_x),
             (_, None) => {
                 // The paper's pixels: its focal length at the reference padding.
                 let paper = face_frame(&icosahedron_faces()[0], REFERENCE_PADDING);
@@ -464,12 +463,12 @@ mod tests {
         let n = 4000;
         let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
         for i in 0..n {
-            let y = 1.0 - 2.0 * (i as f64 + 0.5) / n as f64;
+            let y = 1.0 - 2.0 * (f64::from(i) + 0.5) / f64::from(n);
             let r = (1.0 - y * y).sqrt();
             let d = Vector3::new(
-                r * (golden * i as f64).cos(),
+                r * (golden * f64::from(i)).cos(),
                 y,
-                r * (golden * i as f64).sin(),
+                r * (golden * f64::from(i)).sin(),
             );
             let owners: Vec<usize> = (0..faces.len())
                 .filter(|&k| in_spherical_triangle(&faces[k], &d))

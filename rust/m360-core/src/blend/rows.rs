@@ -502,7 +502,6 @@ pub fn consensus_blend(
         (1.4826 * median).max(f32::MIN_POSITIVE)
     };
     let inv_c = 1.0 / (CONSENSUS_CAUCHY * sigma);
-    let median_start = std::env::var_os("M360_EXPERIMENT_MEDIAN_START").is_some();
     disparity
         .par_chunks_mut(ew)
         .zip(optional_chunks(confidence, ew, eh))
@@ -514,16 +513,12 @@ pub fn consensus_blend(
                     RowStats::default(),
                     vec![0.0f32; ew],
                     vec![0.0f32; ew],
-                    (Vec::new(), Vec::new()),
                 )
             },
-            |(row, stats, num, den, scratch), (i, (out, out_confidence))| {
+            |(row, stats, num, den), (i, (out, out_confidence))| {
                 row.fill_from_taps(taps, tangents, Some(weights), false, i);
                 stats.compute(row, ew, false);
                 out.copy_from_slice(&stats.weighted);
-                if median_start {
-                    row_weighted_median(row, stats, out, scratch);
-                }
                 for _ in 0..CONSENSUS_ROUNDS {
                     accumulate_row(row, out, num, den, |v, p, m| {
                         let ok = v.is_finite();
