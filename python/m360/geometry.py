@@ -13,7 +13,6 @@ import sys
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
-import dataclasses
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -162,8 +161,9 @@ class Layout:
             )
             for k in range(len(rotations))
         )
-        layout = cls._make((erp_width // 2, erp_width), cameras, float(padding), "icosahedron")
-        return dataclasses.replace(layout, subdivisions=subdivisions)
+        return cls._make(
+            (erp_width // 2, erp_width), cameras, float(padding), "icosahedron", subdivisions
+        )
 
     @classmethod
     def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
@@ -200,6 +200,7 @@ class Layout:
         cameras: tuple[TangentCamera, ...],
         padding: float | None,
         name: str,
+        subdivisions: int | None = None,
     ) -> Layout:
         digest = hashlib.sha1(repr(erp_shape).encode())
         for cam in cameras:
@@ -207,7 +208,7 @@ class Layout:
             digest.update(
                 np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height]).tobytes()
             )
-        return cls(erp_shape, cameras, padding, name, digest.hexdigest())
+        return cls(erp_shape, cameras, padding, name, digest.hexdigest(), subdivisions)
 
     @property
     def tangent_shape(self) -> tuple[int, int]:
