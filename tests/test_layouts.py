@@ -128,6 +128,7 @@ def test_subdivided_layout_covers_every_direction_and_round_trips_rays() -> None
 
 
 def test_subdivided_layout_refuses_what_the_taps_cannot_hold() -> None:
+    assert m360._core.LIMITS["max_subdivisions"] == 2
     with pytest.raises(InputError, match="subdivisions"):
         m360.Layout.icosahedron(512, subdivisions=3)
     with pytest.raises(InputError, match="tangents see one direction"):
