@@ -30,6 +30,11 @@ Methods
 ``"frustum"``
     Weights 1 in the centre of each tangent image, falling linearly to 0 at its border, the ramp
     starting 30 % of the way in from each corner along the diagonal; the fast seam-free choice.
+``"median"``
+    Where three or more tangents see a pixel, the median of their values weighted by the
+    frustum weights (the smallest value whose cumulative weight, in increasing order, reaches
+    half the total); the frustum blend elsewhere. A tangent that disagrees with the others has
+    no pull at all, but the result jumps where the set of tangents changes.
 ``"radial"``
     Weights 1 within 15° of the optical axis, falling linearly to 0 at the image's inscribed half
     field of view (plain mean where every weight is 0).
@@ -78,7 +83,7 @@ __all__ = [
 ]
 
 #: Blend methods (the core's ``CHOICES["blend"]``; the first is the default).
-BlendMethod = Literal["consensus", "poisson", "frustum", "radial", "mean", "nn"]
+BlendMethod = Literal["consensus", "poisson", "frustum", "median", "radial", "mean", "nn"]
 #: Fidelity targets of the Poisson blend (the core's ``CHOICES["fidelity"]``).
 Fidelity = Literal["frustum", "nn", "mean", "consensus"]
 #: Solvers of the Poisson blend (the core's ``CHOICES["poisson_solver"]``).

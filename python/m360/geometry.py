@@ -91,6 +91,9 @@ class Layout:
         All with the same image size.
     padding : float or None
         The icosahedron padding in gnomonic units, None for other layouts.
+    subdivisions : int or None
+        How many times the icosahedron's faces were split into 4 (0 = the paper's 20 faces),
+        None for other layouts.
     """
 
     erp_shape: tuple[int, int]
@@ -98,16 +101,33 @@ class Layout:
     padding: float | None = None
     name: str = "custom"
     key: str = field(default="", repr=False)
+    subdivisions: int | None = None
 
     @classmethod
     def icosahedron(
-        cls, erp_width: int, padding: float = 0.3, tangent_width: int | None = None
+        cls,
+        erp_width: int,
+        padding: float = 0.3,
+        tangent_width: int | None = None,
+        subdivisions: int = 0,
     ) -> Layout:
-        """Make the paper's layout: 20 cameras, one per icosahedron face.
+        """Make the paper's layout: 20 cameras, one per icosahedron face (or per sub-face).
 
         Each camera looks at its face centroid with no roll (image x = local east, y = local
         south); its image is the bounding box of the face triangle with every edge pushed out by
         ``padding`` gnomonic units (≈ 99.5° x 88° at 0.3), with square pixels.
+
+        With ``subdivisions`` = n > 0 every face is split n times into 4 at its edge midpoints
+        (pushed onto the sphere): 80 cameras at n = 1, 320 at n = 2, each looking at its
+        sub-face's centroid. The sub-faces differ a little in shape, so all images take the
+        largest padded bounding box; by default the pixels keep the angular size of the paper's
+        layout at the same ``erp_width`` (209x189 at W = 2048, padding 0.15, n = 1). Sub-faces
+        are about half as wide, so ``padding`` 0.15 at n = 1 overlaps them about as much, in
+        relative terms, as 0.3 does the 20 faces. Pass ``align=[(2, 2), (4, 4)]`` to
+        :func:`m360.stitch` / :func:`m360.estimate` with them: the default 4x3 → 8x7 grids
+        per (smaller) tile are twice as fine in angle and measured 4-5x slower for the same
+        accuracy. Layouts that would let more than 16 tangents see one direction (n = 1 with
+        padding above about 0.3) are refused.
 
         Parameters
         ----------
@@ -117,15 +137,20 @@ class Layout:
         padding : float
             Edge offset in gnomonic units (the paper's p = 0.3).
         tangent_width : int, optional
-            Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K).
+            Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K);
+            with subdivisions, the width that keeps the paper's angular pixel size.
+        subdivisions : int
+            Times each face is split into 4, in [0, ``LIMITS["max_subdivisions"]``]; 0 is the
+            paper's layout.
         """
         # Types here (machine-sized integers); the core judges the values (_core.LIMITS).
         erp_width = integer(erp_width, "erp_width", low=0, high=sys.maxsize)
         padding = number(padding, "padding")
         if tangent_width is not None:
             tangent_width = integer(tangent_width, "tangent_width", low=0, high=sys.maxsize)
+        subdivisions = integer(subdivisions, "subdivisions", low=0, high=sys.maxsize)
         rotations, intrinsics, (h, w), faces = _core.icosahedron_cameras(
-            erp_width, float(padding), tangent_width
+            erp_width, float(padding), tangent_width, subdivisions
         )
         cameras = tuple(
             TangentCamera(
@@ -140,7 +165,9 @@ class Layout:
             )
             for k in range(len(rotations))
         )
-        return cls._make((erp_width // 2, erp_width), cameras, float(padding), "icosahedron")
+        return cls._make(
+            (erp_width // 2, erp_width), cameras, float(padding), "icosahedron", subdivisions
+        )
 
     @classmethod
     def from_cameras(cls, cameras: Sequence[TangentCamera], erp_shape: tuple[int, int]) -> Layout:
@@ -177,6 +204,7 @@ class Layout:
         cameras: tuple[TangentCamera, ...],
         padding: float | None,
         name: str,
+        subdivisions: int | None = None,
     ) -> Layout:
         digest = hashlib.sha1(repr(erp_shape).encode())
         for cam in cameras:
@@ -184,7 +212,7 @@ class Layout:
             digest.update(
                 np.array([cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height]).tobytes()
             )
-        return cls(erp_shape, cameras, padding, name, digest.hexdigest())
+        return cls(erp_shape, cameras, padding, name, digest.hexdigest(), subdivisions)
 
     @property
     def tangent_shape(self) -> tuple[int, int]:
@@ -222,6 +250,8 @@ class Layout:
     def __repr__(self) -> str:
         h, w = self.tangent_shape
         pad = "" if self.padding is None else f", padding={self.padding}"
+        if self.subdivisions:
+            pad += f", subdivisions={self.subdivisions}"
         return (
             f"Layout.{self.name}(erp_shape={self.erp_shape}, {len(self)} cameras of {w}x{h}{pad})"
         )

@@ -195,7 +195,7 @@ def stitch(
         through unchanged).
     blend : str, optional
         ``"consensus"`` (the core's default), ``"poisson"``, ``"frustum"``, ``"radial"``,
-        ``"mean"`` or ``"nn"``.
+        ``"mean"``, ``"median"`` or ``"nn"``.
     mask : (N, h, w) bool, optional
         False marks pixels with no estimate (sky, tripod). They never contribute, not even
         through a bilinear neighbour, and are left out of standardisation and overlaps.

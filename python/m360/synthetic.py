@@ -906,6 +906,7 @@ def content_errors(
     amplitude: tuple[float, float] = (0.1, 0.3),
     blur: float = 0.0,
     return_regions: bool = False,
+    reference_area: float | None = None,
 ) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
     """Simulate a network's content errors: local regions of a tangent too near or too far.
 
@@ -937,6 +938,13 @@ def content_errors(
     return_regions : bool
         Also return the (N, h, w) float32 map of the relative error factor minus 1 (0 outside
         every region), the ground truth of where the tangents are wrong.
+    reference_area : float, optional
+        Area in pixels (> 0) that ``size`` and ``regions`` refer to instead of the tile's own
+        ``h * w``: region areas are fractions of it, and the number of regions drawn from
+        ``regions`` is scaled by ``h * w / reference_area`` (rounded at random, seeded). Pass
+        the paper's tile area at the same angular pixel size to give layouts with other tile
+        sizes errors of the same angular size and the same density per solid angle. Default:
+        the tile's area (the draws are then exactly those without it).
 
     Returns
     -------
@@ -964,14 +972,23 @@ def content_errors(
     blur = number(blur, "blur", low=0.0, high=1000.0)
     rng = np.random.default_rng(check_seed(seed))
     n, h, w = t.shape
+    area_ref = float(h * w)
+    if reference_area is not None:
+        area_ref = number(reference_area, "reference_area", low=0.0)
+        if not area_ref > 0:
+            raise InputError(f"reference_area must be > 0, got {reference_area!r}")
     y = np.arange(h, dtype=np.float64)[:, None]
     x = np.arange(w, dtype=np.float64)[None, :]
     out = np.empty((n, h, w), dtype=np.float32)
     errors = np.zeros((n, h, w), dtype=np.float32)
     for k in range(n):
         factor = np.ones((h, w))
-        for _ in range(int(rng.integers(r_lo, r_hi + 1))):
-            area = rng.uniform(s_lo, s_hi) * h * w
+        count = int(rng.integers(r_lo, r_hi + 1))
+        if reference_area is not None:  # same density per pixel area: scale, round at random
+            expected = count * h * w / area_ref
+            count = int(expected) + int(rng.random() < expected - int(expected))
+        for _ in range(count):
+            area = rng.uniform(s_lo, s_hi) * area_ref
             aspect = float(np.exp(rng.uniform(np.log(0.5), np.log(2.0))))
             ra = np.sqrt(area * aspect / np.pi)  # semi-axes with π·ra·rb = area
             rb = area / (np.pi * ra)

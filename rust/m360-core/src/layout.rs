@@ -19,6 +19,10 @@ pub const MAX_ERP_WIDTH: usize = 1 << 15;
 pub const MAX_PADDING: f64 = 2.0;
 /// Narrowest tangent image of the icosahedron layout.
 pub const MIN_TANGENT_WIDTH: usize = 8;
+/// Most subdivisions of the icosahedron layout (2: 320 tangents).
+pub const MAX_SUBDIVISIONS: usize = 2;
+/// The paper's padding, whose pixel size the subdivided layouts keep.
+const REFERENCE_PADDING: f64 = 0.3;
 
 /// Cameras that together cover the sphere, for an ERP image of a given size.
 ///
@@ -108,6 +112,28 @@ impl Layout {
         padding: f64,
         tangent_width: Option<usize>,
     ) -> Result<Self> {
+        Self::icosahedron_subdivided(erp_width, padding, tangent_width, 0)
+    }
+
+    /// The icosahedron layout with every face split `subdivisions` times into 4 (edge midpoints
+    /// pushed onto the sphere): 20·4ⁿ cameras, each looking at its sub-face's centroid with no
+    /// roll, its image the bounding box of the sub-face padded by `padding` gnomonic units.
+    /// `subdivisions = 0` is [`Layout::icosahedron`], exactly.
+    ///
+    /// The sub-faces are not congruent, so every camera gets the largest padded bounding box of
+    /// all of them (each centred on its own). With `tangent_width` unset the pixels have the
+    /// angular size of the paper's layout at the same ERP width (the focal length of the 20-face
+    /// layout at padding 0.3), so the network sees the scene at the same resolution in smaller
+    /// tiles. Cameras `4ⁿ·f ..` are the sub-faces of face `f`.
+    ///
+    /// # Errors
+    /// [`CoreError::InvalidLayout`] for an unusable size, padding or subdivision count.
+    pub fn icosahedron_subdivided(
+        erp_width: usize,
+        padding: f64,
+        tangent_width: Option<usize>,
+        subdivisions: usize,
+    ) -> Result<Self> {
         if !erp_width.is_multiple_of(2) || !(MIN_ERP_WIDTH..=MAX_ERP_WIDTH).contains(&erp_width) {
             return Err(CoreError::InvalidLayout(format!(
                 "erp_width={erp_width} is unusable: it must be even, at least {MIN_ERP_WIDTH} and \
@@ -119,23 +145,109 @@ impl Layout {
                 "padding={padding} must be a finite number in [0, {MAX_PADDING}] (gnomonic units)"
             )));
         }
-        let width = tangent_width.unwrap_or_else(|| {
-            ((REFERENCE_TANGENT_WIDTH * erp_width) as f64 / REFERENCE_ERP_WIDTH as f64).round()
-                as usize
-        });
+        if subdivisions > MAX_SUBDIVISIONS {
+            return Err(CoreError::InvalidLayout(format!(
+                "subdivisions={subdivisions} must be at most {MAX_SUBDIVISIONS} \
+                 (20·4^n tangents)"
+            )));
+        }
+        let reference_width = ((REFERENCE_TANGENT_WIDTH * erp_width) as f64
+            / REFERENCE_ERP_WIDTH as f64)
+            .round() as usize;
+        let mut faces = icosahedron_faces();
+        for _ in 0..subdivisions {
+            faces = faces.iter().flat_map(split_face).collect();
+        }
+        let frames: Vec<FaceFrame> = faces.iter().map(|f| face_frame(f, padding)).collect();
+        let extent =
+            |frame: &FaceFrame| (frame.bbox[1] - frame.bbox[0], frame.bbox[3] - frame.bbox[2]);
+        let (span_x, span_y) = frames
+            .iter()
+            .map(extent)
+            .fold((0.0f64, 0.0f64), |a, e| (a.0.max(e.0), a.1.max(e.1)));
+        let (width, focal) = match (subdivisions, tangent_width) {
+            (_, Some(w)) => (w, w as f64 / span_x),
+            (0, None) => (reference_width, reference_width as f64 / span_x),
+            (_, None) => {
+                // The paper's pixels: its focal length at the reference padding.
+                let paper = face_frame(&icosahedron_faces()[0], REFERENCE_PADDING);
+                let focal = reference_width as f64 / (paper.bbox[1] - paper.bbox[0]);
+                ((span_x * focal).ceil() as usize, focal)
+            }
+        };
         if !(MIN_TANGENT_WIDTH..=MAX_ERP_WIDTH).contains(&width) {
             return Err(CoreError::InvalidLayout(format!(
                 "tangent_width={width} must be an integer in [{MIN_TANGENT_WIDTH}, {MAX_ERP_WIDTH}]"
             )));
         }
-        let mut cameras = Vec::with_capacity(20);
-        let mut polygons = Vec::with_capacity(20);
-        for face in icosahedron_faces() {
-            let (camera, triangle) = face_camera(&face, padding, width);
-            cameras.push(camera);
-            polygons.push(triangle);
+        // The paper's 346 rows at 400 columns are rounded; a subdivided layout's largest box
+        // must fit whole.
+        let height = if subdivisions == 0 {
+            (span_y * focal).round() as usize
+        } else {
+            (span_y * focal).ceil() as usize
+        };
+        let mut cameras = Vec::with_capacity(frames.len());
+        let mut polygons = Vec::with_capacity(frames.len());
+        for frame in frames {
+            let [xmin, xmax, ymin, ymax] = frame.bbox;
+            // Centre the bounding box on the pixel grid: the tangent point (0, 0) lands
+            // off-centre.
+            cameras.push(TangentCamera {
+                rotation: frame.rotation,
+                fx: focal,
+                fy: focal,
+                cx: (width as f64 - 1.0) / 2.0 - focal * (xmin + xmax) / 2.0,
+                cy: (height as f64 - 1.0) / 2.0 - focal * (ymin + ymax) / 2.0,
+                width,
+                height,
+            });
+            polygons.push(frame.triangle);
         }
-        Self::new(erp_width / 2, erp_width, cameras, polygons)
+        let layout = Self::new(erp_width / 2, erp_width, cameras, polygons)?;
+        if subdivisions > 0 {
+            let seen = layout.most_cameras_seeing_a_direction();
+            if seen > crate::resample::MAX_FACES_PER_PIXEL {
+                return Err(CoreError::InvalidLayout(format!(
+                    "padding={padding} with subdivisions={subdivisions} lets {seen} tangents see \
+                     one direction; at most {} can be blended: use a smaller padding",
+                    crate::resample::MAX_FACES_PER_PIXEL
+                )));
+            }
+        }
+        Ok(layout)
+    }
+
+    /// The most cameras whose image holds one direction, over a dense spiral of directions and
+    /// the directions of every camera's face vertices (where the most images overlap).
+    fn most_cameras_seeing_a_direction(&self) -> usize {
+        let n = 20_000;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        let spiral = (0..n).map(|i| {
+            let y = 1.0 - 2.0 * (f64::from(i) + 0.5) / f64::from(n);
+            let r = (1.0 - y * y).sqrt();
+            let a = golden * f64::from(i);
+            Vector3::new(r * a.cos(), y, r * a.sin())
+        });
+        let vertices = self
+            .cameras
+            .iter()
+            .zip(&self.face_polygons)
+            .flat_map(|(cam, poly)| {
+                poly.iter()
+                    .map(|p| (cam.rotation.transpose() * Vector3::new(p[0], p[1], 1.0)).normalize())
+                    .collect::<Vec<_>>()
+            });
+        spiral
+            .chain(vertices)
+            .map(|d| {
+                self.cameras
+                    .iter()
+                    .filter(|cam| cam.project(&d).is_some_and(|(x, y)| cam.contains(x, y)))
+                    .count()
+            })
+            .max()
+            .unwrap_or(0)
     }
 
     /// Tangent image size `(height, width)`.
@@ -163,12 +275,16 @@ fn icosahedron_faces() -> Vec<[Vector3<f64>; 3]> {
     faces
 }
 
-/// The camera of one face and the face triangle in its gnomonic coordinates.
-fn face_camera(
-    face: &[Vector3<f64>; 3],
-    padding: f64,
-    width: usize,
-) -> (TangentCamera, Vec<[f64; 2]>) {
+/// One face's camera frame: rotation (no roll), the face triangle in its gnomonic coordinates,
+/// and the padded triangle's bounding box `[xmin, xmax, ymin, ymax]`.
+struct FaceFrame {
+    rotation: Matrix3<f64>,
+    triangle: Vec<[f64; 2]>,
+    bbox: [f64; 4],
+}
+
+/// The frame of a camera looking at the face's centroid with no roll.
+fn face_frame(face: &[Vector3<f64>; 3], padding: f64) -> FaceFrame {
     let centre = (face[0] + face[1] + face[2]).normalize();
     let lon = centre.x.atan2(centre.z);
     let lat = (-centre.y).asin();
@@ -186,26 +302,30 @@ fn face_camera(
         })
         .collect();
     let padded = offset_polygon(&triangle, padding);
-    let (mut xmin, mut xmax, mut ymin, mut ymax) = (f64::MAX, f64::MIN, f64::MAX, f64::MIN);
+    let mut bbox = [f64::MAX, f64::MIN, f64::MAX, f64::MIN];
     for p in &padded {
-        xmin = xmin.min(p[0]);
-        xmax = xmax.max(p[0]);
-        ymin = ymin.min(p[1]);
-        ymax = ymax.max(p[1]);
+        bbox = [
+            bbox[0].min(p[0]),
+            bbox[1].max(p[0]),
+            bbox[2].min(p[1]),
+            bbox[3].max(p[1]),
+        ];
     }
-    let focal = width as f64 / (xmax - xmin);
-    let height = ((ymax - ymin) * focal).round() as usize;
-    // Centre the bounding box on the pixel grid: the tangent point (0, 0) lands off-centre.
-    let camera = TangentCamera {
+    FaceFrame {
         rotation,
-        fx: focal,
-        fy: focal,
-        cx: (width as f64 - 1.0) / 2.0 - focal * (xmin + xmax) / 2.0,
-        cy: (height as f64 - 1.0) / 2.0 - focal * (ymin + ymax) / 2.0,
-        width,
-        height,
-    };
-    (camera, triangle)
+        triangle,
+        bbox,
+    }
+}
+
+/// A spherical triangle split into 4 at its edges' midpoints (pushed onto the sphere): the three
+/// corner triangles (same vertex order) and the middle one.
+fn split_face(face: &[Vector3<f64>; 3]) -> [[Vector3<f64>; 3]; 4] {
+    let [a, b, c] = *face;
+    let ab = (a + b).normalize();
+    let bc = (b + c).normalize();
+    let ca = (c + a).normalize();
+    [[a, ab, ca], [ab, b, bc], [ca, bc, c], [ab, bc, ca]]
 }
 
 /// A convex polygon with every edge moved outwards by `distance`.
@@ -291,6 +411,95 @@ mod tests {
                 assert!(cam.contains(x, y));
             }
         }
+    }
+
+    /// Whether `d` lies in the spherical triangle `face` (counter-clockwise or not).
+    fn in_spherical_triangle(face: &[Vector3<f64>; 3], d: &Vector3<f64>) -> bool {
+        let signs: Vec<f64> = (0..3)
+            .map(|k| face[k].cross(&face[(k + 1) % 3]).dot(d))
+            .collect();
+        let same_side = signs.iter().all(|&s| s >= -1e-12) || signs.iter().all(|&s| s <= 1e-12);
+        // The sign test alone also accepts the antipodal triangle.
+        same_side && d.dot(&(face[0] + face[1] + face[2])) > 0.0
+    }
+
+    #[test]
+    fn subdivided_sizes_pixels_and_centroids() {
+        let paper = Layout::icosahedron(2048, 0.3, None).expect("layout");
+        let same = Layout::icosahedron_subdivided(2048, 0.3, None, 0).expect("layout");
+        assert_eq!(paper, same);
+        for n in 1..=2 {
+            let padding = 0.3 / f64::from(1 << n);
+            let layout = Layout::icosahedron_subdivided(2048, padding, None, n).expect("layout");
+            assert_eq!(layout.cameras.len(), 20 * 4usize.pow(n as u32));
+            let mut faces = icosahedron_faces();
+            for _ in 0..n {
+                faces = faces.iter().flat_map(split_face).collect();
+            }
+            for (k, (cam, face)) in layout.cameras.iter().zip(&faces).enumerate() {
+                // Same angular pixel size as the paper's layout at the same ERP width.
+                assert!((cam.fx - paper.cameras[0].fx).abs() < 1e-9, "camera {k}");
+                // The sub-face vertices are on the sphere and the axis is their centroid.
+                let centroid = (face[0] + face[1] + face[2]).normalize();
+                assert!((cam.axis() - centroid).norm() < 1e-12);
+                for v in face {
+                    assert!((v.norm() - 1.0).abs() < 1e-12);
+                    let (x, y) = cam.project(v).expect("vertex in front");
+                    assert!(cam.contains(x, y), "camera {k} misses its vertex");
+                }
+                // No roll: the image x axis is horizontal in the world.
+                assert!(cam.rotation[(0, 1)].abs() < 1e-12);
+            }
+        }
+    }
+
+    #[test]
+    fn subdivided_faces_tile_the_sphere_and_their_cameras_see_them() {
+        // Oracle: a golden-spiral set of directions; each lies in at least one spherical
+        // sub-triangle (independent of the cameras), whose camera projects it inside its image.
+        let layout = Layout::icosahedron_subdivided(512, 0.0, None, 1).expect("layout");
+        let mut faces = icosahedron_faces();
+        faces = faces.iter().flat_map(split_face).collect();
+        let n = 4000;
+        let golden = std::f64::consts::PI * (3.0 - 5f64.sqrt());
+        for i in 0..n {
+            let y = 1.0 - 2.0 * (f64::from(i) + 0.5) / f64::from(n);
+            let r = (1.0 - y * y).sqrt();
+            let d = Vector3::new(
+                r * (golden * f64::from(i)).cos(),
+                y,
+                r * (golden * f64::from(i)).sin(),
+            );
+            let owners: Vec<usize> = (0..faces.len())
+                .filter(|&k| in_spherical_triangle(&faces[k], &d))
+                .collect();
+            assert!(!owners.is_empty(), "direction {i} is in no sub-face");
+            for k in owners {
+                let cam = &layout.cameras[k];
+                let (x, y) = cam.project(&d).expect("in front");
+                assert!(cam.contains(x, y), "camera {k} misses direction {i}");
+            }
+        }
+        // The areas add up to the sphere: 80 spherical triangles (l'Huilier-free: Girard via
+        // solid angles of Van Oosterom and Strackee).
+        let total: f64 = faces
+            .iter()
+            .map(|[a, b, c]| {
+                let num = a.dot(&b.cross(c));
+                let den = 1.0 + a.dot(b) + b.dot(c) + c.dot(a);
+                2.0 * num.abs().atan2(den)
+            })
+            .sum();
+        assert!((total - 4.0 * std::f64::consts::PI).abs() < 1e-9);
+    }
+
+    #[test]
+    fn subdivided_rejects_too_many_subdivisions() {
+        assert!(Layout::icosahedron_subdivided(2048, 0.3, None, 3).is_err());
+        // 21 tangents would see the sub-face vertices: more than the ERP taps can hold.
+        assert!(Layout::icosahedron_subdivided(512, 0.5, None, 1).is_err());
+        assert!(Layout::icosahedron_subdivided(512, 0.3, None, 1).is_ok());
+        assert!(Layout::icosahedron_subdivided(64, 0.3, Some(4), 1).is_err());
     }
 
     #[test]

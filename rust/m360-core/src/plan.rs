@@ -344,6 +344,11 @@ impl Plan {
                 blend::consensus_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
+            Method::Median => {
+                let weights = self.tap_weights(Weighting::Frustum);
+                blend::median_blend(taps, layout, tangents, weights, disparity, confidence);
+                None
+            }
             Method::Poisson(params) => {
                 let weights = self.tap_weights(Weighting::Frustum);
                 let report = blend::poisson_blend(

@@ -630,7 +630,7 @@ unsafe fn lerp_f32(stack: &[f32], k: usize, w: usize, tap: Tap) -> f32 {
 }
 
 /// Most tangents one ERP pixel can be seen by (the icosahedron layout needs 5).
-const MAX_FACES_PER_PIXEL: usize = 16;
+pub(crate) const MAX_FACES_PER_PIXEL: usize = 16;
 
 /// How many pixels ahead the ERP rows of a tap are prefetched: the taps say exactly which cache
 /// lines the next pixels need, which the hardware prefetcher cannot guess along a curved path.

@@ -14,23 +14,30 @@ use numpy::{
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
-/// The icosahedron layout's cameras: (rotations (N,3,3), intrinsics (N,4) as fx, fy, cx, cy,
-/// (height, width), face triangles (N,3,2) in gnomonic coordinates).
+/// The icosahedron layout's cameras (each face split `subdivisions` times into 4): (rotations
+/// (N,3,3), intrinsics (N,4) as fx, fy, cx, cy, (height, width), face triangles (N,3,2) in
+/// gnomonic coordinates).
 #[pyfunction]
-#[pyo3(signature = (erp_width, padding=0.3, tangent_width=None))]
+#[pyo3(signature = (erp_width, padding=0.3, tangent_width=None, subdivisions=0))]
 #[allow(clippy::type_complexity)]
 pub(crate) fn icosahedron_cameras(
     py: Python<'_>,
     erp_width: usize,
     padding: f64,
     tangent_width: Option<usize>,
+    subdivisions: usize,
 ) -> PyResult<(
     Bound<'_, PyArrayDyn<f64>>,
     Bound<'_, PyArrayDyn<f64>>,
     (usize, usize),
     Bound<'_, PyArrayDyn<f64>>,
 )> {
-    let layout = core(Layout::icosahedron(erp_width, padding, tangent_width))?;
+    let layout = core(Layout::icosahedron_subdivided(
+        erp_width,
+        padding,
+        tangent_width,
+        subdivisions,
+    ))?;
     let n = layout.cameras.len();
     let rotations = layout
         .cameras

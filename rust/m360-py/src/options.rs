@@ -254,6 +254,7 @@ pub(crate) fn limits(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("max_erp_width", layout::MAX_ERP_WIDTH)?;
     d.set_item("max_padding", layout::MAX_PADDING)?;
     d.set_item("min_tangent_width", layout::MIN_TANGENT_WIDTH)?;
+    d.set_item("max_subdivisions", layout::MAX_SUBDIVISIONS)?;
     Ok(d)
 }
 

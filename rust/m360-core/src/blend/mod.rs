@@ -20,7 +20,7 @@ mod tests;
 pub use poisson::{
     poisson_blend, poisson_blend_layers, Fidelity, PoissonParams, PoissonReport, PoissonSolver,
 };
-pub use rows::{consensus_blend, mean_blend, nearest_blend, weighted_blend};
+pub use rows::{consensus_blend, mean_blend, median_blend, nearest_blend, weighted_blend};
 pub use weights::{weight_maps, Weighting};
 
 use crate::error::{CoreError, Result};
@@ -41,6 +41,9 @@ pub enum Method {
     /// blend by a median relative 1e-5.
     #[default]
     Consensus,
+    /// Frustum-weighted median where three or more faces see a pixel, the frustum blend
+    /// elsewhere ([`rows::median_blend`]).
+    Median,
     /// Radially weighted mean.
     Radial,
     /// Unweighted mean of every valid sample.
@@ -52,8 +55,15 @@ pub enum Method {
 
 impl Method {
     /// The names of the methods, the default first.
-    pub const NAMES: &'static [&'static str] =
-        &["consensus", "poisson", "frustum", "radial", "mean", "nn"];
+    pub const NAMES: &'static [&'static str] = &[
+        "consensus",
+        "poisson",
+        "frustum",
+        "median",
+        "radial",
+        "mean",
+        "nn",
+    ];
 
     /// The method's name.
     #[must_use]
@@ -62,6 +72,7 @@ impl Method {
             Self::Poisson(_) => "poisson",
             Self::Frustum => "frustum",
             Self::Consensus => "consensus",
+            Self::Median => "median",
             Self::Radial => "radial",
             Self::Mean => "mean",
             Self::Nearest => "nn",
@@ -73,7 +84,9 @@ impl Method {
     #[must_use]
     pub fn weighting(&self) -> Option<Weighting> {
         match self {
-            Self::Poisson(_) | Self::Frustum | Self::Consensus => Some(Weighting::Frustum),
+            Self::Poisson(_) | Self::Frustum | Self::Consensus | Self::Median => {
+                Some(Weighting::Frustum)
+            }
             Self::Radial => Some(Weighting::Radial),
             Self::Mean | Self::Nearest => None,
         }
@@ -100,6 +113,7 @@ impl FromStr for Method {
             "poisson" => Self::Poisson(PoissonParams::default()),
             "frustum" => Self::Frustum,
             "consensus" => Self::Consensus,
+            "median" => Self::Median,
             "radial" => Self::Radial,
             "mean" => Self::Mean,
             "nn" => Self::Nearest,

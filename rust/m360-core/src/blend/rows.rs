@@ -553,3 +553,101 @@ pub fn consensus_blend(
         );
     sigma
 }
+
+/// Fewest valid samples at a pixel for [`median_blend`] to take their weighted median (below it
+/// the weighted mean: with two samples a median cannot tell which one is wrong).
+pub const MEDIAN_MIN_SAMPLES: f32 = 3.0;
+
+/// Per column of a row whose statistics `stats` are computed, the prior-weighted median of its
+/// valid samples where at least [`MEDIAN_MIN_SAMPLES`] see it, into `out` (other columns are
+/// left as they are). The weighted median is the smallest sample whose cumulative weight, in
+/// increasing order of value, reaches half the total; with a total weight of 0 the samples
+/// count equally. `scratch` holds the per-column samples (reused between rows).
+fn row_weighted_median(
+    row: &RowSamples,
+    stats: &RowStats,
+    out: &mut [f32],
+    scratch: &mut (Vec<usize>, Vec<(f32, f32)>),
+) {
+    let (starts, samples) = scratch;
+    // Counting sort of the valid samples by column: a pixel's samples come from several runs.
+    starts.clear();
+    let mut total = 0usize;
+    for &n in &stats.count {
+        starts.push(total);
+        total += n as usize;
+    }
+    samples.clear();
+    samples.resize(total, (0.0, 0.0));
+    let mut fill = starts.clone();
+    for run in &row.runs {
+        let values = &row.values[run.taps()];
+        let weights = &row.weights[run.taps()];
+        for ((&v, &w), j) in values.iter().zip(weights).zip(run.columns()) {
+            if v.is_finite() {
+                samples[fill[j]] = (v, w);
+                fill[j] += 1;
+            }
+        }
+    }
+    for (j, m) in out.iter_mut().enumerate() {
+        if stats.count[j] < MEDIAN_MIN_SAMPLES {
+            continue;
+        }
+        let pixel = &mut samples[starts[j]..fill[j]];
+        pixel.sort_unstable_by(|a, b| a.0.total_cmp(&b.0));
+        let weight: f32 = pixel.iter().map(|s| s.1).sum();
+        let equal = weight <= 0.0;
+        let half = if equal { pixel.len() as f32 } else { weight } / 2.0;
+        let mut cumulative = 0.0;
+        for &(v, w) in pixel.iter() {
+            cumulative += if equal { 1.0 } else { w };
+            if cumulative >= half {
+                *m = v;
+                break;
+            }
+        }
+    }
+}
+
+/// Weighted-median blend: per ERP pixel seen by at least [`MEDIAN_MIN_SAMPLES`] valid samples,
+/// the median of the samples weighted by the per-face `weights` (at the taps; see
+/// [`row_weighted_median`]); elsewhere the weighted mean, as [`weighted_blend`]. `spread` (H·W,
+/// if given) the population standard deviation of the valid samples.
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn median_blend(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: &TapWeights,
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) {
+    let (eh, ew) = (layout.erp_height, layout.erp_width);
+    assert!(disparity.len() == eh * ew);
+    assert!(spread.as_ref().is_none_or(|s| s.len() == disparity.len()));
+    disparity
+        .par_chunks_mut(ew)
+        .zip(optional_chunks(spread, ew, eh))
+        .enumerate()
+        .for_each_init(
+            || {
+                (
+                    RowSamples::default(),
+                    RowStats::default(),
+                    (Vec::new(), Vec::new()),
+                )
+            },
+            |(row, stats, scratch), (i, (out, out_spread))| {
+                row.fill_from_taps(taps, tangents, Some(weights), false, i);
+                stats.compute(row, ew, out_spread.is_some());
+                out.copy_from_slice(&stats.weighted);
+                row_weighted_median(row, stats, out, scratch);
+                if let Some(s) = out_spread {
+                    s.copy_from_slice(&stats.spread);
+                }
+            },
+        );
+}

@@ -665,3 +665,78 @@ fn consensus_matches_a_direct_evaluation_and_votes_down_a_wrong_face() {
         "consensus {consensus_error}, frustum {frustum_error}"
     );
 }
+
+/// The weighted median of `samples` (value, weight): the smallest value whose cumulative weight
+/// in increasing order reaches half the total (equal weights if they sum to 0).
+fn weighted_median_at(samples: &[(f32, f32)]) -> f32 {
+    let mut sorted = samples.to_vec();
+    sorted.sort_by(|a, b| a.0.total_cmp(&b.0));
+    let total: f32 = sorted.iter().map(|s| s.1).sum();
+    let equal = total <= 0.0;
+    let half = if equal { sorted.len() as f32 } else { total } / 2.0;
+    let mut cumulative = 0.0;
+    for (v, w) in sorted {
+        cumulative += if equal { 1.0 } else { w };
+        if cumulative >= half {
+            return v;
+        }
+    }
+    f32::NAN
+}
+
+#[test]
+fn median_matches_a_direct_evaluation_and_ignores_a_wrong_face() {
+    let plan = plan(256);
+    let l = plan.layout();
+    let (h, w) = l.tangent_shape();
+    let mut tangents = tangent_field(&plan);
+    for v in &mut tangents[3 * h * w..4 * h * w] {
+        *v *= 1.4;
+    }
+    let (out, _) = blend_to_vec(&plan, &tangents, Method::Median);
+    let (frustum, _) = blend_to_vec(&plan, &tangents, Method::Frustum);
+    let taps = plan.erp_taps();
+    let weights = plan.tap_weights(Weighting::Frustum);
+    let mut values = Vec::new();
+    let (mut medians, mut ignored) = (0, 0);
+    for i in (0..l.erp_height).step_by(5) {
+        taps.sample(&tangents, i, &mut values);
+        let row_weights = weights.row(i);
+        for j in (0..l.erp_width).step_by(3) {
+            let samples: Vec<(usize, f32, f32)> = taps
+                .runs(i)
+                .iter()
+                .filter(|r| r.columns().contains(&j))
+                .map(|r| {
+                    let t = r.taps().start + (j - r.start as usize);
+                    (r.face as usize, values[t], row_weights[t])
+                })
+                .filter(|s| s.1.is_finite())
+                .collect();
+            let got = out[i * l.erp_width + j];
+            let pairs: Vec<(f32, f32)> = samples.iter().map(|s| (s.1, s.2)).collect();
+            if samples.len() >= 3 {
+                assert_eq!(
+                    got.to_bits(),
+                    weighted_median_at(&pairs).to_bits(),
+                    "({i}, {j})"
+                );
+                medians += 1;
+                let wrong = samples.iter().find(|s| s.0 == 3);
+                let total: f32 = pairs.iter().map(|s| s.1).sum();
+                if let Some(&(_, v, wt)) = wrong {
+                    if wt < 0.5 * total {
+                        assert!(got.to_bits() != v.to_bits(), "({i}, {j}) took face 3");
+                        ignored += 1;
+                    }
+                }
+            } else {
+                assert_eq!(got.to_bits(), frustum[i * l.erp_width + j].to_bits());
+            }
+        }
+    }
+    assert!(
+        medians > 1000 && ignored > 50,
+        "{medians} medians, {ignored} ignored"
+    );
+}
