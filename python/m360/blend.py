@@ -12,11 +12,12 @@ Methods
     tangents that see it, the frustum weights as prior, each tangent's weight multiplied by the
     Cauchy weight 1/(1 + (e/c)²) of its distance e from the current consensus (c = 2.385·σ,
     σ = 1.4826 × the median distance of a tangent's value from its pixel's frustum blend, over
-    a regular subsample of the pixels two or more tangents see), three times. Where three or more tangents see a pixel,
-    one that disagrees with the others (a content error of the network, which the overlapping
-    tangent does not share) loses its say; where two disagree the frustum weights decide as in
-    ``"frustum"``. The ``confidence`` output is the disagreement left, √(Σ p·e²/(1 + (e/c)²) /
-    Σ p) with p the frustum weights: a tangent voted down still marks its footprint there.
+    a regular subsample of the pixels two or more tangents see), three times. Where three or
+    more tangents see a pixel, one that disagrees with the others (a content error of the
+    network, which the overlapping tangent does not share) loses its say; where two disagree
+    the frustum weights decide as in ``"frustum"``. The ``confidence`` output is the
+    disagreement left, √(Σ p·e²/(1 + (e/c)²) / Σ p) with p the frustum weights: a tangent
+    voted down still marks its footprint there.
     Measured on synthetic rooms with content errors it beats ``"poisson"`` on AbsRel at about
     half the time (benches/bench_align.py ``--robust``; README).
 ``"poisson"``
