@@ -447,8 +447,9 @@ fn accumulate_row(
 /// with the per-face `weights` (at the taps) as prior, each sample's weight multiplied by the
 /// Cauchy weight 1/(1 + (e/c)²) of its distance e from the current consensus (c = 2.385·σ,
 /// σ = 1.4826 × the median distance of a sample from its pixel's prior-weighted mean, over a
-/// regular subsample of the pixels at least two faces see), [`CONSENSUS_ROUNDS`] times from the prior-weighted mean. A
-/// face that disagrees with the others where three or more see a pixel loses its say there.
+/// regular subsample of the pixels at least two faces see), [`CONSENSUS_ROUNDS`] times from the
+/// prior-weighted mean. A face that disagrees with the others where three or more see a pixel
+/// loses its say there.
 ///
 /// `disparity` (H·W) gets the consensus, NaN where no face has a valid sample. `confidence`
 /// (H·W, if given) the disagreement left: √(Σ p·e²/(1 + (e/c)²) / Σ p) with p the prior
