@@ -12,6 +12,7 @@ import signal
 import subprocess
 import sys
 from pathlib import Path
+from typing import Any
 
 import batch_helpers
 import cv2
@@ -517,6 +518,35 @@ def test_ctrl_c_while_writing_leaves_no_partial_set(
     assert [o.stem for o in again.skipped] == ["pano_00"] and again.exit_code == 0
     _assert_clean(out, (256, 512))
     assert len(inputs) == 3
+
+
+def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
+    """--padding gives every image the layout m360.estimate(padding=) makes; another padding is
+    another result (redone), and a padding the core refuses is a usage error."""
+    (path,) = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 1)
+    out = tmp_path / "out"
+    args = ["run", str(path), "-o", str(out), "--model", str(model), "--formats", "npy"]
+    args += ["--align", "none", "--blend", "mean", "--input-size", "32", "48"]
+    assert main([*args, "--padding", "0.7"]) == 0
+    saved = m360.load(out / path.stem)
+    assert "padding=0.7" in saved.metadata["options"]["layout"]
+    rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    kwargs: dict[str, Any] = {"align": "none", "blend": "mean", "input_size": (32, 48)}
+    direct = m360.estimate(rgb, str(model), padding=0.7, **kwargs)
+    np.testing.assert_array_equal(saved.disparity, direct.disparity)
+    paper = m360.estimate(rgb, str(model), **kwargs)
+    assert not np.array_equal(paper.disparity, direct.disparity, equal_nan=True)
+    with pytest.raises(m360.InputError, match="layout or padding"):
+        m360.estimate(rgb, str(model), layout=m360.Layout.icosahedron(512), padding=0.7)
+    assert main([*args, "--padding", "0.7"]) == 0
+    assert "padding=0.7" in m360.load(out / path.stem).metadata["options"]["layout"]
+    report = m360.batch.run(
+        path, out, model=str(model), formats=("npy",), padding=0.7, progress=False, **kwargs
+    )
+    assert len(report.skipped) == 1
+    assert main(args) == 0  # the paper's layout: another result, redone
+    np.testing.assert_array_equal(m360.load(out / path.stem).disparity, paper.disparity)
+    assert main([*args, "--padding", "5"]) == 2  # beyond the core's limit: a usage error
 
 
 def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:

@@ -71,16 +71,19 @@ class RayResources:
 # --------------------------------------------------------------------------------------------
 # The stages (run in Ray workers).
 
-_LAYOUTS: dict[int, Any] = {}
+_LAYOUTS: dict[tuple[int, float | None], Any] = {}
 
 
-def _layout(width: int) -> Any:
-    """The default layout of a width, kept per worker process (its plan is cached in the core)."""
+def _layout(width: int, padding: float | None) -> Any:
+    """The default layout of a width (and padding), kept per worker process (its plan is cached
+    in the core): the one :func:`m360.estimate` makes."""
     from .geometry import Layout
 
-    if width not in _LAYOUTS:
-        _LAYOUTS[width] = Layout.icosahedron(width)
-    return _LAYOUTS[width]
+    if (width, padding) not in _LAYOUTS:
+        _LAYOUTS[width, padding] = (
+            Layout.icosahedron(width) if padding is None else Layout.icosahedron(width, padding)
+        )
+    return _LAYOUTS[width, padding]
 
 
 def _use_threads(threads: int) -> None:
@@ -116,7 +119,7 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
             size = (work_width, work_width // 2)
             working = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         t_read = time.perf_counter()
-        tangents = erp_to_tangents(working, _layout(work_width))
+        tangents = erp_to_tangents(working, _layout(work_width, settings.padding))
         t_project = time.perf_counter()
     except Exception as exc:
         return _batch._error_outcome(job, exc), None
@@ -133,6 +136,7 @@ class _Network:
         from .estimators import load_estimator
 
         self.estimator = load_estimator(settings.model, threads=threads, **settings.model_options)
+        self.padding = settings.padding
 
     def ready(self) -> bool:
         """Tell the driver the model loaded (a failure is the constructor's exception)."""
@@ -142,7 +146,7 @@ class _Network:
         """(meta, raw): meta is (model info, seconds) or the exception the network raised."""
         from .estimate import _model_info, _predict
 
-        layout = _layout(width)
+        layout = _layout(width, self.padding)
         t0 = time.perf_counter()
         try:
             raw = _predict(self.estimator, tangents, layout)
@@ -170,7 +174,7 @@ def _stitch_write(
     read, erp_shape, work_width, timings = read_meta
     info, kind, network_seconds = network_meta
     try:
-        layout = _layout(work_width)
+        layout = _layout(work_width, settings.padding)
         mask, erp_valid = _split_mask(_batch._image_mask(read, settings), layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}

@@ -59,13 +59,14 @@ from . import models as _models
 from ._gpano import place as place_crop
 from ._gpano import read_gpano
 from ._interrupt import MainThreadInterrupts, install_for_process
-from ._validate import MAX_THREADS, flag, integer, one_of
+from ._validate import MAX_THREADS, flag, integer, number, one_of
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
 from .estimators import OnnxEstimator
+from .geometry import Layout
 from .io import (
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
@@ -336,6 +337,7 @@ class _Settings:
     sky: str = "keep"
     confidence: bool = False
     working_width: int | str | None = None  # m360.estimate's, per image
+    padding: float | None = None  # of the default layout (m360.estimate's)
 
 
 class _Worker:
@@ -374,6 +376,7 @@ class _Worker:
                     mask=_image_mask(read, s),
                     sky=s.sky,
                     working_width=s.working_width,
+                    padding=s.padding,
                 )
                 t_estimate = time.perf_counter()
                 _write_job(job, result, read.records, s, read.rgb)
@@ -630,6 +633,7 @@ def run(
     mask: Any = None,
     sky: str = "keep",
     working_width: int | str | None = None,
+    padding: float | None = None,
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
@@ -683,6 +687,9 @@ def run(
     working_width : int or "native", optional
         As for :func:`m360.estimate`: the ERP width the method runs at (default: the image's
         width up to 8192, above it 4096), upsampled to the image's resolution.
+    padding : float, optional
+        As for :func:`m360.estimate`: the padding of every image's layout (default the paper's
+        0.3); 0.7 lets more tangents vote on each pixel (docs/method.md, more overlap).
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -714,6 +721,8 @@ def run(
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
     check_working_width(working_width)
+    if padding is not None:  # checked now (by the core) rather than once per image
+        padding = Layout.icosahedron(2048, number(padding, "padding")).padding
     sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,
@@ -768,6 +777,7 @@ def run(
         sky=sky,
         confidence=confidence,
         working_width=working_width,
+        padding=padding,
     )
     # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
     # fingerprints of earlier runs stay valid).
@@ -781,6 +791,8 @@ def run(
         settings.fingerprint["sky"] = sky
     if working_width is not None:
         settings.fingerprint["working_width"] = working_width
+    if padding is not None:
+        settings.fingerprint["padding"] = padding
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)

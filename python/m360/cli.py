@@ -198,6 +198,14 @@ def main(argv: Sequence[str] | None = None) -> int:
         "its edges (default: the image's width up to 8192, above it 4096)",
     )
     run.add_argument(
+        "--padding",
+        type=float,
+        default=None,
+        metavar="P",
+        help="padding of the tangent layout (default the paper's 0.3; 0.7 lets more tangents "
+        "vote on each pixel: lower error under network content errors, wider tiles)",
+    )
+    run.add_argument(
         "--sky",
         choices=SKY_MODES,
         default="keep",
@@ -555,6 +563,7 @@ def _run(args: argparse.Namespace) -> int:
         mask=_caps(args.nadir, args.zenith),
         sky=args.sky,
         working_width=args.working_width,
+        padding=args.padding,
         engine=args.engine,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,

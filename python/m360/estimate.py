@@ -151,6 +151,7 @@ def estimate(
     sky: str = "keep",
     working_width: int | str | None = None,
     upsample: str = "guided",
+    padding: float | None = None,
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -171,7 +172,7 @@ def estimate(
     options : StitchOptions, optional
         All stitching options at once (then leave their keywords at their defaults).
     layout : Layout, optional
-        Tangent layout; default ``Layout.icosahedron(W)``.
+        Tangent layout; default ``Layout.icosahedron(W, padding)`` at the working width.
     mask : optional
         ERP pixels to leave out (:mod:`m360.masks`): an (H, W) bool array (True = use),
         ``m360.masks.nadir(deg)`` / ``zenith(deg)``, or a list of them. Masked pixels take no
@@ -195,6 +196,11 @@ def estimate(
     upsample : {"guided", "bilinear"}
         How a working-resolution result is brought to the input's resolution: ``"guided"``
         follows the photo's edges at depth discontinuities (:func:`m360.upsample.guided_upsample`).
+    padding : float, optional
+        Padding of the default layout's tangents (default the paper's 0.3; not with ``layout``).
+        More padding lets more tangents see each pixel, so the consensus blend can vote down a
+        network's local errors: 0.7 measured about a third lower AbsRel under simulated content
+        errors at the same network cost, with wider (≈ 125°) tiles (docs/method.md).
 
     Returns
     -------
@@ -224,7 +230,13 @@ def estimate(
         blend_options=blend_options,
     )
     if layout is None:
-        layout = Layout.icosahedron(work_width)
+        layout = (
+            Layout.icosahedron(work_width)
+            if padding is None
+            else Layout.icosahedron(work_width, padding)
+        )
+    elif padding is not None:
+        raise InputError("give either layout or padding (the default layout's), not both")
     elif not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")
     elif layout.erp_shape[1] != work_width and working_width is not None:
