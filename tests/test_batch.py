@@ -520,13 +520,21 @@ def test_ctrl_c_while_writing_leaves_no_partial_set(
     assert len(inputs) == 3
 
 
-def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
-    """--padding gives every image the layout m360.estimate(padding=) makes; another padding is
-    another result (redone), and a padding the core refuses is a usage error."""
+def _one_image_run(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> tuple[Path, Path, list[str]]:
+    """One 256x512 panorama, its output folder, and `m360 run` arguments (fast: no alignment)."""
     (path,) = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 1)
     out = tmp_path / "out"
     args = ["run", str(path), "-o", str(out), "--model", str(model), "--formats", "npy"]
     args += ["--align", "none", "--blend", "mean", "--input-size", "32", "48"]
+    return path, out, args
+
+
+def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
+    """--padding gives every image the layout m360.estimate(padding=) makes; another padding is
+    another result (redone), and a padding the core refuses is a usage error."""
+    path, out, args = _one_image_run(model, tmp_path, base_rgb)
     assert main([*args, "--padding", "0.7"]) == 0
     saved = m360.load(out / path.stem)
     assert "padding=0.7" in saved.metadata["options"]["layout"]
@@ -552,10 +560,7 @@ def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -
 def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
     """--working-width runs the method at that width and writes the image's resolution; the
     result is m360.estimate's, and another working width is another result (redone)."""
-    (path,) = _panoramas(tmp_path / "in", base_rgb[::2, ::2].copy(), 1)
-    out = tmp_path / "out"
-    args = ["run", str(path), "-o", str(out), "--model", str(model), "--formats", "npy"]
-    args += ["--align", "none", "--blend", "mean", "--input-size", "32", "48"]
+    path, out, args = _one_image_run(model, tmp_path, base_rgb)
     assert main([*args, "--working-width", "256"]) == 0
     saved = m360.load(out / path.stem)
     assert saved.disparity.shape == (256, 512)

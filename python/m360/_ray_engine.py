@@ -77,12 +77,10 @@ _LAYOUTS: dict[tuple[int, float | None], Any] = {}
 def _layout(width: int, padding: float | None) -> Any:
     """The default layout of a width (and padding), kept per worker process (its plan is cached
     in the core): the one :func:`m360.estimate` makes."""
-    from .geometry import Layout
+    from .geometry import default_layout
 
     if (width, padding) not in _LAYOUTS:
-        _LAYOUTS[width, padding] = (
-            Layout.icosahedron(width) if padding is None else Layout.icosahedron(width, padding)
-        )
+        _LAYOUTS[width, padding] = default_layout(width, padding)
     return _LAYOUTS[width, padding]
 
 

@@ -66,7 +66,7 @@ from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
 from .estimators import OnnxEstimator
-from .geometry import Layout
+from .geometry import default_layout
 from .io import (
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
@@ -722,7 +722,7 @@ def run(
     confidence = flag(confidence, "confidence")
     check_working_width(working_width)
     if padding is not None:  # checked now (by the core) rather than once per image
-        padding = Layout.icosahedron(2048, number(padding, "padding")).padding
+        padding = default_layout(2048, number(padding, "padding")).padding
     sky = one_of(sky, "sky", SKY_MODES)
     opts = build(
         options,

@@ -26,7 +26,7 @@ from ._validate import as_array, check_erp_shape, one_of
 from .align import AlignSolver, Energy, Loss, Offsets
 from .blend import BlendMethod
 from .errors import InputError, M360Error, ModelError
-from .geometry import Layout, erp_to_tangents
+from .geometry import Layout, default_layout, erp_to_tangents
 from .options import AlignSpec, StitchOptions, build
 from .scale import depth_of, scale_disparity
 from .stitch import StitchResult, stitch
@@ -230,11 +230,7 @@ def estimate(
         blend_options=blend_options,
     )
     if layout is None:
-        layout = (
-            Layout.icosahedron(work_width)
-            if padding is None
-            else Layout.icosahedron(work_width, padding)
-        )
+        layout = default_layout(work_width, padding)
     elif padding is not None:
         raise InputError("give either layout or padding (the default layout's), not both")
     elif not isinstance(layout, Layout):

@@ -257,6 +257,17 @@ class Layout:
         )
 
 
+def default_layout(erp_width: int, padding: float | None = None) -> Layout:
+    """Return the layout :func:`m360.estimate` and the batch engines use when none is given.
+
+    ``Layout.icosahedron(erp_width)`` with the paper's padding, or with ``padding`` when given
+    (the ``padding=`` option of :func:`m360.estimate` and :func:`m360.batch.run`).
+    """
+    if padding is None:
+        return Layout.icosahedron(erp_width)
+    return Layout.icosahedron(erp_width, padding)
+
+
 # --------------------------------------------------------------------------------------------
 # Plans: the compiled sampling maps, one per layout, reused across images.
 
