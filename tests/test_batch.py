@@ -3,6 +3,7 @@ manifests, worker crashes. Panoramas are 1024x512, the model a tiny ONNX graph."
 
 from __future__ import annotations
 
+import contextlib
 import ctypes
 import hashlib
 import json
@@ -400,6 +401,45 @@ def test_a_claim_is_exclusive_and_leaves_nothing_behind(tmp_path: Path) -> None:
     assert not list((tmp_path / "sub").iterdir())
     with m360.batch._claim(stem) as again:
         assert again
+
+
+@pytest.mark.parametrize("moment", ["locked", "unlinked"])
+@pytest.mark.parametrize("handler", ["python", "m360"])
+def test_ctrl_c_while_a_claim_is_taken_or_released_leaves_no_lock_file(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, moment: str, handler: str
+) -> None:
+    """A SIGINT delivered at the worst moment (the file is created and locked, not yet handed
+    to the code that removes it; or removed, its descriptor not yet closed) is raised once the
+    claim is safe, never lost and never leaving a ``.lock`` file behind. The signal is sent
+    synchronously from inside the claim, so the moment is exact on every run."""
+    stem = tmp_path / "pano"
+    body_ran = False
+
+    def ctrl_c_after(real: Any) -> Any:
+        def wrapped(*args: Any) -> Any:
+            result = real(*args)
+            signal.raise_signal(signal.SIGINT)
+            return result
+
+        return wrapped
+
+    if moment == "locked":
+        monkeypatch.setattr(m360.batch, "_try_lock", ctrl_c_after(m360.batch._try_lock))
+    else:
+        monkeypatch.setattr(m360.batch.os, "unlink", ctrl_c_after(os.unlink))
+    run_handler = (
+        m360.batch.MainThreadInterrupts(m360.batch._keyboard_interrupt_once())
+        if handler == "m360"
+        else contextlib.nullcontext()
+    )
+    with pytest.raises(KeyboardInterrupt), run_handler:
+        with m360.batch._claim(stem) as claimed:
+            body_ran = claimed
+            if moment == "unlinked":
+                assert claimed
+    monkeypatch.undo()
+    assert body_ran == (moment == "unlinked")  # a held-back Ctrl-C stops before the work
+    assert not list(tmp_path.iterdir())
 
 
 def test_every_option_that_changes_an_output_byte_redoes_the_image(

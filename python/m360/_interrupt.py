@@ -21,7 +21,7 @@ import contextlib
 import os
 import signal
 import threading
-from collections.abc import Callable
+from collections.abc import Callable, Iterator
 from types import FrameType, TracebackType
 from typing import Any
 
@@ -104,3 +104,35 @@ class MainThreadInterrupts:
 def install_for_process(handler: Handler) -> None:
     """Route SIGINT to ``handler`` in the main thread for the rest of this process's life."""
     MainThreadInterrupts(handler).__enter__()
+
+
+@contextlib.contextmanager
+def deferred() -> Iterator[None]:
+    """Hold back Ctrl-C while the block runs; deliver it when the block ends.
+
+    For the few steps that must not be cut in two, such as taking a claim (create the lock
+    file, lock it, hand it to the code that removes it): a KeyboardInterrupt between two of
+    them would leave the file behind. A SIGINT that arrives meanwhile is recorded, and the
+    handler that was installed before runs as the block exits, so Ctrl-C is late by the
+    length of the block, never lost. Blocks nest. Outside the main thread Python runs no
+    signal handler, so there is nothing to hold back.
+    """
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    arrived = False
+
+    def record(signum: int, frame: FrameType | None) -> None:
+        nonlocal arrived
+        arrived = True
+
+    previous = signal.signal(signal.SIGINT, record)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+        if arrived:
+            if callable(previous):
+                previous(signal.SIGINT, None)
+            elif previous == signal.SIG_DFL:
+                signal.raise_signal(signal.SIGINT)

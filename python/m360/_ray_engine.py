@@ -44,6 +44,7 @@ from typing import Any
 import ray as _ray
 
 from . import batch as _batch
+from ._interrupt import deferred
 from .batch import ImageOutcome, Job, _Settings
 from .errors import InputError, ModelError
 from .io import remove_stale_temporaries
@@ -344,8 +345,8 @@ class _Driver:
         return any(image is not None for _, image, _ in self.pending.values())
 
     def _release(self, claim: contextlib.ExitStack) -> None:
+        claim.close()  # before forgetting it: a Ctrl-C between the two finds it again
         self.claims.discard(claim)
-        claim.close()
 
     def _admit(self) -> None:
         """Claim and submit images while fewer than ``window`` are in flight."""
@@ -358,7 +359,9 @@ class _Driver:
                 continue
             claim = contextlib.ExitStack()
             self.claims.add(claim)  # first: Ctrl-C from here on still releases it
-            if not claim.enter_context(_batch._claim(job.stem)):
+            with deferred():  # Ctrl-C lands once the claim is in the stack, not halfway
+                claimed = claim.enter_context(_batch._claim(job.stem))
+            if not claimed:
                 self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "busy"))
                 continue

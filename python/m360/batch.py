@@ -58,7 +58,7 @@ import numpy as np
 from . import models as _models
 from ._gpano import place as place_crop
 from ._gpano import read_gpano
-from ._interrupt import MainThreadInterrupts, install_for_process
+from ._interrupt import MainThreadInterrupts, deferred, install_for_process
 from ._validate import MAX_THREADS, flag, integer, number, one_of
 from ._validate import threads as check_threads
 from .align import AlignSolver, Energy, Loss, Offsets
@@ -550,29 +550,39 @@ def _claim(stem: Path) -> Iterator[bool]:
     Yields False if another process holds it. The OS releases the lock when its process dies,
     so a killed run blocks nothing. The lock file is removed while still held, after the work;
     a claimer that locked a file which was removed meanwhile retries on the new one, so two
-    claimers never both hold it.
+    claimers never both hold it. Ctrl-C is held back while the claim is taken and released
+    (:func:`m360._interrupt.deferred`): arriving between creating the file and the ``try``
+    that removes it, it used to leave the file behind.
     """
     stem.parent.mkdir(parents=True, exist_ok=True)
     path = stem.with_name(f".{stem.name}.lock")
+    fd: int | None = None
+    try:
+        with deferred():  # a Ctrl-C held back here is raised inside the try
+            fd = _lock_current(path)
+        yield fd is not None
+    finally:
+        if fd is not None:
+            with deferred():
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(path)
+                os.close(fd)
+
+
+def _lock_current(path: Path) -> int | None:
+    """Open and lock the lock file now at ``path``; None if another claimer holds it."""
     while True:
         fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
         if not _try_lock(fd):
             os.close(fd)
-            yield False
-            return
+            return None
         try:
             current = os.stat(path).st_ino
         except FileNotFoundError:
             current = -1
         if current == os.fstat(fd).st_ino:
-            break
+            return fd
         os.close(fd)  # locked a file its holder had just removed: take the current one
-    try:
-        yield True
-    finally:
-        with contextlib.suppress(FileNotFoundError):
-            os.unlink(path)
-        os.close(fd)
 
 
 def _try_lock(fd: int) -> bool:
