@@ -85,6 +85,22 @@ class HeldOut:
         )
 
 
+def _padding() -> float | None:
+    """The layout padding ``--padding`` asked for (None: the default layout's)."""
+    value = os.environ.get("M360_BENCH_PADDING")
+    return float(value) if value else None
+
+
+def _default_layout(width: int) -> m360.Layout:
+    """The layout ``m360.estimate`` uses (an older m360 without ``default_layout``: the
+    paper's)."""
+    try:
+        from m360.geometry import default_layout
+    except ImportError:
+        return m360.Layout.icosahedron(width)
+    return default_layout(width, _padding())
+
+
 def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dict[str, Any]:
     """One configuration in this (fresh) process; returns its figures."""
     rgb = cv2.resize(np.load(data / "rgb.npy"), (width, width // 2), interpolation=cv2.INTER_LINEAR)
@@ -95,10 +111,12 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
     # Without working_width for "default", so the same figures can be taken of an older m360
     # (PYTHONPATH pointing at its package) as a baseline.
     kwargs: dict[str, Any] = {} if working == "default" else {"working_width": ww}
+    if _padding() is not None:
+        kwargs["padding"] = _padding()
     try:
         memory = importlib.import_module("m360.memory")
         work = memory.working_width_for(ww, width)
-        predicted: float = memory.estimate_memory(width, work, blend)
+        predicted: float = memory.estimate_memory(width, work, blend, **padding_kwarg(memory))
     except ImportError:
         work, predicted = width, float("nan")
     with open("/proc/self/clear_refs", "w") as fh:
@@ -123,7 +141,7 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
     try:  # where the first call's plan came from (an m360 without a disk plan cache: nothing)
         from m360.geometry import plan_for
 
-        stats = plan_for(m360.Layout.icosahedron(work)).cache_stats()
+        stats = plan_for(_default_layout(work)).cache_stats()
     except AttributeError:
         stats = {}
     stage_peak = {}
@@ -154,7 +172,7 @@ def child_prepare(width: int) -> dict[str, Any]:
     from m360 import plan_cache
     from m360.geometry import plan_for
 
-    layout = m360.Layout.icosahedron(width)
+    layout = _default_layout(width)
     t0 = time.perf_counter()
     layout.prepare()
     seconds = time.perf_counter() - t0
@@ -194,9 +212,18 @@ def inputs(data: Path) -> None:
     scene = syn.room(0)
     rgb, _ = syn.render(scene, 2048)
     np.save(data / "rgb.npy", rgb)
-    layout = m360.Layout.icosahedron(1024)
+    layout = _default_layout(1024)
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
     np.save(data / "tangents.npy", syn.distort(exact, 100, field=0.1, noise=0.01))
+
+
+def padding_kwarg(memory: Any) -> dict[str, Any]:
+    """``padding=`` for ``estimate_memory`` when asked for and understood (older m360: not)."""
+    import inspect
+
+    if _padding() is None or "padding" not in inspect.signature(memory.estimate_memory).parameters:
+        return {}
+    return {"padding": _padding()}
 
 
 def fmt_gb(v: float | None) -> str:
@@ -225,7 +252,12 @@ def main() -> None:
         help="N rounds of first calls with the disk plan cache off, cold and warm",
     )  # fmt: skip
     parser.add_argument("--no-default", action="store_true", help="skip table 1")
+    parser.add_argument(
+        "--padding", type=float, default=None, help="layout padding (default: m360's default)"
+    )
     args = parser.parse_args()
+    if args.padding is not None:
+        os.environ["M360_BENCH_PADDING"] = str(args.padding)  # the children inherit it
     meta = h.metadata()
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

@@ -35,7 +35,7 @@ def main() -> None:
     parser.add_argument("--json", action="store_true", help="print the results as JSON too")
     args = parser.parse_args()
 
-    layout = m360.Layout.icosahedron(erp_width=args.width)
+    layout = m360.geometry.default_layout(args.width)
     scene = syn.room(2)
     rng = np.random.default_rng(0)
     h, w = layout.erp_shape

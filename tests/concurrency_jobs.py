@@ -54,7 +54,7 @@ def job(index: int, variant: str) -> str:
     elif variant == "tangents_to_erp":
         outputs = [m360.tangents_to_erp(tangents, layout)]
     elif variant == "estimate":
-        result = m360.estimate(rgb, model=estimator, blend="frustum")
+        result = m360.estimate(rgb, model=estimator, blend="frustum", layout=layout)
         outputs = [result.disparity, result.depth]
     else:
         _, modes = variant.split(" ", 1)

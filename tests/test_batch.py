@@ -572,28 +572,32 @@ def _one_image_run(
 
 
 def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
-    """--padding gives every image the layout m360.estimate(padding=) makes; another padding is
-    another result (redone), and a padding the core refuses is a usage error."""
+    """--padding gives every image the layout m360.estimate(padding=) makes. The default is 0.7:
+    the paper's 0.3 is another result (redone), the default given explicitly the same (kept),
+    and an image an older m360 wrote under its default (0.3, no padding in the fingerprint) is
+    redone. A padding the core refuses is a usage error."""
     path, out, args = _one_image_run(model, tmp_path, base_rgb)
-    assert main([*args, "--padding", "0.7"]) == 0
+    assert main([*args, "--padding", "0.3"]) == 0
     saved = m360.load(out / path.stem)
-    assert "padding=0.7" in saved.metadata["options"]["layout"]
+    assert "padding=0.3" in saved.metadata["options"]["layout"]
     rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
     kwargs: dict[str, Any] = {"align": "none", "blend": "mean", "input_size": (32, 48)}
-    direct = m360.estimate(rgb, str(model), padding=0.7, **kwargs)
-    np.testing.assert_array_equal(saved.disparity, direct.disparity)
-    paper = m360.estimate(rgb, str(model), **kwargs)
-    assert not np.array_equal(paper.disparity, direct.disparity, equal_nan=True)
+    paper = m360.estimate(rgb, str(model), padding=0.3, **kwargs)
+    np.testing.assert_array_equal(saved.disparity, paper.disparity)
+    default = m360.estimate(rgb, str(model), **kwargs)
+    assert default.layout.padding == m360.geometry.DEFAULT_PADDING == 0.7
+    assert not np.array_equal(paper.disparity, default.disparity, equal_nan=True)
     with pytest.raises(m360.InputError, match="layout or padding"):
         m360.estimate(rgb, str(model), layout=m360.Layout.icosahedron(512), padding=0.7)
-    assert main([*args, "--padding", "0.7"]) == 0
-    assert "padding=0.7" in m360.load(out / path.stem).metadata["options"]["layout"]
-    report = m360.batch.run(
-        path, out, model=str(model), formats=("npy",), padding=0.7, progress=False, **kwargs
-    )
-    assert len(report.skipped) == 1
-    assert main(args) == 0  # the paper's layout: another result, redone
-    np.testing.assert_array_equal(m360.load(out / path.stem).disparity, paper.disparity)
+    assert main(args) == 0  # the default layout: another result, redone
+    np.testing.assert_array_equal(m360.load(out / path.stem).disparity, default.disparity)
+    again = {"model": str(model), "formats": ("npy",), "progress": False, **kwargs}
+    assert len(m360.batch.run(path, out, padding=0.7, **again).skipped) == 1
+    sidecar = out / f"{path.stem}.json"
+    meta = json.loads(sidecar.read_text())
+    del meta["batch"]["fingerprint"]["padding"]  # as an older m360 wrote it
+    sidecar.write_text(json.dumps(meta))
+    assert len(m360.batch.run(path, out, **again).done) == 1
     assert main([*args, "--padding", "5"]) == 2  # beyond the core's limit: a usage error
 
 

@@ -80,7 +80,7 @@ def test_camera_height_flag(tmp_path, room, capsys):
 def test_batch_scale_writes_metres(tmp_path, room):
     scene, rgb, depth = room
     panorama = write_png(tmp_path / "room.png", rgb)
-    sim = m360.estimators.SimulatedEstimator(scene, m360.Layout.icosahedron(256), seed=3)
+    sim = m360.estimators.SimulatedEstimator(scene, m360.geometry.default_layout(256), seed=3)
     height = float(scene.room_max[1])
     report = m360.batch.run(
         [panorama], tmp_path / "out", model=sim, progress=False,

@@ -268,7 +268,7 @@ def exact_estimator(tmp_path: Path, scale: float, lay: m360.Layout) -> OnnxEstim
 
 def test_end_to_end_recovers_metric_depth_without_alignment(tmp_path: Path) -> None:
     width = 1024
-    lay = layout(width)
+    lay = m360.geometry.default_layout(width)
     erp, scale = distance_panorama(0, width)
     est = exact_estimator(tmp_path, scale, lay)
     res = m360.estimate(erp, est, align="none", blend="mean")
@@ -290,7 +290,7 @@ def test_end_to_end_per_tangent_distortion_is_what_alignment_must_fix(tmp_path: 
     """Without alignment the distorted tangents stitch badly: the default-settings test below
     (AbsRel ≤ 0.03) therefore measures the alignment, not an easy case."""
     width = 1024
-    lay = layout(width)
+    lay = m360.geometry.default_layout(width)
     erp, scale = distance_panorama(0, width)
     wrapped = PerTangentAffine(exact_estimator(tmp_path, scale, lay), lay, seed=5)
     res = m360.estimate(erp, wrapped, align="none", blend="mean")
@@ -304,7 +304,7 @@ def test_end_to_end_default_alignment_recovers_depth_up_to_one_affine_map(tmp_pa
     """Projection → network → kind conversion → alignment → blending, with a per-tangent
     affine distortion that only the alignment can undo."""
     width = 1024
-    lay = layout(width)
+    lay = m360.geometry.default_layout(width)
     erp, scale = distance_panorama(0, width)
     wrapped = PerTangentAffine(exact_estimator(tmp_path, scale, lay), lay, seed=5)
     res = m360.estimate(erp, wrapped, blend="mean")
@@ -315,7 +315,7 @@ def test_end_to_end_default_alignment_recovers_depth_up_to_one_affine_map(tmp_pa
 
 def test_end_to_end_default_settings_recover_depth_up_to_one_affine_map(tmp_path: Path) -> None:
     width = 1024
-    lay = layout(width)
+    lay = m360.geometry.default_layout(width)
     erp, scale = distance_panorama(0, width)
     wrapped = PerTangentAffine(exact_estimator(tmp_path, scale, lay), lay, seed=5)
     res = m360.estimate(erp, wrapped)
@@ -325,7 +325,7 @@ def test_end_to_end_default_settings_recover_depth_up_to_one_affine_map(tmp_path
 
 
 def test_simulated_estimator_runs_through_estimate_like_stitch(tmp_path: Path) -> None:
-    lay = layout(512)
+    lay = m360.geometry.default_layout(512)
     est = SimulatedEstimator(scene(2), lay, seed=4, noise=0.01)
     rgb, _ = syn.render(scene(2), 512)
     res = m360.estimate(rgb, est, align="none", blend="nn")
@@ -335,7 +335,7 @@ def test_simulated_estimator_runs_through_estimate_like_stitch(tmp_path: Path) -
 
 
 def test_estimate_validates_its_inputs(tmp_path: Path) -> None:
-    lay = layout(256)
+    lay = m360.geometry.default_layout(256)
     est = SimulatedEstimator(scene(0), lay)
     with pytest.raises(InputError, match=r"\(H, W, 3\).*stack the channel"):
         m360.estimate(np.zeros((128, 256), np.uint8), est, align="none", blend="mean")

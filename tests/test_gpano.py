@@ -60,7 +60,7 @@ def full_scene() -> tuple[syn.Scene, np.ndarray, np.ndarray]:
 
 def exact_estimator(scene: syn.Scene) -> m360.estimators.SimulatedEstimator:
     return m360.estimators.SimulatedEstimator(
-        scene, m360.Layout.icosahedron(FULL_W), scale=(1.0, 1.0), shift=0.0
+        scene, m360.geometry.default_layout(FULL_W), scale=(1.0, 1.0), shift=0.0
     )
 
 
@@ -79,7 +79,7 @@ def test_crop_estimate_equals_full_sphere_on_captured_rows(tmp_path):
     est = exact_estimator(scene)
     crop = m360.estimate(partial.rgb, est, mask=partial.mask, align="none", blend="mean")
     full = m360.estimate(rgb, est, align="none", blend="mean")
-    inner = slice(TOP + 2, TOP + ROWS - 2)  # the mask edge loses ~1 row to bilinear footprints
+    inner = slice(TOP + 4, TOP + ROWS - 4)  # the mask edge loses a few rows to bilinear footprints
     np.testing.assert_allclose(crop.disparity[inner], full.disparity[inner], rtol=1e-5)
     assert np.isnan(crop.disparity[:TOP]).all() and np.isnan(crop.disparity[TOP + ROWS :]).all()
 

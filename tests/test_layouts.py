@@ -262,10 +262,14 @@ def fair_content_errors(lay: m360.Layout, seed: int) -> tuple[np.ndarray, np.nda
             syn.distort(wrong, seed + 100, **affine))  # type: ignore[arg-type]  # fmt: skip
 
 
-def test_padding_0_7_meets_the_content_error_goal_on_every_scene() -> None:
+def test_the_default_layout_meets_the_content_error_goal_on_every_scene() -> None:
+    """The default layout (padding 0.7) with the default stitch against the paper's layout
+    with least squares + Poisson (the defaults before): better on every room, under content
+    errors and under the affine distortion alone, and ≤ 0.025 median under content errors."""
     width = 1024
     paper = m360.Layout.icosahedron(width)
-    wide = m360.Layout.icosahedron(width, padding=0.7)
+    wide = m360.geometry.default_layout(width)
+    assert wide.padding == 0.7
     before = {"loss": "squared", "blend": "poisson"}
     ours = []
     for seed in (0, 1, 2):

@@ -48,7 +48,7 @@ def test_caps_follow_the_latitude():
 @pytest.mark.parametrize("align", ["multiscale", "none"])
 def test_masked_pixels_take_no_part_in_alignment_or_blending(align):
     scene, rgb, _ = scene_and_rgb()
-    layout = m360.Layout.icosahedron(WIDTH)
+    layout = m360.geometry.default_layout(WIDTH)
     user = np.ones((WIDTH // 2, WIDTH), bool)
     user[40:70, 30:90] = False  # a box of "camera operator"
     mask = [masks.nadir(25), user]
@@ -74,7 +74,7 @@ def test_sky_nan():
     # A floor 1.5 m below the camera; walls and ceiling 3 km away are the sky.
     scene = syn.Scene(room_min=np.full(3, -3000.0), room_max=np.array([3000.0, 1.5, 3000.0]))
     rgb, depth = syn.render(scene, WIDTH)
-    sim = m360.estimators.SimulatedEstimator(scene, m360.Layout.icosahedron(WIDTH), shift=0.0)
+    sim = m360.estimators.SimulatedEstimator(scene, m360.geometry.default_layout(WIDTH), shift=0.0)
     keep = m360.estimate(rgb, sim, align="none", blend="mean")
     nan = m360.estimate(rgb, sim, align="none", blend="mean", sky="nan")
     far = depth > 1000

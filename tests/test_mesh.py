@@ -162,7 +162,9 @@ def test_mesh_colours_and_result_inputs(tmp_path):
     result = m360.estimate(
         rgb,
         m360.estimators.SimulatedEstimator(
-            syn.Scene(room_min=ROOM_MIN, room_max=ROOM_MAX), m360.Layout.icosahedron(256), shift=0
+            syn.Scene(room_min=ROOM_MIN, room_max=ROOM_MAX),
+            m360.geometry.default_layout(256),
+            shift=0,
         ),
         align="none",
         blend="mean",

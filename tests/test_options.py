@@ -129,7 +129,7 @@ def test_stitch_with_options_is_stitch_with_keywords() -> None:
 
 
 def test_estimate_takes_every_stitching_option() -> None:
-    lay = layout(256)
+    lay = m360.geometry.default_layout(256)
     rgb, _ = syn.render(scene(1), 256)
     est = SimulatedEstimator(scene(1), lay, seed=2)
     res = m360.estimate(

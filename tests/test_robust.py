@@ -12,7 +12,7 @@ import m360
 import m360.synthetic as syn
 import numpy as np
 import pytest
-from conftest import erp_depth, layout, tangent_disparity
+from conftest import erp_depth, layout, scene, tangent_disparity
 from m360.errors import InputError
 
 WIDTH = 1024
@@ -100,6 +100,9 @@ def test_affine_distortion_is_no_worse_than_before() -> None:
 def test_exact_tangents_stay_at_the_resampling_floor_with_the_defaults(seed: int) -> None:
     lay = layout(WIDTH)
     assert abs_rel(m360.stitch(tangent_disparity(seed, WIDTH), lay), seed) <= 0.003
+    wide = m360.geometry.default_layout(WIDTH)  # padding 0.7: coarser tangent pixels
+    exact = syn.tangent_perspective_disparity(scene(seed), wide.cameras)
+    assert abs_rel(m360.stitch(exact, wide), seed) <= 0.003
 
 
 # ------------------------------------------------------------------------------ robust weights

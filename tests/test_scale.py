@@ -25,7 +25,7 @@ def rendered(seed: int, width: int = WIDTH) -> tuple[syn.Scene, np.ndarray, np.n
 def aligned(seed: int) -> m360.EstimateResult:
     """The method on a room: exact tangent disparity, per-tangent affine distortion, aligned."""
     scene, rgb, _ = rendered(seed)
-    est = m360.estimators.SimulatedEstimator(scene, m360.Layout.icosahedron(WIDTH), seed=seed)
+    est = m360.estimators.SimulatedEstimator(scene, m360.geometry.default_layout(WIDTH), seed=seed)
     return m360.estimate(rgb, est)
 
 
@@ -110,7 +110,7 @@ def test_metric_map_low_resolution():
 
 def test_estimate_with_scale_writes_metres(tmp_path):
     scene, rgb, depth = rendered(0, 256)
-    est = m360.estimators.SimulatedEstimator(scene, m360.Layout.icosahedron(256), seed=0)
+    est = m360.estimators.SimulatedEstimator(scene, m360.geometry.default_layout(256), seed=0)
     result = m360.estimate(rgb, est, scale=scale.camera_height(camera_height_of(scene)))
     assert result.units == "metres"
     assert metric_error(result.depth, depth) < 0.05
@@ -144,7 +144,7 @@ def test_failed_fits_are_scale_errors():
 
 def test_estimate_with_a_failing_scale_raises(tmp_path):
     scene, rgb, _ = rendered(0, 256)
-    est = m360.estimators.SimulatedEstimator(scene, m360.Layout.icosahedron(256), seed=0)
+    est = m360.estimators.SimulatedEstimator(scene, m360.geometry.default_layout(256), seed=0)
     with pytest.raises(m360.ScaleError):
         m360.estimate(rgb, est, scale=scale.points(np.eye(3), [1.0, 2.0, 3.0]))
 

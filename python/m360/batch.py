@@ -66,7 +66,7 @@ from .blend import BlendMethod
 from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
 from .errors import InputError, M360Error, ReadError
 from .estimators import OnnxEstimator
-from .geometry import default_layout
+from .geometry import DEFAULT_PADDING, default_layout
 from .io import (
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
@@ -698,8 +698,8 @@ def run(
         As for :func:`m360.estimate`: the ERP width the method runs at (default: the image's
         width up to 8192, above it 4096), upsampled to the image's resolution.
     padding : float, optional
-        As for :func:`m360.estimate`: the padding of every image's layout (default the paper's
-        0.3); 0.7 lets more tangents vote on each pixel (docs/method.md, more overlap).
+        As for :func:`m360.estimate`: the padding of every image's layout (default 0.7; 0.3
+        is the paper's layout).
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -801,8 +801,9 @@ def run(
         settings.fingerprint["sky"] = sky
     if working_width is not None:
         settings.fingerprint["working_width"] = working_width
-    if padding is not None:
-        settings.fingerprint["padding"] = padding
+    # Always: the default padding changed (0.3 → 0.7), so an image written before under the
+    # default (no key) is redone, and one written with --padding 0.7 is kept.
+    settings.fingerprint["padding"] = DEFAULT_PADDING if padding is None else padding
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
     _make_output_folder(out)

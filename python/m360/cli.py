@@ -25,7 +25,7 @@ from .errors import InputError, M360Error, ModelError
 from .estimate import estimate
 from .estimators import OUTPUT_KINDS, SimulatedEstimator
 from .eval import depth_metrics, format_metrics
-from .geometry import Layout
+from .geometry import default_layout
 from .io import (
     GEOMETRY_FORMATS,
     SAVE_FORMATS,
@@ -202,8 +202,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         type=float,
         default=None,
         metavar="P",
-        help="padding of the tangent layout (default the paper's 0.3; 0.7 lets more tangents "
-        "vote on each pixel: lower error under network content errors, wider tiles)",
+        help="padding of the tangent layout (default 0.7: more tangents vote on each pixel, "
+        "lower error under network content errors; 0.3 is the paper's layout)",
     )
     run.add_argument(
         "--sky",
@@ -469,7 +469,7 @@ def _options(args: argparse.Namespace) -> StitchOptions:
 
 def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions) -> int:
     t0 = time.perf_counter()
-    layout = Layout.icosahedron(width)
+    layout = default_layout(width)
     scene = synthetic.room(seed)
     rgb, gt_depth = synthetic.render(scene, width)
     network = SimulatedEstimator(scene, layout, seed=seed, noise=noise)

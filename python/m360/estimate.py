@@ -172,7 +172,7 @@ def estimate(
     options : StitchOptions, optional
         All stitching options at once (then leave their keywords at their defaults).
     layout : Layout, optional
-        Tangent layout; default ``Layout.icosahedron(W, padding)`` at the working width.
+        Tangent layout; default ``Layout.icosahedron(W, padding)`` at the working width W.
     mask : optional
         ERP pixels to leave out (:mod:`m360.masks`): an (H, W) bool array (True = use),
         ``m360.masks.nadir(deg)`` / ``zenith(deg)``, or a list of them. Masked pixels take no
@@ -197,10 +197,12 @@ def estimate(
         How a working-resolution result is brought to the input's resolution: ``"guided"``
         follows the photo's edges at depth discontinuities (:func:`m360.upsample.guided_upsample`).
     padding : float, optional
-        Padding of the default layout's tangents (default the paper's 0.3; not with ``layout``).
-        More padding lets more tangents see each pixel, so the consensus blend can vote down a
-        network's local errors: 0.7 measured about a third lower AbsRel under simulated content
-        errors at the same network cost, with wider (≈ 125°) tiles (docs/method.md).
+        Padding of the default layout's tangents in gnomonic units (not with ``layout``).
+        Default 0.7 (:data:`m360.geometry.DEFAULT_PADDING`), wider than the paper's 0.3: more
+        tangents see each pixel, so the consensus blend can vote down a network's local
+        errors; 0.7 measured about a third lower AbsRel than 0.3 under simulated content errors
+        at the same network cost, with wider (≈ 125°) tiles (docs/method.md). ``padding=0.3``
+        is the paper's layout.
 
     Returns
     -------
@@ -242,7 +244,7 @@ def estimate(
     else:
         work_width = layout.erp_shape[1]
     _memory.check_memory(
-        _memory.estimate_memory(width, work_width, opts.method),
+        _memory.estimate_memory(width, work_width, opts.method, layout),
         f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
     )
     sky_mode = one_of(sky, "sky", _masks.SKY_MODES)
@@ -264,6 +266,7 @@ def estimate(
     tangents = erp_to_tangents(rgb, layout)
     t_project = time.perf_counter()
     raw = _predict(estimator, tangents, layout)
+    del tangents  # the RGB tiles are not needed by the stitch: 133 MB at 8K, freed before it
     t_network = time.perf_counter()
     timings = {
         "load": t_load - t_start,
@@ -310,7 +313,17 @@ def _split_mask(
 
 
 def _predict(estimator: Any, tangents: np.ndarray, layout: Layout) -> np.ndarray:
-    """Run the network on the tangents; any failure or a wrong output is a ModelError."""
+    """Run the network on the tangents; any failure or a wrong output is a ModelError.
+
+    An estimator made for one layout (it has a ``layout``, as the simulated network does) is
+    refused for another: tangents of the same shape would pass unnoticed with wrong values.
+    """
+    made_for = getattr(estimator, "layout", None)
+    if isinstance(made_for, Layout) and made_for != layout:
+        raise InputError(
+            f"the estimator was made for {made_for!r} but the stitch uses {layout!r}: pass "
+            "layout= (the default is m360.geometry.default_layout(W), padding 0.7)"
+        )
     try:
         raw = estimator.predict(tangents)
     except M360Error:

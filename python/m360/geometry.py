@@ -257,15 +257,20 @@ class Layout:
         )
 
 
+#: Padding of the layout :func:`m360.estimate` uses when none is given. Wider than the paper's
+#: 0.3, so that most pixels are seen by three or more tangents and the consensus blend can
+#: outvote one tangent's content error (docs/method.md, "More overlap").
+DEFAULT_PADDING = 0.7
+
+
 def default_layout(erp_width: int, padding: float | None = None) -> Layout:
     """Return the layout :func:`m360.estimate` and the batch engines use when none is given.
 
-    ``Layout.icosahedron(erp_width)`` with the paper's padding, or with ``padding`` when given
-    (the ``padding=`` option of :func:`m360.estimate` and :func:`m360.batch.run`).
+    ``Layout.icosahedron(erp_width, padding)``, with :data:`DEFAULT_PADDING` (0.7) unless
+    ``padding`` is given (the ``padding=`` option of :func:`m360.estimate` and
+    :func:`m360.batch.run`); ``padding=0.3`` is the paper's layout.
     """
-    if padding is None:
-        return Layout.icosahedron(erp_width)
-    return Layout.icosahedron(erp_width, padding)
+    return Layout.icosahedron(erp_width, DEFAULT_PADDING if padding is None else padding)
 
 
 # --------------------------------------------------------------------------------------------

@@ -4,9 +4,11 @@ A request that cannot fit fails early with an :class:`~m360.errors.InputError` t
 estimate and what is available, instead of ending in an out-of-memory kill. The estimate is a
 linear model of the peak resident memory per working-resolution ERP pixel (projection, plan
 maps, alignment, blend) plus, with a working width below the input's, per full-resolution pixel
-(the upsampled disparity, depth and confidence, the grey guide); the coefficients were fitted to
-the peaks measured by ``benches/bench_bigpano.py`` at 2K, 4K and 8K (within 20 % there; see
-docs/architecture.md, memory).
+(the upsampled disparity, depth and confidence, the grey guide). The plan's ERP taps grow with
+the number of tangents that see a pixel (3.8 on average with the paper's padding 0.3, 5.2 with
+the default 0.7), so the per-pixel part is a fixed part plus a part per tap. The coefficients
+were fitted to the peaks measured by ``benches/bench_bigpano.py`` at 2K, 4K and 8K, paddings 0.3
+and 0.7 (within 20 % there; see docs/architecture.md, memory).
 
 ``M360_MEMORY_LIMIT`` (bytes, or with a K/M/G suffix) replaces the available memory the check
 compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
@@ -14,16 +16,24 @@ compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
 
 from __future__ import annotations
 
+import functools
 import os
 import re
+from typing import TYPE_CHECKING
+
+import numpy as np
 
 from .errors import InputError
+
+if TYPE_CHECKING:
+    from .geometry import Layout
 
 __all__ = [
     "available_memory",
     "check_memory",
     "check_working_width",
     "estimate_memory",
+    "taps_per_pixel",
     "working_width_for",
 ]
 
@@ -33,9 +43,15 @@ NATIVE_WIDTH_LIMIT = 8192
 #: Working width of inputs wider than :data:`NATIVE_WIDTH_LIMIT`.
 DEFAULT_WORKING_WIDTH = 4096
 
-#: Peak bytes per working-resolution ERP pixel, per blend (the Poisson blend's system and
-#: multigrid hierarchy dominate; the row blends need the plan and the tangent stacks only).
-_BYTES_PER_PIXEL = {"poisson": 160.0, "other": 89.0}
+#: Peak bytes per working-resolution ERP pixel besides the plan's taps, per blend (the Poisson
+#: blend's system and multigrid hierarchy dominate; the row blends need the rest of the plan
+#: and the tangent stacks only).
+_BYTES_PER_PIXEL = {"poisson": 155.0, "other": 80.0}
+#: Peak bytes per ERP tap (one tangent seeing one working-resolution pixel): the tap (8) and
+#: its blending weight (4); measured 12.0-12.2 at 8K between paddings 0.3 and 0.7.
+_BYTES_PER_TAP = 12.0
+#: Taps per pixel the coefficients above were measured at (the paper's layout).
+_REFERENCE_TAPS = 3.76
 #: Peak bytes per full-resolution pixel when upsampling (outputs, grey guide).
 _BYTES_PER_FULL_PIXEL = 14.0
 #: Fixed part (interpreter-independent buffers, thread stacks, small maps).
@@ -74,7 +90,12 @@ def check_working_width(working_width: int | str | None) -> None:
         raise InputError(f"working_width must be an even integer >= 64, got {working_width}")
 
 
-def estimate_memory(width: int, working_width: int | None = None, blend: str = "poisson") -> int:
+def estimate_memory(
+    width: int,
+    working_width: int | None = None,
+    blend: str = "poisson",
+    layout: Layout | None = None,
+) -> int:
     """Peak bytes :func:`m360.estimate` adds for an input ``width`` pixels wide.
 
     Parameters
@@ -85,6 +106,9 @@ def estimate_memory(width: int, working_width: int | None = None, blend: str = "
         Width the pipeline runs at (default: ``width``).
     blend : str
         The blend method (``"poisson"`` needs the most).
+    layout : Layout, optional
+        The tangent layout (default: :func:`m360.geometry.default_layout` at the working
+        width); the more tangents see each pixel, the larger the plan.
 
     Returns
     -------
@@ -92,11 +116,42 @@ def estimate_memory(width: int, working_width: int | None = None, blend: str = "
         Bytes beyond what the process holds before the call (its input image included there).
     """
     work = width if working_width is None else working_width
+    if layout is None:
+        from .geometry import default_layout
+
+        layout = default_layout(work)
+    taps = taps_per_pixel(layout)
     per_pixel = _BYTES_PER_PIXEL["poisson" if blend == "poisson" else "other"]
+    per_pixel += _BYTES_PER_TAP * (taps - _REFERENCE_TAPS)
     total = _FIXED_BYTES + per_pixel * work * (work // 2)
     if work != width:
         total += _BYTES_PER_FULL_PIXEL * width * (width // 2)
     return int(total)
+
+
+def taps_per_pixel(layout: Layout) -> float:
+    """Return the mean number of tangents that see an ERP pixel of ``layout``.
+
+    That is what its plan's ERP taps hold per pixel, counted on a 128x64 grid of ERP pixel
+    centres (within 0.3 % of the plan's own count at 2K): a few milliseconds, no plan.
+    """
+    return _taps_per_pixel(layout)
+
+
+@functools.lru_cache(maxsize=16)
+def _taps_per_pixel(layout: Layout) -> float:
+    from . import _sphere
+
+    directions = _sphere.erp_directions(64, 128).reshape(-1, 3)
+    seen = np.zeros(len(directions), np.int32)
+    for cam in layout.cameras:
+        p = directions @ np.asarray(cam.rotation, dtype=np.float64).T  # camera frame
+        ahead = p[:, 2] > 1e-9
+        z = np.where(ahead, p[:, 2], 1.0)
+        u = cam.fx * p[:, 0] / z + cam.cx
+        v = cam.fy * p[:, 1] / z + cam.cy
+        seen += ahead & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+    return float(seen.mean())
 
 
 def _parse_bytes(text: str) -> int:
