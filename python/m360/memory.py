@@ -107,8 +107,8 @@ def estimate_memory(
     blend : str
         The blend method (``"poisson"`` needs the most).
     layout : Layout, optional
-        The tangent layout (default: :func:`m360.geometry.default_layout` at the working
-        width); the more tangents see each pixel, the larger the plan.
+        The tangent layout (default: :func:`m360.geometry.default_layout`); the more tangents
+        see each pixel, the larger the plan.
 
     Returns
     -------
@@ -116,10 +116,10 @@ def estimate_memory(
         Bytes beyond what the process holds before the call (its input image included there).
     """
     work = width if working_width is None else working_width
-    if layout is None:
+    if layout is None:  # taps per pixel hardly depend on the width: counted at 2048
         from .geometry import default_layout
 
-        layout = default_layout(work)
+        layout = default_layout(2048)
     taps = taps_per_pixel(layout)
     per_pixel = _BYTES_PER_PIXEL["poisson" if blend == "poisson" else "other"]
     per_pixel += _BYTES_PER_TAP * (taps - _REFERENCE_TAPS)
