@@ -24,7 +24,7 @@
 //! Loading and saving take no lock that a build holds, so the rules above are unchanged.
 
 use crate::align::Overlaps;
-use crate::blend::{self, BlendReport, Method, Weighting};
+use crate::blend::{self, BlendReport, Method, WeightMaps, Weighting};
 use crate::error::Result;
 use crate::layout::Layout;
 use crate::options::Choice;
@@ -44,8 +44,10 @@ pub enum Need {
     TangentTaps,
     /// Which tangents, and where, each ERP pixel sees.
     ErpTaps,
-    /// Blending weights of a kind at every ERP tap (implies the ERP taps).
+    /// Blending weights of a kind at every ERP tap, stored per tap (implies the ERP taps).
     TapWeights(Weighting),
+    /// Blending weights of a kind as per-face maps, what the blends read.
+    WeightMaps(Weighting),
     /// Overlap samples for alignment with (sample fraction, pole cap in degrees).
     Overlaps(f64, f64),
 }
@@ -61,6 +63,7 @@ pub struct Plan {
     /// Weights at every ERP tap, per [`Weighting`] (the weight maps themselves are not kept:
     /// the blends only ever read them at the taps).
     tap_weights: [OnceLock<TapWeights>; 4],
+    weight_maps: [OnceLock<WeightMaps>; 4],
     /// Held by [`Plan::prepare`] while it builds, so concurrent callers build each map once.
     building: Mutex<()>,
     /// Hash of the layout that names its files in the disk cache.
@@ -95,6 +98,7 @@ impl Plan {
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
             tap_weights: Default::default(),
+            weight_maps: Default::default(),
             building: Mutex::new(()),
             layout_hash: plan_cache::layout_hash(&layout),
             layout,
@@ -232,6 +236,7 @@ impl Plan {
             Need::TangentTaps => self.tangent_taps.get().is_some(),
             Need::ErpTaps => self.erp_taps.get().is_some(),
             Need::TapWeights(kind) => self.tap_weights[weight_slot(kind)].get().is_some(),
+            Need::WeightMaps(kind) => self.weight_maps[weight_slot(kind)].get().is_some(),
             Need::Overlaps(fraction, cap) => self.cached_overlaps(fraction, cap).is_some(),
         }
     }
@@ -241,6 +246,7 @@ impl Plan {
             Need::TangentTaps => drop(self.tangent_taps()),
             Need::ErpTaps => drop(self.erp_taps()),
             Need::TapWeights(kind) => drop(self.tap_weights(kind)),
+            Need::WeightMaps(kind) => drop(self.weight_maps(kind)),
             Need::Overlaps(fraction, cap) => drop(self.overlaps(fraction, cap)),
         }
     }
@@ -266,6 +272,14 @@ impl Plan {
             self.load_or_build([weight_slot(kind) as u64, 0], Some(taps), || {
                 taps.weights_of(&blend::weight_maps(&self.layout, kind))
             })
+        })
+    }
+
+    /// Blending weights of `kind` as per-face maps (cheap to compute: built, never cached on
+    /// disk).
+    pub fn weight_maps(&self, kind: Weighting) -> &WeightMaps {
+        get_or_build(&self.weight_maps[weight_slot(kind)], || {
+            WeightMaps::new(&self.layout, kind)
         })
     }
 
@@ -299,7 +313,7 @@ impl Plan {
     /// The maps [`Plan::blend`] reads for `method`.
     pub fn blend_needs(method: &Method) -> Vec<Need> {
         let mut needs = vec![Need::ErpTaps];
-        needs.extend(method.weighting().map(Need::TapWeights));
+        needs.extend(method.weighting().map(Need::WeightMaps));
         needs
     }
 
@@ -335,22 +349,22 @@ impl Plan {
                 } else {
                     Weighting::Frustum
                 };
-                let weights = self.tap_weights(kind);
+                let weights = self.weight_maps(kind);
                 blend::weighted_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
             Method::Consensus => {
-                let weights = self.tap_weights(Weighting::Frustum);
+                let weights = self.weight_maps(Weighting::Frustum);
                 blend::consensus_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
             Method::Median => {
-                let weights = self.tap_weights(Weighting::Frustum);
+                let weights = self.weight_maps(Weighting::Frustum);
                 blend::median_blend(taps, layout, tangents, weights, disparity, confidence);
                 None
             }
             Method::Poisson(params) => {
-                let weights = self.tap_weights(Weighting::Frustum);
+                let weights = self.weight_maps(Weighting::Frustum);
                 let report = blend::poisson_blend(
                     taps, layout, tangents, weights, params, disparity, confidence,
                 )?;
@@ -372,6 +386,12 @@ impl Plan {
                 .iter()
                 .filter_map(OnceLock::get)
                 .map(TapWeights::memory_bytes)
+                .sum::<usize>()
+            + self
+                .weight_maps
+                .iter()
+                .filter_map(OnceLock::get)
+                .map(WeightMaps::memory_bytes)
                 .sum::<usize>()
     }
 }
@@ -461,8 +481,10 @@ mod tests {
         plan.prepare(&Plan::blend_needs(&Method::Mean), |build| build());
         assert!(plan.is_built(Need::ErpTaps));
         assert!(!plan.is_built(Need::TangentTaps));
-        assert!(!plan.is_built(Need::TapWeights(Weighting::Frustum)));
+        assert!(!plan.is_built(Need::WeightMaps(Weighting::Frustum)));
         plan.prepare(&Plan::blend_needs(&Method::Frustum), |build| build());
-        assert!(plan.is_built(Need::TapWeights(Weighting::Frustum)));
+        assert!(plan.is_built(Need::WeightMaps(Weighting::Frustum)));
+        // The blends read the maps; the per-tap form is built only when asked for.
+        assert!(!plan.is_built(Need::TapWeights(Weighting::Frustum)));
     }
 }

@@ -111,7 +111,7 @@ impl Plan {
         let estimate = [
             Need::TangentTaps,
             Need::ErpTaps,
-            Need::TapWeights(m360_core::blend::Weighting::Frustum),
+            Need::WeightMaps(m360_core::blend::Weighting::Frustum),
             Need::Overlaps(defaults.sample_fraction, defaults.pole_cap_deg),
         ];
         let needs: &[Need] = match which {

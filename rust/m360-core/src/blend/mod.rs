@@ -21,7 +21,7 @@ pub use poisson::{
     poisson_blend, poisson_blend_layers, Fidelity, PoissonParams, PoissonReport, PoissonSolver,
 };
 pub use rows::{consensus_blend, mean_blend, median_blend, nearest_blend, weighted_blend};
-pub use weights::{weight_maps, Weighting};
+pub use weights::{weight_maps, WeightMaps, Weighting};
 
 use crate::error::{CoreError, Result};
 use std::str::FromStr;

@@ -4,8 +4,9 @@
 //! accumulated face by face into per-pixel sums, without branches; the spread (the
 //! `confidence` output) comes from the same single pass.
 
+use super::WeightMaps;
 use crate::layout::Layout;
-use crate::resample::{ErpTaps, Run, TapWeights};
+use crate::resample::{ErpTaps, Run};
 use rayon::prelude::*;
 
 /// One ERP row's samples, face by face: the row's runs and, per tap (in run order), the face's
@@ -29,7 +30,7 @@ impl RowSamples {
         &mut self,
         taps: &ErpTaps,
         tangents: &[f32],
-        weights: Option<&TapWeights>,
+        weights: Option<&WeightMaps>,
         ranks: bool,
         i: usize,
     ) {
@@ -40,14 +41,9 @@ impl RowSamples {
         if ranks {
             taps.ranks(i, &mut self.ranks);
         }
-        self.weights.clear();
-        if let Some(w) = weights {
-            assert_eq!(
-                w.row(i).len(),
-                self.values.len(),
-                "tap weights of other taps"
-            );
-            self.weights.extend_from_slice(w.row(i));
+        match weights {
+            Some(w) => w.row_into(taps, i, &mut self.weights),
+            None => self.weights.clear(),
         }
     }
 
@@ -284,7 +280,7 @@ pub(crate) fn blend_rows(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: Option<&TapWeights>,
+    weights: Option<&WeightMaps>,
     which: Statistic,
     disparity: &mut [f32],
     spread: Option<&mut [f32]>,
@@ -297,12 +293,15 @@ pub(crate) fn blend_rows(
         .zip(optional_chunks(spread, ew, layout.erp_height))
         .enumerate()
         .for_each_init(
-            || (Vec::new(), RowStats::default()),
-            |(buffer, stats), (i, (out, out_spread))| {
+            || (Vec::new(), Vec::new(), RowStats::default()),
+            |(buffer, row_weights, stats), (i, (out, out_spread))| {
                 let nearest = which == Statistic::Nearest;
                 let spread = out_spread.is_some();
                 stats.start(ew, Extras { nearest, spread });
-                let row_weights = weights.map(|w| w.row(i));
+                if let Some(w) = weights {
+                    w.row_into(taps, i, row_weights);
+                }
+                let row_weights = weights.map(|_| row_weights.as_slice());
                 taps.sample_runs(tangents, i, buffer, |run, values, ranks| {
                     let run_weights = row_weights.map(|w| &w[run.taps()]);
                     stats.add_run(run.columns(), values, run_weights, ranks);
@@ -330,8 +329,8 @@ pub(crate) fn optional_chunks(
     chunks.into_par_iter()
 }
 
-/// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (at the
-/// taps, from [`ErpTaps::weights_of`]): `disparity` (H·W) gets Σ w·v / Σ w over the valid
+/// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (sampled
+/// at the taps): `disparity` (H·W) gets Σ w·v / Σ w over the valid
 /// samples (see [`RowStats::weighted`] for the fall-back), `spread` (H·W, if given) the
 /// population standard deviation of the valid samples.
 ///
@@ -341,7 +340,7 @@ pub fn weighted_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &TapWeights,
+    weights: &WeightMaps,
     disparity: &mut [f32],
     spread: Option<&mut [f32]>,
 ) {
@@ -463,7 +462,7 @@ pub fn consensus_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &TapWeights,
+    weights: &WeightMaps,
     disparity: &mut [f32],
     confidence: Option<&mut [f32]>,
 ) -> f32 {
@@ -622,7 +621,7 @@ pub fn median_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &TapWeights,
+    weights: &WeightMaps,
     disparity: &mut [f32],
     spread: Option<&mut [f32]>,
 ) {

@@ -86,13 +86,12 @@ fn nearest_maps_partition_the_sphere() {
     // see a pixel sum to 1 (up to bilinear mixing at triangle edges).
     // Edge bands are ±1 tangent pixel wide: at 1024 about 5 % of the sphere.
     let plan = Plan::new(layout(1024));
-    let maps = weight_maps(plan.layout(), Weighting::Nearest);
-    let ones = vec![1.0f32; maps.len()];
-    let tap_weights = plan.erp_taps().weights_of(&maps);
+    let weights = plan.weight_maps(Weighting::Nearest);
+    let ones = vec![1.0f32; weights.maps().len()];
     let (mut total, mut exact) = (0usize, 0usize);
     let (mut row, mut sums) = (RowSamples::default(), Vec::new());
     for i in 0..plan.layout().erp_height {
-        row.fill_from_taps(plan.erp_taps(), &ones, Some(&tap_weights), false, i);
+        row.fill_from_taps(plan.erp_taps(), &ones, Some(weights), false, i);
         sums.clear();
         sums.resize(plan.layout().erp_width, 0.0f32);
         for run in &row.runs {
@@ -392,7 +391,7 @@ fn exact_tangents_come_back_exactly() {
             })
         })
         .collect();
-    let weights = plan.tap_weights(Weighting::Frustum);
+    let weights = plan.weight_maps(Weighting::Frustum);
     let n = l.erp_height * l.erp_width;
     let (mut mean, mut spread) = (vec![0.0f32; n], vec![0.0f32; n]);
     mean_blend(plan.erp_taps(), l, &tangents, &mut mean, Some(&mut spread));
@@ -431,7 +430,7 @@ fn poisson_is_the_same_with_one_thread() {
             p.erp_taps(),
             p.layout(),
             &tangents,
-            p.tap_weights(Weighting::Frustum),
+            p.weight_maps(Weighting::Frustum),
             &PoissonParams::default(),
             &mut out,
             Some(&mut spread),
@@ -606,8 +605,10 @@ fn consensus_matches_a_direct_evaluation_and_votes_down_a_wrong_face() {
     let n = l.erp_height * l.erp_width;
     let (mut out, mut conf) = (vec![0.0f32; n], vec![0.0f32; n]);
     let taps = plan.erp_taps();
+    // The blend samples the weight maps per row; the oracle reads the per-tap weights.
     let weights = plan.tap_weights(Weighting::Frustum);
-    let sigma = consensus_blend(taps, l, &tangents, weights, &mut out, Some(&mut conf));
+    let maps = plan.weight_maps(Weighting::Frustum);
+    let sigma = consensus_blend(taps, l, &tangents, maps, &mut out, Some(&mut conf));
     assert!(sigma > 0.0 && sigma.is_finite());
     let mut values = Vec::new();
     let (mut checked, mut voted) = (0, 0);
@@ -739,4 +740,29 @@ fn median_matches_a_direct_evaluation_and_ignores_a_wrong_face() {
         medians > 1000 && ignored > 50,
         "{medians} medians, {ignored} ignored"
     );
+}
+
+#[test]
+fn weights_sampled_from_the_maps_per_row_are_the_per_tap_weights() {
+    // The blends read the maps row by row (WeightMaps::row_into); the per-tap form
+    // (ErpTaps::weights_of) is the independent reference: the same numbers, bit for bit.
+    let plan = Plan::new(layout(256));
+    for kind in [
+        Weighting::Nearest,
+        Weighting::Mean,
+        Weighting::Radial,
+        Weighting::Frustum,
+    ] {
+        let per_tap = plan.tap_weights(kind);
+        let maps = plan.weight_maps(kind);
+        let mut row = Vec::new();
+        for i in 0..plan.layout().erp_height {
+            maps.row_into(plan.erp_taps(), i, &mut row);
+            assert_eq!(row.len(), per_tap.row(i).len());
+            assert!(row
+                .iter()
+                .zip(per_tap.row(i))
+                .all(|(a, b)| a.to_bits() == b.to_bits()));
+        }
+    }
 }

@@ -1,11 +1,12 @@
 //! Poisson gradient-domain blend.
 
+use crate::blend::WeightMaps;
 use crate::error::{CoreError, Result};
 use crate::layout::Layout;
 use crate::options::{
     check_iterations, check_positive, check_range, choice, MIN_POISSON_TOLERANCE,
 };
-use crate::resample::{ErpTaps, TapWeights};
+use crate::resample::ErpTaps;
 use rayon::prelude::*;
 use std::time::Instant;
 
@@ -187,7 +188,7 @@ pub fn poisson_blend(
     taps: &ErpTaps,
     layout: &Layout,
     tangents: &[f32],
-    weights: &TapWeights,
+    weights: &WeightMaps,
     params: &PoissonParams,
     disparity: &mut [f32],
     spread: Option<&mut [f32]>,

@@ -4,7 +4,8 @@
 use super::cg::{ordered_sum2, CG_ROWS};
 use super::Fidelity;
 use crate::blend::rows::{optional_chunks, RowSamples, RowStats};
-use crate::resample::{ErpTaps, Run, TapWeights};
+use crate::blend::WeightMaps;
+use crate::resample::{ErpTaps, Run};
 use rayon::prelude::*;
 
 /// ERP rows per parallel work item of the Poisson assembly: each item re-samples one row above
@@ -20,7 +21,7 @@ pub(crate) trait RowSource: Sync {
 pub(crate) struct TapSource<'a> {
     pub(crate) taps: &'a ErpTaps,
     pub(crate) tangents: &'a [f32],
-    pub(crate) weights: &'a TapWeights,
+    pub(crate) weights: &'a WeightMaps,
     /// Whether the target needs the nearest face.
     pub(crate) ranks: bool,
 }
