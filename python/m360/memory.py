@@ -46,10 +46,10 @@ DEFAULT_WORKING_WIDTH = 4096
 #: Peak bytes per working-resolution ERP pixel besides the plan's taps, per blend (the Poisson
 #: blend's system and multigrid hierarchy dominate; the row blends need the rest of the plan
 #: and the tangent stacks only).
-_BYTES_PER_PIXEL = {"poisson": 155.0, "other": 80.0}
-#: Peak bytes per ERP tap (one tangent seeing one working-resolution pixel): the tap (8) and
-#: its blending weight (4); measured 12.0-12.2 at 8K between paddings 0.3 and 0.7.
-_BYTES_PER_TAP = 12.0
+_BYTES_PER_PIXEL = {"poisson": 145.0, "other": 72.0}
+#: Peak bytes per ERP tap (one tangent seeing one working-resolution pixel): the tap itself;
+#: measured 7.2-8.4 at 8K between paddings 0.3 and 0.7.
+_BYTES_PER_TAP = 8.0
 #: Taps per pixel the coefficients above were measured at (the paper's layout).
 _REFERENCE_TAPS = 3.76
 #: Peak bytes per full-resolution pixel when upsampling (outputs, grey guide).
