@@ -59,7 +59,7 @@ import m360
 DEFAULT_BLEND = m360._core.DEFAULTS["blend"]["method"]  # what blend=None selects
 STAGES = ("load", "project", "network", "convert", "align", "blend", "upsample")
 MP72 = 11904
-PLAN_KINDS = ("tangent", "erp", "tap", "overlaps")  # file name prefixes of the plan maps
+PLAN_KINDS = ("tangent", "erp", "tap", "overlaps")  # file name prefixes (tap weights: older m360)
 
 
 def _status(field: str) -> int:
@@ -340,7 +340,7 @@ def main() -> None:
             cache_rows,
         )  # fmt: skip
         h.print_table(
-            "Layout.prepare() alone (the 4 maps estimate needs): build (cache off), build + "
+            "Layout.prepare() alone (the maps estimate needs): build (cache off), build + "
             "write (cold), load (warm disk); plan file sizes in MB",
             ["ERP", "build s", "build+write s", "load s", *(f"{k} MB" for k in PLAN_KINDS),
              "total MB"],
