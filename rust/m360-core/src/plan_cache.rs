@@ -359,9 +359,9 @@ pub(crate) fn load<T: StoredMap>(
     // which leaves this mapping intact); only someone truncating the file by hand while it is
     // mapped could invalidate the mapping, and a file read in place is one only this user can
     // write (`only_we_can_write`).
-    // Populated: every page is read anyway (checksum), and faulting them in one call is
-    // measurably faster than one fault per page.
-    let map = unsafe { MmapOptions::new().populate().map(&file) }
+    // Not populated: the checksum reads every page in order and the kernel maps them in
+    // batches around each fault; with the copy gone, populating measured no faster.
+    let map = unsafe { MmapOptions::new().map(&file) }
         .map_err(|e| format!("cannot map: {e}"))?;
     let map = Arc::new(map);
     let header = Header::decode(&map[..HEADER_BYTES])?;
