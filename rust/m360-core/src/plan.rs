@@ -69,8 +69,8 @@ pub struct Plan {
     disk: Mutex<Option<PathBuf>>,
     /// Why cache files were rejected or could not be written, until the caller takes them.
     disk_notes: Mutex<Vec<String>>,
-    /// Maps loaded, built, saved, and files rejected.
-    disk_counts: [AtomicUsize; 4],
+    /// Maps loaded, built, saved, files rejected, and maps loaded that read their file in place.
+    disk_counts: [AtomicUsize; 5],
 }
 
 /// What a plan's maps came from so far (see [`Plan::disk_stats`]).
@@ -84,6 +84,8 @@ pub struct DiskStats {
     pub saved: usize,
     /// Cache files rejected (then rebuilt and rewritten).
     pub rejected: usize,
+    /// Maps loaded that read their file in place, memory-mapped (the others were copied).
+    pub mapped: usize,
 }
 
 impl Plan {
@@ -119,7 +121,7 @@ impl Plan {
 
     /// What the maps built so far came from.
     pub fn disk_stats(&self) -> DiskStats {
-        let [loaded, built, saved, rejected] = self
+        let [loaded, built, saved, rejected, mapped] = self
             .disk_counts
             .each_ref()
             .map(|c| c.load(Ordering::Relaxed));
@@ -128,6 +130,7 @@ impl Plan {
             built,
             saved,
             rejected,
+            mapped,
         }
     }
 
@@ -173,6 +176,9 @@ impl Plan {
             match plan_cache::load::<T>(path, &self.layout, self.layout_hash, options, erp) {
                 Ok(Some(map)) => {
                     count(0);
+                    if map.is_mapped() {
+                        count(4);
+                    }
                     return map;
                 }
                 Ok(None) => {}

@@ -97,9 +97,15 @@ mod tests {
         assert!(all.is_mapped());
         let part = PlanArray::<u32>::mapped(&file, 8..24).expect("part");
         assert_eq!(&*part, &words[2..6]);
-        assert!(PlanArray::<u32>::mapped(&file, 0..257).is_none(), "past the end");
+        assert!(
+            PlanArray::<u32>::mapped(&file, 0..257).is_none(),
+            "past the end"
+        );
         assert!(PlanArray::<u32>::mapped(&file, 0..6).is_none(), "not whole");
-        assert!(PlanArray::<u32>::mapped(&file, 2..10).is_none(), "misaligned");
+        assert!(
+            PlanArray::<u32>::mapped(&file, 2..10).is_none(),
+            "misaligned"
+        );
         let owned = PlanArray::from(words.clone());
         assert_eq!(&*owned, words.as_slice());
         assert!(!owned.is_mapped());

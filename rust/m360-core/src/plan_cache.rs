@@ -48,7 +48,7 @@ use std::sync::Arc;
 use xxhash_rust::xxh3::{xxh3_128, xxh3_64, Xxh3};
 
 /// Version of the file layout; bumped whenever it changes.
-pub const FORMAT_VERSION: u32 = 1;
+pub const FORMAT_VERSION: u32 = 2;
 /// The build of the core that writes and reads plan files: version + hash of its sources.
 pub const BUILD_ID: &str = concat!(
     env!("CARGO_PKG_VERSION"),
@@ -97,6 +97,10 @@ pub(crate) trait StoredMap: Sized {
     /// The map from the sections of `file`, every length and index checked against `layout`
     /// (and, for weights, against the plan's ERP taps `erp`).
     fn decode(file: &PlanFile, layout: &Layout, erp: Option<&ErpTaps>) -> Result<Self, String>;
+    /// Whether the map reads its file in place (memory-mapped) instead of a copy.
+    fn is_mapped(&self) -> bool {
+        false
+    }
 }
 
 /// 128-bit hash of everything the maps of `layout` depend on.
@@ -216,10 +220,24 @@ fn padded(len: u64) -> Option<u64> {
     len.checked_add(7).map(|n| n & !7)
 }
 
-/// Writes sections (padded to 8 bytes) while hashing them.
+/// Bytes of payload per checksum chunk.
+const CHECKSUM_CHUNK: usize = 1 << 20;
+
+/// The payload checksum: XXH3-64 of the XXH3-64s of its consecutive [`CHECKSUM_CHUNK`]-byte
+/// chunks, so that a load hashes the chunks in parallel (format 1 hashed the payload in one
+/// pass, on one thread).
+fn payload_checksum(payload: &[u8]) -> u64 {
+    let sums: Vec<u64> = payload.par_chunks(CHECKSUM_CHUNK).map(xxh3_64).collect();
+    xxh3_64(bytemuck::cast_slice(&sums))
+}
+
+/// Writes sections (padded to 8 bytes) while hashing them as [`payload_checksum`] does.
 pub(crate) struct SectionWriter<W: Write> {
     out: W,
-    hasher: Xxh3,
+    /// The current chunk's hash and length, and the sums of the chunks before it.
+    chunk: Xxh3,
+    in_chunk: usize,
+    sums: Vec<u64>,
     lengths: Vec<u64>,
     written: u64,
 }
@@ -228,16 +246,30 @@ impl<W: Write> SectionWriter<W> {
     fn new(out: W) -> Self {
         Self {
             out,
-            hasher: Xxh3::new(),
+            chunk: Xxh3::new(),
+            in_chunk: 0,
+            sums: Vec::new(),
             lengths: Vec::new(),
             written: 0,
         }
     }
 
     fn raw(&mut self, bytes: &[u8]) -> io::Result<()> {
-        self.hasher.update(bytes);
         self.written += bytes.len() as u64;
-        self.out.write_all(bytes)
+        self.out.write_all(bytes)?;
+        let mut rest = bytes;
+        while !rest.is_empty() {
+            let n = (CHECKSUM_CHUNK - self.in_chunk).min(rest.len());
+            self.chunk.update(&rest[..n]);
+            self.in_chunk += n;
+            rest = &rest[n..];
+            if self.in_chunk == CHECKSUM_CHUNK {
+                self.sums.push(self.chunk.digest());
+                self.chunk.reset();
+                self.in_chunk = 0;
+            }
+        }
+        Ok(())
     }
 
     fn pad(&mut self) -> io::Result<()> {
@@ -265,7 +297,11 @@ impl<W: Write> SectionWriter<W> {
 
     fn finish(mut self) -> io::Result<(W, Vec<u64>, u64, u64)> {
         self.pad()?;
-        Ok((self.out, self.lengths, self.written, self.hasher.digest()))
+        if self.in_chunk > 0 {
+            self.sums.push(self.chunk.digest());
+        }
+        let checksum = xxh3_64(bytemuck::cast_slice(&self.sums));
+        Ok((self.out, self.lengths, self.written, checksum))
     }
 }
 
@@ -306,7 +342,10 @@ impl PlanFile {
 
     /// Section `k` as a slice of `T` (length a whole number of elements, suitably aligned).
     fn view<T: bytemuck::Pod>(&self, k: usize, what: &str) -> Result<&[T], String> {
-        let bytes = self.map.get(self.range(k)?).ok_or("a section past the end")?;
+        let bytes = self
+            .map
+            .get(self.range(k)?)
+            .ok_or("a section past the end")?;
         bytemuck::try_cast_slice(bytes).map_err(|e| format!("{what}: {e:?}"))
     }
 
@@ -361,8 +400,7 @@ pub(crate) fn load<T: StoredMap>(
     // write (`only_we_can_write`).
     // Not populated: the checksum reads every page in order and the kernel maps them in
     // batches around each fault; with the copy gone, populating measured no faster.
-    let map = unsafe { MmapOptions::new().map(&file) }
-        .map_err(|e| format!("cannot map: {e}"))?;
+    let map = unsafe { MmapOptions::new().map(&file) }.map_err(|e| format!("cannot map: {e}"))?;
     let map = Arc::new(map);
     let header = Header::decode(&map[..HEADER_BYTES])?;
     if header.kind != T::KIND as u32 || header.layout != layout_hash || header.options != options {
@@ -376,7 +414,7 @@ pub(crate) fn load<T: StoredMap>(
             header.payload_len
         ));
     }
-    if xxh3_64(payload) != header.checksum {
+    if payload_checksum(payload) != header.checksum {
         return Err("payload checksum mismatch".into());
     }
     let sections = split(header.payload_len, &header.sections)?;
@@ -455,6 +493,10 @@ fn create_new(path: &Path) -> io::Result<File> {
 impl StoredMap for TangentTaps {
     const KIND: Kind = Kind::TangentTaps;
 
+    fn is_mapped(&self) -> bool {
+        TangentTaps::is_mapped(self)
+    }
+
     fn write<W: Write>(&self, out: &mut SectionWriter<W>) -> io::Result<()> {
         let (taps, wrapped) = self.parts();
         out.section()?;
@@ -487,7 +529,10 @@ impl StoredMap for TangentTaps {
                     ((tap.index & !WRAPPED) as usize) < wrapped.len()
                 }
         };
-        if !taps.par_chunks(1 << 14).all(|chunk| chunk.iter().all(in_grid)) {
+        if !taps
+            .par_chunks(1 << 14)
+            .all(|chunk| chunk.iter().all(in_grid))
+        {
             return Err("a tangent tap outside the ERP grid".into());
         }
         Ok(TangentTaps::from_parts(taps, wrapped, eh, ew))
@@ -496,6 +541,10 @@ impl StoredMap for TangentTaps {
 
 impl StoredMap for ErpTaps {
     const KIND: Kind = Kind::ErpTaps;
+
+    fn is_mapped(&self) -> bool {
+        ErpTaps::is_mapped(self)
+    }
 
     fn write<W: Write>(&self, out: &mut SectionWriter<W>) -> io::Result<()> {
         out.section()?;
@@ -625,6 +674,10 @@ fn check_erp_row(
 
 impl StoredMap for TapWeights {
     const KIND: Kind = Kind::TapWeights;
+
+    fn is_mapped(&self) -> bool {
+        TapWeights::is_mapped(self)
+    }
 
     fn write<W: Write>(&self, out: &mut SectionWriter<W>) -> io::Result<()> {
         out.section()?;
@@ -767,6 +820,18 @@ mod tests {
             .collect()
     }
 
+    /// A deterministic ERP image sampled into the tangents through the plan's tangent taps.
+    fn sampled(plan: &Plan) -> Vec<u32> {
+        let layout = plan.layout();
+        let (h, w) = layout.tangent_shape();
+        let erp: Vec<f32> = (0..layout.erp_height * layout.erp_width)
+            .map(|k| (k % 977) as f32 * 0.25)
+            .collect();
+        let mut out = vec![0f32; layout.cameras.len() * h * w];
+        plan.tangent_taps().sample::<f32, 1>(&erp, &mut out, w);
+        out.iter().map(|v| v.to_bits()).collect()
+    }
+
     fn blended(plan: &Plan, method: &Method) -> Vec<u32> {
         let layout = plan.layout();
         let mut out = vec![0f32; layout.erp_height * layout.erp_width];
@@ -796,9 +861,14 @@ mod tests {
             (stats.loaded, stats.built, stats.saved, stats.rejected),
             (5, 0, 0, 0)
         );
+        // On Unix the taps and weights read their files in place (the overlaps are copied).
+        assert_eq!(stats.mapped, if cfg!(unix) { 4 } else { 0 });
+        assert_eq!(loaded.erp_taps().is_mapped(), cfg!(unix));
+        assert!(!built.erp_taps().is_mapped());
         for method in [Method::Frustum, Method::Radial, Method::Mean] {
             assert_eq!(blended(&built, &method), blended(&loaded, &method));
         }
+        assert_eq!(sampled(&built), sampled(&loaded));
         let again = fresh_dir("round-trip-again");
         let hash = layout_hash(&layout);
         let path = |kind, options| again.join(file_name(kind, &layout, hash, options));
@@ -834,7 +904,7 @@ mod tests {
 
     /// Recompute the payload and header checksums after editing a file by hand.
     fn reseal(bytes: &mut [u8]) {
-        let sum = xxh3_64(&bytes[HEADER_BYTES..]);
+        let sum = payload_checksum(&bytes[HEADER_BYTES..]);
         bytes[88..96].copy_from_slice(&sum.to_le_bytes());
         let sum = xxh3_64(&bytes[..HEADER_SUM_AT]);
         bytes[HEADER_SUM_AT..HEADER_BYTES].copy_from_slice(&sum.to_le_bytes());
@@ -908,6 +978,16 @@ mod tests {
                     reseal(b);
                 }),
             ),
+            // Valid checksums, but a tap's fractions above one pixel.
+            (
+                "fraction above one, resealed",
+                "a tap fraction above one",
+                Box::new(|b: &mut Vec<u8>| {
+                    let last = b.len() - 4;
+                    b[last..].copy_from_slice(&0xffff_ffff_u32.to_le_bytes());
+                    reseal(b);
+                }),
+            ),
             // A run starting past the row's end.
             (
                 "run past the row, resealed",
@@ -976,6 +1056,63 @@ mod tests {
         drop(fs::remove_dir_all(dir));
     }
 
+    /// A tangent taps file with valid checksums but a tap outside the ERP grid is refused.
+    #[test]
+    fn a_tangent_tap_outside_the_grid_is_refused() {
+        let layout = Layout::icosahedron(96, 0.3, None).expect("layout");
+        let dir = fresh_dir("tangent-damage");
+        drop(cached_plan(&layout, &dir));
+        let path = dir.join(file_name(
+            Kind::TangentTaps,
+            &layout,
+            layout_hash(&layout),
+            [0; 2],
+        ));
+        let original = fs::read(&path).expect("read");
+        for (at, word, reason) in [
+            (HEADER_BYTES, 0x7fff_fff0_u32, "outside the ERP grid"),
+            (HEADER_BYTES + 4, 0xffff_ffff_u32, "outside the ERP grid"),
+            (HEADER_BYTES, WRAPPED | 0x00ff_ffff, "outside the ERP grid"),
+        ] {
+            let mut bytes = original.clone();
+            bytes[at..at + 4].copy_from_slice(&word.to_le_bytes());
+            reseal(&mut bytes);
+            fs::write(&path, &bytes).expect("write");
+            let plan = Plan::new(layout.clone());
+            plan.set_disk_cache(Some(dir.clone()));
+            plan.prepare(&[Need::TangentTaps], |build| build());
+            let notes = plan.take_disk_notes();
+            assert_eq!(plan.disk_stats().rejected, 1, "{word:#x}");
+            assert!(notes[0].contains(reason), "{notes:?}");
+            assert_eq!(fs::read(&path).expect("read"), original, "rewritten");
+        }
+        drop(fs::remove_dir_all(dir));
+    }
+
+    /// A file that others could change while it is mapped is copied into memory, not read in
+    /// place, and gives the same maps.
+    #[cfg(unix)]
+    #[test]
+    fn a_file_others_can_write_is_copied() {
+        use std::os::unix::fs::PermissionsExt;
+        let layout = Layout::icosahedron(96, 0.3, None).expect("layout");
+        let dir = fresh_dir("group-writable");
+        let built = cached_plan(&layout, &dir);
+        for (name, _) in files(&dir) {
+            fs::set_permissions(dir.join(name), fs::Permissions::from_mode(0o664)).expect("chmod");
+        }
+        let copied = cached_plan(&layout, &dir);
+        let stats = copied.disk_stats();
+        assert_eq!((stats.loaded, stats.mapped, stats.built), (5, 0, 0));
+        assert!(!copied.erp_taps().is_mapped());
+        assert_eq!(
+            blended(&built, &Method::Frustum),
+            blended(&copied, &Method::Frustum)
+        );
+        assert_eq!(sampled(&built), sampled(&copied));
+        drop(fs::remove_dir_all(dir));
+    }
+
     /// A file of another layout (renamed into place) is refused by its header.
     #[test]
     fn a_file_of_another_layout_is_refused() {
@@ -1003,6 +1140,27 @@ mod tests {
         plan.prepare(&[Need::TangentTaps], |build| build());
         assert_eq!(plan.disk_stats().rejected, 1);
         drop(fs::remove_dir_all(dir));
+    }
+
+    /// The writer's chunked checksum is the loader's, whatever the chunk boundaries of the
+    /// writes (checked against one-shot XXH3 of each chunk).
+    #[test]
+    fn written_checksums_are_the_chunked_checksum() {
+        let bytes: Vec<u8> = (0..3 * CHECKSUM_CHUNK + 12_345)
+            .map(|k| (k * 31 % 251) as u8)
+            .collect();
+        for piece in [1000, CHECKSUM_CHUNK, CHECKSUM_CHUNK + 7, bytes.len()] {
+            let mut writer = SectionWriter::new(Vec::new());
+            writer.section().expect("section");
+            for part in bytes.chunks(piece) {
+                writer.put(part).expect("put");
+            }
+            let (out, _, written, checksum) = writer.finish().expect("finish");
+            assert_eq!(written as usize, out.len());
+            let sums: Vec<u64> = out.chunks(CHECKSUM_CHUNK).map(xxh3_64).collect();
+            assert_eq!(checksum, xxh3_64(bytemuck::cast_slice(&sums)), "{piece}");
+            assert_eq!(checksum, payload_checksum(&out));
+        }
     }
 
     #[test]

@@ -1089,7 +1089,10 @@ enum WeightRows {
     /// As built, row by row.
     Built(Vec<Vec<f32>>),
     /// All rows' weights, as a plan file stores them; row `i` is `at[i]..at[i + 1]`.
-    Flat { values: PlanArray<f32>, at: Vec<usize> },
+    Flat {
+        values: PlanArray<f32>,
+        at: Vec<usize>,
+    },
 }
 
 impl TapWeights {
