@@ -884,7 +884,7 @@ impl ErpTaps {
     pub fn memory_bytes(&self) -> usize {
         let taps = self.len() * std::mem::size_of::<Tap>();
         let runs = (0..self.rows())
-            .map(|i| self.runs(i).len() * std::mem::size_of::<Run>() + 48)
+            .map(|i| std::mem::size_of_val(self.runs(i)) + 48)
             .sum::<usize>();
         taps + runs + self.counts.len()
     }
