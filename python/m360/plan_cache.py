@@ -3,8 +3,8 @@
 A plan (the taps between the ERP image and the tangents, the blend weights at the taps, the
 alignment's overlap samples) depends only on the layout and the ERP size. Building it is most of
 a first call's extra cost, so every map built is written to this folder, and a process that needs
-a map loads it from there first (memory-mapped, then checked). On by default; off with the
-environment variable ``M360_PLAN_CACHE=0`` or :func:`set_enabled`.
+a map loads it from there first (memory-mapped, checked, then read in place). On by default;
+off with the environment variable ``M360_PLAN_CACHE=0`` or :func:`set_enabled`.
 
 Files are named by the map, the layout's hash, the options, the file format and the build of
 m360 that wrote them, so several versions can share the folder. A file that is truncated,

@@ -27,6 +27,7 @@ pub mod error;
 pub mod layout;
 pub mod options;
 pub mod plan;
+mod plan_array;
 pub mod plan_cache;
 pub mod resample;
 pub mod sphere;

@@ -29,7 +29,7 @@ use crate::error::Result;
 use crate::layout::Layout;
 use crate::options::Choice;
 use crate::plan_cache::{self, StoredMap};
-use crate::resample::{ErpTaps, TangentTaps, TapWeights};
+use crate::resample::{ErpTaps, TangentTaps};
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock, PoisonError};
@@ -44,8 +44,6 @@ pub enum Need {
     TangentTaps,
     /// Which tangents, and where, each ERP pixel sees.
     ErpTaps,
-    /// Blending weights of a kind at every ERP tap, stored per tap (implies the ERP taps).
-    TapWeights(Weighting),
     /// Blending weights of a kind as per-face maps, what the blends read.
     WeightMaps(Weighting),
     /// Overlap samples for alignment with (sample fraction, pole cap in degrees).
@@ -62,7 +60,6 @@ pub struct Plan {
     overlaps: Mutex<Vec<(OverlapKey, Arc<Overlaps>)>>,
     /// Weights at every ERP tap, per [`Weighting`] (the weight maps themselves are not kept:
     /// the blends only ever read them at the taps).
-    tap_weights: [OnceLock<TapWeights>; 4],
     weight_maps: [OnceLock<WeightMaps>; 4],
     /// Held by [`Plan::prepare`] while it builds, so concurrent callers build each map once.
     building: Mutex<()>,
@@ -72,8 +69,8 @@ pub struct Plan {
     disk: Mutex<Option<PathBuf>>,
     /// Why cache files were rejected or could not be written, until the caller takes them.
     disk_notes: Mutex<Vec<String>>,
-    /// Maps loaded, built, saved, and files rejected.
-    disk_counts: [AtomicUsize; 4],
+    /// Maps loaded, built, saved, files rejected, and maps loaded that read their file in place.
+    disk_counts: [AtomicUsize; 5],
 }
 
 /// What a plan's maps came from so far (see [`Plan::disk_stats`]).
@@ -87,6 +84,8 @@ pub struct DiskStats {
     pub saved: usize,
     /// Cache files rejected (then rebuilt and rewritten).
     pub rejected: usize,
+    /// Maps loaded that read their file in place, memory-mapped (the others were copied).
+    pub mapped: usize,
 }
 
 impl Plan {
@@ -97,7 +96,6 @@ impl Plan {
             tangent_taps: OnceLock::new(),
             erp_taps: OnceLock::new(),
             overlaps: Mutex::new(Vec::new()),
-            tap_weights: Default::default(),
             weight_maps: Default::default(),
             building: Mutex::new(()),
             layout_hash: plan_cache::layout_hash(&layout),
@@ -123,7 +121,7 @@ impl Plan {
 
     /// What the maps built so far came from.
     pub fn disk_stats(&self) -> DiskStats {
-        let [loaded, built, saved, rejected] = self
+        let [loaded, built, saved, rejected, mapped] = self
             .disk_counts
             .each_ref()
             .map(|c| c.load(Ordering::Relaxed));
@@ -132,6 +130,7 @@ impl Plan {
             built,
             saved,
             rejected,
+            mapped,
         }
     }
 
@@ -177,6 +176,9 @@ impl Plan {
             match plan_cache::load::<T>(path, &self.layout, self.layout_hash, options, erp) {
                 Ok(Some(map)) => {
                     count(0);
+                    if map.is_mapped() {
+                        count(4);
+                    }
                     return map;
                 }
                 Ok(None) => {}
@@ -235,7 +237,6 @@ impl Plan {
         match need {
             Need::TangentTaps => self.tangent_taps.get().is_some(),
             Need::ErpTaps => self.erp_taps.get().is_some(),
-            Need::TapWeights(kind) => self.tap_weights[weight_slot(kind)].get().is_some(),
             Need::WeightMaps(kind) => self.weight_maps[weight_slot(kind)].get().is_some(),
             Need::Overlaps(fraction, cap) => self.cached_overlaps(fraction, cap).is_some(),
         }
@@ -245,7 +246,6 @@ impl Plan {
         match need {
             Need::TangentTaps => drop(self.tangent_taps()),
             Need::ErpTaps => drop(self.erp_taps()),
-            Need::TapWeights(kind) => drop(self.tap_weights(kind)),
             Need::WeightMaps(kind) => drop(self.weight_maps(kind)),
             Need::Overlaps(fraction, cap) => drop(self.overlaps(fraction, cap)),
         }
@@ -262,16 +262,6 @@ impl Plan {
     pub fn erp_taps(&self) -> &ErpTaps {
         get_or_build(&self.erp_taps, || {
             self.load_or_build([0; 2], None, || ErpTaps::build(&self.layout))
-        })
-    }
-
-    /// Blending weights of `kind` at every ERP tap.
-    pub fn tap_weights(&self, kind: Weighting) -> &TapWeights {
-        get_or_build(&self.tap_weights[weight_slot(kind)], || {
-            let taps = self.erp_taps();
-            self.load_or_build([weight_slot(kind) as u64, 0], Some(taps), || {
-                taps.weights_of(&blend::weight_maps(&self.layout, kind))
-            })
         })
     }
 
@@ -382,12 +372,6 @@ impl Plan {
         self.tangent_taps.get().map_or(0, TangentTaps::memory_bytes)
             + self.erp_taps.get().map_or(0, ErpTaps::memory_bytes)
             + self
-                .tap_weights
-                .iter()
-                .filter_map(OnceLock::get)
-                .map(TapWeights::memory_bytes)
-                .sum::<usize>()
-            + self
                 .weight_maps
                 .iter()
                 .filter_map(OnceLock::get)
@@ -442,8 +426,8 @@ mod tests {
                 ));
                 let threads: Vec<_> = [
                     vec![Need::TangentTaps],
-                    vec![Need::ErpTaps, Need::TapWeights(Weighting::Frustum)],
-                    vec![Need::ErpTaps, Need::TapWeights(Weighting::Frustum)],
+                    vec![Need::ErpTaps, Need::WeightMaps(Weighting::Frustum)],
+                    vec![Need::ErpTaps, Need::WeightMaps(Weighting::Frustum)],
                     vec![Need::Overlaps(0.01, 0.0), Need::ErpTaps],
                 ]
                 .into_iter()
@@ -484,7 +468,5 @@ mod tests {
         assert!(!plan.is_built(Need::WeightMaps(Weighting::Frustum)));
         plan.prepare(&Plan::blend_needs(&Method::Frustum), |build| build());
         assert!(plan.is_built(Need::WeightMaps(Weighting::Frustum)));
-        // The blends read the maps; the per-tap form is built only when asked for.
-        assert!(!plan.is_built(Need::TapWeights(Weighting::Frustum)));
     }
 }

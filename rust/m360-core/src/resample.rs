@@ -7,6 +7,7 @@
 
 use crate::camera::TangentCamera;
 use crate::layout::Layout;
+use crate::plan_array::PlanArray;
 use crate::sphere::{direction_to_pixel, ErpGrid};
 use rayon::prelude::*;
 
@@ -41,16 +42,12 @@ impl Tap {
         }
     }
 
-    /// (index, fx | fy << 16): the tap as two words, the form plan files store.
-    pub(crate) fn to_words(self) -> [u32; 2] {
-        [self.index, u32::from(self.fx) | (u32::from(self.fy) << 16)]
-    }
-
-    /// The tap of [`Tap::to_words`]; `None` if a fraction exceeds one pixel.
-    pub(crate) fn from_words([index, fractions]: [u32; 2]) -> Option<Self> {
-        let (fx, fy) = ((fractions & 0xffff) as u16, (fractions >> 16) as u16);
+    /// Whether both fractions are at most one pixel (true of every tap built; a plan file's
+    /// taps are checked).
+    #[inline]
+    pub(crate) fn fractions_in_range(self) -> bool {
         let one = FRAC_SCALE as u16;
-        (fx <= one && fy <= one).then_some(Self { index, fx, fy })
+        self.fx <= one && self.fy <= one
     }
 
     /// Weights of the top-left, top-right, bottom-left and bottom-right neighbours.
@@ -66,6 +63,12 @@ impl Tap {
         [gx * gy, fx * gy, gx * fy, fx * fy]
     }
 }
+
+// SAFETY: `repr(C)` of a u32 and two u16: no padding, and every bit pattern is a value (plan
+// files store taps as these bytes; the loader checks the index and fractions before use).
+unsafe impl bytemuck::Zeroable for Tap {}
+// SAFETY: as above.
+unsafe impl bytemuck::Pod for Tap {}
 
 /// A pixel type that can be resampled.
 pub trait Texel: Copy + Send + Sync + 'static {
@@ -130,9 +133,9 @@ impl Texel for f32 {
 /// ERP → tangent map: one tap into the ERP image per tangent pixel, in (face, row, column) order.
 #[derive(Debug, Clone)]
 pub struct TangentTaps {
-    taps: Vec<Tap>,
+    taps: PlanArray<Tap>,
     /// ERP pixel indices (top-left, top-right, bottom-left, bottom-right) of wrapped taps.
-    wrapped: Vec<[u32; 4]>,
+    wrapped: PlanArray<[u32; 4]>,
     erp_width: usize,
     erp_pixels: usize,
 }
@@ -209,17 +212,23 @@ impl TangentTaps {
             wrapped.extend(row_wrapped);
         }
         Self {
-            taps,
-            wrapped,
+            taps: taps.into(),
+            wrapped: wrapped.into(),
             erp_width: ew,
             erp_pixels: eh * ew,
         }
     }
 
-    /// Bytes held by the map.
+    /// Bytes held by the map (in memory, or mapped from a plan file).
     #[must_use]
     pub fn memory_bytes(&self) -> usize {
         self.taps.len() * std::mem::size_of::<Tap>() + self.wrapped.len() * 16
+    }
+
+    /// Whether the map is read in place from a mapped plan file.
+    #[must_use]
+    pub fn is_mapped(&self) -> bool {
+        self.taps.is_mapped()
     }
 
     /// (taps, wrapped corners): what a plan file stores (see [`crate::plan_cache`]).
@@ -230,8 +239,8 @@ impl TangentTaps {
     /// The map of [`TangentTaps::parts`] for an ERP of `erp_height` × `erp_width`; the caller
     /// has checked every index against that size.
     pub(crate) fn from_parts(
-        taps: Vec<Tap>,
-        wrapped: Vec<[u32; 4]>,
+        taps: PlanArray<Tap>,
+        wrapped: PlanArray<[u32; 4]>,
         erp_height: usize,
         erp_width: usize,
     ) -> Self {
@@ -703,7 +712,10 @@ fn erp_index_wrapped(i: i64, j: i64, height: usize, width: usize) -> u32 {
 
 /// Consecutive pixels of one ERP row that one face sees: columns `start..start + len`, whose
 /// taps are `start_tap..start_tap + len` of the row (see [`ErpTaps::runs`]).
+///
+/// `repr(C)`: plan files store runs as these four words.
 #[derive(Debug, Clone, Copy, Default, PartialEq, Eq)]
+#[repr(C)]
 pub struct Run {
     /// Index of the tangent (camera) in the layout.
     pub face: u32,
@@ -714,6 +726,12 @@ pub struct Run {
     /// Index of the first column's tap (and sample) in the row.
     pub start_tap: u32,
 }
+
+// SAFETY: `repr(C)` of four u32: no padding, every bit pattern is a value (the loader checks
+// a plan file's runs before use).
+unsafe impl bytemuck::Zeroable for Run {}
+// SAFETY: as above.
+unsafe impl bytemuck::Pod for Run {}
 
 impl Run {
     /// The run's columns.
@@ -747,10 +765,8 @@ pub(crate) const OFFSET_MASK: u32 = (1 << RANK_SHIFT) - 1;
 #[derive(Debug, Clone)]
 pub struct ErpTaps {
     /// Number of taps of each ERP pixel.
-    counts: Vec<u8>,
-    /// Per ERP row, its runs and taps. Kept as built, row by row: gathering them into one
-    /// array would cost a second copy of the largest structure of the plan.
-    rows: Vec<ErpRow>,
+    counts: PlanArray<u8>,
+    rows: ErpRows,
     tangent_width: usize,
     tangent_pixels: usize,
     faces: usize,
@@ -760,6 +776,22 @@ pub struct ErpTaps {
 struct ErpRow {
     runs: Vec<Run>,
     taps: Vec<Tap>,
+}
+
+/// The runs and taps of every ERP row.
+#[derive(Debug, Clone)]
+enum ErpRows {
+    /// As built, row by row: gathering them into one array would cost a second copy of the
+    /// largest structure of the plan.
+    Built(Vec<ErpRow>),
+    /// All rows' runs, then all rows' taps, as a plan file stores them; row `i` has runs
+    /// `run_at[i]..run_at[i + 1]` and taps `tap_at[i]..tap_at[i + 1]`.
+    Flat {
+        runs: PlanArray<Run>,
+        taps: PlanArray<Tap>,
+        run_at: Vec<usize>,
+        tap_at: Vec<usize>,
+    },
 }
 
 impl ErpTaps {
@@ -839,47 +871,73 @@ impl ErpTaps {
             taps.push(row);
         }
         Self {
-            counts,
-            rows: taps,
+            counts: counts.into(),
+            rows: ErpRows::Built(taps),
             tangent_width: w,
             tangent_pixels: h * w,
             faces: layout.cameras.len(),
         }
     }
 
-    /// Bytes held by the map.
+    /// Bytes held by the map (in memory, or mapped from a plan file).
     #[must_use]
     pub fn memory_bytes(&self) -> usize {
-        let per_row = |r: &ErpRow| {
-            r.taps.len() * std::mem::size_of::<Tap>() + r.runs.len() * std::mem::size_of::<Run>()
-        };
-        self.rows.iter().map(|r| per_row(r) + 48).sum::<usize>() + self.counts.len()
+        let taps = self.len() * std::mem::size_of::<Tap>();
+        let runs = (0..self.rows())
+            .map(|i| std::mem::size_of_val(self.runs(i)) + 48)
+            .sum::<usize>();
+        taps + runs + self.counts.len()
+    }
+
+    /// Whether the map is read in place from a mapped plan file.
+    #[must_use]
+    pub fn is_mapped(&self) -> bool {
+        matches!(&self.rows, ErpRows::Flat { taps, .. } if taps.is_mapped())
     }
 
     /// The runs and taps of ERP row `i`: what a plan file stores (see [`crate::plan_cache`]).
+    #[inline]
     pub(crate) fn row_parts(&self, i: usize) -> (&[Run], &[Tap]) {
-        (&self.rows[i].runs, &self.rows[i].taps)
+        match &self.rows {
+            ErpRows::Built(rows) => (&rows[i].runs, &rows[i].taps),
+            ErpRows::Flat {
+                runs,
+                taps,
+                run_at,
+                tap_at,
+            } => (
+                &runs[run_at[i]..run_at[i + 1]],
+                &taps[tap_at[i]..tap_at[i + 1]],
+            ),
+        }
     }
 
     /// Number of ERP rows.
     pub(crate) fn rows(&self) -> usize {
-        self.rows.len()
+        match &self.rows {
+            ErpRows::Built(rows) => rows.len(),
+            ErpRows::Flat { run_at, .. } => run_at.len().saturating_sub(1),
+        }
     }
 
-    /// The map of per-pixel `counts` and per-row (runs, taps) of `layout`; the caller has
-    /// checked them against the layout.
+    /// The map of per-pixel `counts` and all rows' `runs` and `taps` of `layout`, row `i`
+    /// holding runs `run_at[i]..run_at[i + 1]` and taps `tap_at[i]..tap_at[i + 1]` (a plan
+    /// file's arrays); the caller has checked them against the layout.
     pub(crate) fn from_parts(
         layout: &Layout,
-        counts: Vec<u8>,
-        rows: Vec<(Vec<Run>, Vec<Tap>)>,
+        counts: PlanArray<u8>,
+        (runs, run_at): (PlanArray<Run>, Vec<usize>),
+        (taps, tap_at): (PlanArray<Tap>, Vec<usize>),
     ) -> Self {
         let (h, w) = layout.tangent_shape();
         Self {
             counts,
-            rows: rows
-                .into_iter()
-                .map(|(runs, taps)| ErpRow { runs, taps })
-                .collect(),
+            rows: ErpRows::Flat {
+                runs,
+                taps,
+                run_at,
+                tap_at,
+            },
             tangent_width: w,
             tangent_pixels: h * w,
             faces: layout.cameras.len(),
@@ -889,13 +947,16 @@ impl ErpTaps {
     /// Total number of (ERP pixel, tangent) pairs.
     #[must_use]
     pub fn len(&self) -> usize {
-        self.rows.iter().map(|r| r.taps.len()).sum()
+        match &self.rows {
+            ErpRows::Built(rows) => rows.iter().map(|r| r.taps.len()).sum(),
+            ErpRows::Flat { taps, .. } => taps.len(),
+        }
     }
 
     /// Whether no ERP pixel is seen by any tangent.
     #[must_use]
     pub fn is_empty(&self) -> bool {
-        self.rows.iter().all(|r| r.taps.is_empty())
+        self.len() == 0
     }
 
     /// Number of tangents that see each ERP pixel (H·W, row-major).
@@ -907,13 +968,13 @@ impl ErpTaps {
     /// The runs of ERP row `i`, sorted by face, then column.
     #[must_use]
     pub fn runs(&self, i: usize) -> &[Run] {
-        &self.rows[i].runs
+        self.row_parts(i).0
     }
 
     /// Nearness rank (0 = nearest axis) of every tap of ERP row `i`, in tap order, into `out`.
     pub fn ranks(&self, i: usize, out: &mut Vec<u8>) {
         out.clear();
-        out.extend(Ranks(self.rows[i].taps.iter()));
+        out.extend(Ranks(self.row_parts(i).1.iter()));
     }
 
     /// The bilinear value of a tangent stack (N·h·w) at every tap of ERP row `i`, in tap order,
@@ -923,12 +984,12 @@ impl ErpTaps {
     /// If `stack` is not the size the taps were built for (the bindings check shapes first).
     pub fn sample(&self, stack: &[f32], i: usize, out: &mut Vec<f32>) {
         self.assert_stack(stack);
-        let row = &self.rows[i];
+        let (runs, taps) = self.row_parts(i);
         out.clear();
-        out.resize(row.taps.len(), 0.0);
-        for run in &row.runs {
+        out.resize(taps.len(), 0.0);
+        for run in runs {
             // SAFETY: the stack has the size the taps were built for (asserted above).
-            unsafe { self.sample_run(stack, run, &row.taps[run.taps()], &mut out[run.taps()]) };
+            unsafe { self.sample_run(stack, run, &taps[run.taps()], &mut out[run.taps()]) };
         }
     }
 
@@ -947,9 +1008,9 @@ impl ErpTaps {
         mut visit: impl FnMut(&Run, &[f32], Ranks<'_>),
     ) {
         self.assert_stack(stack);
-        let row = &self.rows[i];
-        for run in &row.runs {
-            let taps = &row.taps[run.taps()];
+        let (runs, row_taps) = self.row_parts(i);
+        for run in runs {
+            let taps = &row_taps[run.taps()];
             buffer.clear();
             buffer.resize(taps.len(), 0.0);
             // SAFETY: the stack has the size the taps were built for (asserted above).
@@ -993,55 +1054,6 @@ impl ErpTaps {
             // they were built for (the caller's contract).
             *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
         }
-    }
-
-    /// The bilinear value of per-face weight maps (N·h·w, same layout as a tangent stack) at
-    /// every tap: what the weighted blends read instead of interpolating the maps per image.
-    ///
-    /// # Panics
-    /// If `maps` is not the size the taps were built for.
-    #[must_use]
-    pub fn weights_of(&self, maps: &[f32]) -> TapWeights {
-        let rows = (0..self.rows.len())
-            .into_par_iter()
-            .map(|i| {
-                let mut row = Vec::new();
-                self.sample(maps, i, &mut row);
-                row
-            })
-            .collect();
-        TapWeights { rows }
-    }
-}
-
-/// Per-tap blending weights of one [`ErpTaps`] (same row-by-row tap order), from
-/// [`ErpTaps::weights_of`].
-#[derive(Debug, Clone)]
-pub struct TapWeights {
-    rows: Vec<Vec<f32>>,
-}
-
-impl TapWeights {
-    /// The weights of the taps of ERP row `i`, in tap order.
-    #[must_use]
-    pub fn row(&self, i: usize) -> &[f32] {
-        &self.rows[i]
-    }
-
-    /// Bytes held.
-    #[must_use]
-    pub fn memory_bytes(&self) -> usize {
-        self.rows.iter().map(|r| r.len() * 4 + 24).sum()
-    }
-
-    /// Number of ERP rows.
-    pub(crate) fn rows(&self) -> usize {
-        self.rows.len()
-    }
-
-    /// Weights from per-row values; the caller has checked the row lengths against the taps.
-    pub(crate) fn from_rows(rows: Vec<Vec<f32>>) -> Self {
-        Self { rows }
     }
 }
 
@@ -1273,8 +1285,7 @@ mod tests {
             let (eh, ew) = (layout.erp_height, layout.erp_width);
             let grid = ErpGrid::new(eh, ew);
             for i in 0..eh {
-                let runs = taps.runs(i);
-                let row = &taps.rows[i];
+                let (runs, row_taps) = taps.row_parts(i);
                 assert!(runs
                     .windows(2)
                     .all(|p| (p[0].face, p[0].start + p[0].len) <= (p[1].face, p[1].start)));
@@ -1285,7 +1296,7 @@ mod tests {
                 let mut got = vec![Vec::new(); ew];
                 for run in runs {
                     for (j, t) in run.columns().zip(run.taps()) {
-                        let tap = row.taps[t];
+                        let tap = row_taps[t];
                         let rank = tap.index >> RANK_SHIFT;
                         got[j].push((
                             run.face as usize,
@@ -1363,10 +1374,10 @@ mod tests {
         let (mut got, mut nan) = (Vec::new(), 0);
         for i in 0..layout.erp_height {
             taps.sample(&stack, i, &mut got);
-            let row = &taps.rows[i];
-            for run in &row.runs {
+            let (runs, row_taps) = taps.row_parts(i);
+            for run in runs {
                 for t in run.taps() {
-                    let tap = row.taps[t];
+                    let tap = row_taps[t];
                     let k = run.face as usize * h * w + (tap.index & OFFSET_MASK) as usize;
                     // SAFETY: a tap of these taps, on a stack of their size.
                     let want = unsafe { lerp_f32(&stack, k, w, tap) };

@@ -140,7 +140,8 @@ impl Plan {
         self.inner.disk_cache()
     }
 
-    /// How many maps were loaded from disk, built, saved, and how many files were rejected.
+    /// How many maps were loaded from disk, built, saved, how many files were rejected, and how
+    /// many loaded maps read their file in place (memory-mapped, not copied).
     fn cache_stats(&self) -> std::collections::HashMap<&'static str, usize> {
         let s = self.inner.disk_stats();
         [
@@ -148,6 +149,7 @@ impl Plan {
             ("built", s.built),
             ("saved", s.saved),
             ("rejected", s.rejected),
+            ("mapped", s.mapped),
         ]
         .into()
     }
