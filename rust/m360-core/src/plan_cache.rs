@@ -1,8 +1,9 @@
 //! Built plan maps kept on disk, so that a new process loads a plan instead of building it.
 //!
 //! One file per map (tangent taps, ERP taps, overlap samples of one option set) in a folder
-//! the caller chooses (Python: `$M360_HOME/plans`). A file is named and headed by what it depends on — the map's kind and options, a 128-bit hash of the layout
-//! (ERP size, every camera, the face polygons), the file format and the build of this crate
+//! the caller chooses (Python: `$M360_HOME/plans`). A file is named and headed by what it
+//! depends on — the map's kind and options, a 128-bit hash of the layout (ERP size, every
+//! camera, the face polygons), the file format and the build of this crate
 //! (its version and a hash of its sources, so a changed builder never reads an older map) —
 //! and is trusted only after every check passes:
 //!
