@@ -11,7 +11,7 @@ m360 that wrote them, so several versions can share the folder. A file that is t
 corrupt, foreign or of another format is never trusted: the map is rebuilt and the file
 rewritten (with a warning on the ``m360.plan_cache`` logger). Writes are atomic, so processes
 may share the folder. The folder is kept under a size limit (``M360_PLAN_CACHE_MAX_GB``, default
-8; an 8K layout's default plan is about 1.9 GB): whenever a process opens a plan, the least
+8; an 8K layout's default plan is about 1.8 GB): whenever a process opens a plan, the least
 recently used files beyond it (by access or modification time) are deleted (:func:`trim`).
 :func:`clear` empties it (``m360 plans`` shows its size), and deleting the folder by hand is
 always safe.
