@@ -145,12 +145,9 @@ def _taps_per_pixel(layout: Layout) -> float:
     directions = _sphere.erp_directions(64, 128).reshape(-1, 3)
     seen = np.zeros(len(directions), np.int32)
     for cam in layout.cameras:
-        p = directions @ np.asarray(cam.rotation, dtype=np.float64).T  # camera frame
-        ahead = p[:, 2] > 1e-9
-        z = np.where(ahead, p[:, 2], 1.0)
-        u = cam.fx * p[:, 0] / z + cam.cx
-        v = cam.fy * p[:, 1] / z + cam.cy
-        seen += ahead & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
+        u, v, ahead = cam.project(directions)
+        with np.errstate(invalid="ignore"):  # behind the camera u, v are ±inf or NaN
+            seen += ahead & (u >= 0) & (u < cam.width) & (v >= 0) & (v < cam.height)
     return float(seen.mean())
 
 
