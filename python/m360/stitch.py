@@ -254,7 +254,10 @@ def stitch(
     levels: list[AlignLevelReport] = []
     align_options = opts.align
     if align_options is not None:
-        spherical, reports, grids, fallback = plan.align(spherical, dict(align_options))
+        # In place: `spherical` is this call's own array (no second stack-sized array).
+        spherical, reports, grids, fallback = plan.align(
+            spherical, dict(align_options), in_place=True
+        )
         levels = [_level_report(r) for r in reports]
         if fallback != "none":
             _log.warning(

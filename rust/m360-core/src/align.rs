@@ -20,6 +20,10 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Mat, Side};
 use rayon::prelude::*;
 
+mod transform;
+pub use transform::MapValues;
+use transform::{FactorTable, Transform, Transformed};
+
 /// Which energy to minimise.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub enum Energy {
@@ -448,8 +452,20 @@ const STANDARDIZE_ROWS: usize = 400;
 /// # Errors
 /// [`CoreError::Degenerate`] naming a tangent without finite values.
 pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Result<Vec<(f64, f64)>> {
+    let mut transform = Transform::new(layout, offsets);
+    let stats = standardize_stats(layout, maps, transform.factors())?;
+    transform.standardize(stats.clone());
+    transform.apply(maps);
+    Ok(stats)
+}
+
+/// The (median, spread) per tangent [`standardize`] uses, without applying them.
+fn standardize_stats(
+    layout: &Layout,
+    maps: &[f32],
+    factors: &FactorTable,
+) -> Result<Vec<(f64, f64)>> {
     let (h, w) = layout.tangent_shape();
-    let factors = FactorTable::new(layout, offsets);
     // The statistics read every k-th row, k = ⌊h / STANDARDIZE_ROWS⌋ (every row up to 4K): they
     // only set the units, and reading every row of an 8K tangent stack cost more than a level's
     // solve.
@@ -483,18 +499,6 @@ pub fn standardize(layout: &Layout, maps: &mut [f32], offsets: Offsets) -> Resul
             }
         }
     }
-    maps.par_chunks_mut(w).enumerate().for_each_init(
-        || vec![0.0; w],
-        |f_row, (face_row, row)| {
-            let (t, y) = (face_row / h, face_row % h);
-            let (m, spread) = out[t];
-            let inv = if spread > 0.0 { 1.0 / spread } else { 1.0 };
-            factors.row(t, y, f_row);
-            for (v, f) in row.iter_mut().zip(f_row.iter()) {
-                *v = ((f64::from(*v) - m * f) * inv) as f32;
-            }
-        },
-    );
     Ok(out)
 }
 
@@ -619,11 +623,23 @@ impl Problem {
     /// The problem of aligning `maps` (N·h·w, NaN = invalid) with `params` over `overlaps`.
     /// Samples whose a-pixel or any of the four b-neighbours is invalid are dropped.
     #[must_use]
+    pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
+        Self::from_values(layout, maps, overlaps, params)
+    }
+
+    /// [`Problem::new`] reading the maps through `maps` (a slice, or maps as a transform would
+    /// leave them: only the samples' pixels are read).
+    #[must_use]
     #[expect(
         clippy::too_many_lines,
         reason = "sample filter, edges and weights of one problem read best together"
     )]
-    pub fn new(layout: &Layout, maps: &[f32], overlaps: &Overlaps, params: LevelParams) -> Self {
+    pub fn from_values<M: MapValues + ?Sized>(
+        layout: &Layout,
+        maps: &M,
+        overlaps: &Overlaps,
+        params: LevelParams,
+    ) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
         let (cols, rows) = (params.cols, params.rows);
@@ -635,17 +651,17 @@ impl Problem {
             .filter_map(|k| {
                 let (a, b) = (overlaps.a[k] as usize, overlaps.b[k] as usize);
                 let pa = overlaps.pa[k] as usize;
-                let da = maps[a * tp + pa];
+                let da = maps.value(a * tp + pa);
                 let (xb, yb) = (f64::from(overlaps.xb[k]), f64::from(overlaps.yb[k]));
                 let x0 = (xb as usize).min(w - 2);
                 let y0 = (yb as usize).min(h - 2);
                 let (fx, fy) = (xb - x0 as f64, yb - y0 as f64);
                 let base = b * tp + y0 * w + x0;
                 let corners = [
-                    maps[base],
-                    maps[base + 1],
-                    maps[base + w],
-                    maps[base + w + 1],
+                    maps.value(base),
+                    maps.value(base + 1),
+                    maps.value(base + w),
+                    maps.value(base + w + 1),
                 ];
                 if !da.is_finite() || corners.iter().any(|v| !v.is_finite()) {
                     return None;
@@ -1274,86 +1290,15 @@ impl NewtonSystem {
     }
 }
 
-/// Per-pixel offset factors of a layout, separably: the factor at (x, y) of tangent t is
-/// 1/√(1 + gx² + gy²) with gx², gy² tabulated per camera column and row (the same values as
-/// [`crate::TangentCamera::spherical_factor`], without a division per pixel).
-struct FactorTable {
-    offsets: Offsets,
-    width: usize,
-    height: usize,
-    gx2: Vec<f64>,
-    gy2: Vec<f64>,
-}
-
-impl FactorTable {
-    fn new(layout: &Layout, offsets: Offsets) -> Self {
-        let (h, w) = layout.tangent_shape();
-        let mut gx2 = Vec::with_capacity(layout.cameras.len() * w);
-        let mut gy2 = Vec::with_capacity(layout.cameras.len() * h);
-        for cam in &layout.cameras {
-            gx2.extend((0..w).map(|x| cam.gnomonic(x as f64, 0.0).0.powi(2)));
-            gy2.extend((0..h).map(|y| cam.gnomonic(0.0, y as f64).1.powi(2)));
-        }
-        Self {
-            offsets,
-            width: w,
-            height: h,
-            gx2,
-            gy2,
-        }
-    }
-
-    /// Fill `out` (one tangent row) with the factors of row y of tangent t.
-    fn row(&self, t: usize, y: usize, out: &mut [f64]) {
-        match self.offsets {
-            Offsets::Spherical => out.fill(1.0),
-            Offsets::Perspective => {
-                let gy2 = self.gy2[t * self.height + y];
-                let gx2 = &self.gx2[t * self.width..(t + 1) * self.width];
-                for (f, &g) in out.iter_mut().zip(gx2) {
-                    *f = 1.0 / (1.0 + g + gy2).sqrt();
-                }
-            }
-        }
-    }
-}
-
 /// Apply solved fields to the maps in place: D ← s(x)·D + o(x)·f(x) with bilinear s, o per
 /// pixel and f the offset factor of `params.offsets`.
 ///
 /// Row by row: the fields are first interpolated between the row's two grid rows at the grid
 /// columns, then linearly along the row from a per-column cell table.
 pub fn apply_fields(layout: &Layout, maps: &mut [f32], x: &[f64], params: &LevelParams) {
-    let factors = FactorTable::new(layout, params.offsets);
-    let (h, w) = layout.tangent_shape();
-    let (cols, rows) = (params.cols, params.rows);
-    let per = cols * rows;
-    let cells: Vec<(usize, f64)> = (0..w)
-        .map(|xp| {
-            let (c0, _, fx, _) = grid_cell(xp as f64, 0.0, w, h, cols, rows);
-            (c0, fx)
-        })
-        .collect();
-    maps.par_chunks_mut(w).enumerate().for_each_init(
-        || (vec![0.0; w], vec![0.0; 2 * cols]),
-        |(f_row, field_row), (face_row, row)| {
-            let (t, y) = (face_row / h, face_row % h);
-            let (_, r0, _, fy) = grid_cell(0.0, y as f64, w, h, cols, rows);
-            let top = &x[2 * (t * per + r0 * cols)..2 * (t * per + (r0 + 1) * cols)];
-            let bottom = &x[2 * (t * per + (r0 + 1) * cols)..2 * (t * per + (r0 + 2) * cols)];
-            for ((v, a), b) in field_row.iter_mut().zip(top).zip(bottom) {
-                *v = (1.0 - fy) * a + fy * b;
-            }
-            factors.row(t, y, f_row);
-            for ((v, &(c0, fx)), f) in row.iter_mut().zip(&cells).zip(f_row.iter()) {
-                let (s0, o0) = (field_row[2 * c0], field_row[2 * c0 + 1]);
-                let (s1, o1) = (field_row[2 * c0 + 2], field_row[2 * c0 + 3]);
-                let s = (1.0 - fx) * s0 + fx * s1;
-                let o = (1.0 - fx) * o0 + fx * o1;
-                *v = (s * f64::from(*v) + o * f) as f32;
-            }
-        },
-    );
+    let mut transform = Transform::new(layout, params.offsets);
+    transform.fields(params, x.to_vec());
+    transform.apply(maps);
 }
 
 /// One solved level: its parameters, fields (x, node-interleaved s/o) and report.
@@ -1555,6 +1500,10 @@ impl Default for Options {
 /// Finally the common standardisation is undone with the mean median and spread of the inputs,
 /// so the result is in the inputs' range.
 ///
+/// The steps are composed, not applied one by one: a level reads the maps as the earlier steps
+/// leave them at its overlap samples only, and the stack is written once at the end (the
+/// `transform` module: the same numbers as applying each step in turn, in one pass).
+///
 /// Degrades instead of failing: a level with fewer than one valid overlap sample per
 /// [`NODES_PER_SAMPLE`] grid nodes is left out; when no level is left, one per-tangent affine level runs
 /// if the samples support it, else the tangents stay standardised only ([`Fallback`]).
@@ -1567,18 +1516,53 @@ pub fn align(
     overlaps: &Overlaps,
     options: &Options,
 ) -> Result<Alignment> {
-    let stats = standardize(layout, maps, options.offsets)?;
+    let (alignment, transform) = solve_levels(layout, maps, overlaps, options)?;
+    transform.apply(maps);
+    Ok(alignment)
+}
+
+/// [`align`] from `maps` into `out` (the same size), leaving `maps` as they are.
+///
+/// # Errors
+/// Those of [`align`].
+///
+/// # Panics
+/// If `out` is not as long as `maps`.
+pub fn align_into(
+    layout: &Layout,
+    maps: &[f32],
+    out: &mut [f32],
+    overlaps: &Overlaps,
+    options: &Options,
+) -> Result<Alignment> {
+    assert_eq!(maps.len(), out.len(), "output size");
+    let (alignment, transform) = solve_levels(layout, maps, overlaps, options)?;
+    transform.apply_into(maps, out);
+    Ok(alignment)
+}
+
+/// The levels of [`align`] and the transform that applies them (with the standardisation and
+/// its undoing) to `maps`, which are only read.
+fn solve_levels(
+    layout: &Layout,
+    maps: &[f32],
+    overlaps: &Overlaps,
+    options: &Options,
+) -> Result<(Alignment, Transform)> {
+    let mut transform = Transform::new(layout, options.offsets);
+    let stats = standardize_stats(layout, maps, transform.factors())?;
+    transform.standardize(stats.clone());
     let n = layout.cameras.len();
     let mut levels = Vec::with_capacity(options.levels.len());
     let mut skipped = false;
     for params in &options.level_params() {
         let t0 = std::time::Instant::now();
-        let problem = Problem::new(layout, maps, overlaps, *params);
+        let problem = level_problem(layout, maps, &transform, overlaps, *params);
         if problem.samples() * NODES_PER_SAMPLE < n * params.cols * params.rows {
             skipped = true;
             continue;
         }
-        levels.push(solve_level(layout, maps, problem, options, t0)?);
+        levels.push(solve_level(&mut transform, problem, options, t0)?);
     }
     let mut fallback = if skipped {
         Fallback::CoarserGrid
@@ -1591,9 +1575,9 @@ pub fn align(
         params.cols = 2;
         params.rows = 2;
         params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
-        let problem = Problem::new(layout, maps, overlaps, params);
+        let problem = level_problem(layout, maps, &transform, overlaps, params);
         if problem.samples() * NODES_PER_SAMPLE >= n * 4 {
-            levels.push(solve_level(layout, maps, problem, options, t0)?);
+            levels.push(solve_level(&mut transform, problem, options, t0)?);
             fallback = Fallback::Affine;
         } else {
             fallback = Fallback::Unaligned;
@@ -1608,16 +1592,26 @@ pub fn align(
     } else {
         stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
     };
-    maps.par_iter_mut()
-        .for_each(|v| *v = (f64::from(*v) * spread + median) as f32);
-    Ok(Alignment { levels, fallback })
+    transform.restore(spread, median);
+    Ok((Alignment { levels, fallback }, transform))
+}
+
+/// The problem of a level on `maps` as `transform` leaves them.
+fn level_problem(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &Transform,
+    overlaps: &Overlaps,
+    params: LevelParams,
+) -> Problem {
+    let view = Transformed { maps, transform };
+    Problem::from_values(layout, &view, overlaps, params)
 }
 
 /// Solve one level's `problem` (built from `t0` on), reweighting it for a robust loss, and
-/// apply its fields to `maps`.
+/// add its fields to `transform`.
 fn solve_level(
-    layout: &Layout,
-    maps: &mut [f32],
+    transform: &mut Transform,
     mut problem: Problem,
     options: &Options,
     t0: std::time::Instant,
@@ -1659,7 +1653,7 @@ fn solve_level(
             *v /= mean_scale;
         }
     }
-    apply_fields(layout, maps, &fields, &params);
+    transform.fields(&params, fields.clone());
     Ok(Level {
         params,
         fields,
@@ -1922,6 +1916,123 @@ mod tests {
         let (x2, r2) = run(2);
         assert_eq!(r1, r2);
         assert!(x1.iter().zip(&x2).all(|(a, b)| a.to_bits() == b.to_bits()));
+    }
+
+    /// Standardise with `stats` the old way: one full pass (the oracle of the composed steps).
+    fn standardize_pass(layout: &Layout, maps: &mut [f32], stats: &[(f64, f64)], offsets: Offsets) {
+        let (h, w) = layout.tangent_shape();
+        for (face_row, row) in maps.chunks_mut(w).enumerate() {
+            let (t, y) = (face_row / h, face_row % h);
+            let cam = &layout.cameras[t];
+            let (m, spread) = stats[t];
+            let inv = if spread > 0.0 { 1.0 / spread } else { 1.0 };
+            for (x, v) in row.iter_mut().enumerate() {
+                let f = offset_factor(offsets, cam, x as f64, y as f64);
+                *v = ((f64::from(*v) - m * f) * inv) as f32;
+            }
+        }
+    }
+
+    /// Apply a level's fields the old way: one full pass, per pixel from the grid directly.
+    fn apply_fields_pass(layout: &Layout, maps: &mut [f32], x: &[f64], params: &LevelParams) {
+        let (h, w) = layout.tangent_shape();
+        let (cols, rows) = (params.cols, params.rows);
+        for (face_row, row) in maps.chunks_mut(w).enumerate() {
+            let (t, y) = (face_row / h, face_row % h);
+            let cam = &layout.cameras[t];
+            let (_, r0, _, fy) = grid_cell(0.0, y as f64, w, h, cols, rows);
+            let node = |r: usize, c: usize, k: usize| x[2 * (t * cols * rows + r * cols + c) + k];
+            for (xp, v) in row.iter_mut().enumerate() {
+                let (c0, _, fx, _) = grid_cell(xp as f64, 0.0, w, h, cols, rows);
+                let at = |c: usize, k: usize| (1.0 - fy) * node(r0, c, k) + fy * node(r0 + 1, c, k);
+                let s = (1.0 - fx) * at(c0, 0) + fx * at(c0 + 1, 0);
+                let o = (1.0 - fx) * at(c0, 1) + fx * at(c0 + 1, 1);
+                let f = offset_factor(params.offsets, cam, xp as f64, y as f64);
+                *v = (s * f64::from(*v) + o * f) as f32;
+            }
+        }
+    }
+
+    /// The composed alignment (`align`, `align_into`) against standardising, applying each
+    /// level's fields and restoring the range one full pass at a time, as the steps were
+    /// applied before: each level's problem is the same as one built from the maps as the
+    /// passes leave them, and the result is the same bit for bit. With NaN holes, perspective
+    /// and spherical offsets.
+    #[test]
+    fn composed_steps_equal_one_pass_per_step_bit_for_bit() {
+        let layout = Layout::icosahedron(512, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let mut maps = Vec::with_capacity(20 * h * w);
+        for (t, cam) in layout.cameras.iter().enumerate() {
+            let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
+            for r in 0..h {
+                for c in 0..w {
+                    let d = cam.pixel_direction(c as f64, r as f64);
+                    let hole = (t * h * w + r * w + c) % 53 == 0;
+                    let v = sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z)
+                        + sh
+                        + 0.002 * random(3, r * w + c);
+                    maps.push(if hole { f32::NAN } else { v as f32 });
+                }
+            }
+        }
+        let overlaps = Overlaps::build(&layout, 0.2, 0.0);
+        let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
+        for offsets in [Offsets::Perspective, Offsets::Spherical] {
+            let options = Options {
+                offsets,
+                ..Options::default()
+            };
+            let mut composed = maps.clone();
+            let alignment = align(&layout, &mut composed, &overlaps, &options).expect("align");
+            assert_eq!(alignment.fallback, Fallback::None);
+            let mut into = vec![0.0; maps.len()];
+            let again = align_into(&layout, &maps, &mut into, &overlaps, &options).expect("into");
+            assert!(same(&composed, &into), "align and align_into differ");
+            let last = alignment.levels.len() - 1;
+            assert_eq!(alignment.levels[last].fields, again.levels[last].fields);
+
+            let stats = standardize_stats(&layout, &maps, &FactorTable::new(&layout, offsets))
+                .expect("stats");
+            let mut passes = maps.clone();
+            standardize_pass(&layout, &mut passes, &stats, offsets);
+            let mut transform = Transform::new(&layout, offsets);
+            transform.standardize(stats.clone());
+            for level in &alignment.levels {
+                let direct = Problem::new(&layout, &passes, &overlaps, level.params);
+                let lazy = level_problem(&layout, &maps, &transform, &overlaps, level.params);
+                assert_eq!(direct.origin, lazy.origin);
+                assert!(
+                    direct.samples.len() > 500,
+                    "{} samples",
+                    direct.samples.len()
+                );
+                for (p, q) in direct.samples.iter().zip(&lazy.samples) {
+                    assert_eq!(
+                        (p.da.to_bits(), p.db.to_bits()),
+                        (q.da.to_bits(), q.db.to_bits())
+                    );
+                }
+                apply_fields_pass(&layout, &mut passes, &level.fields, &level.params);
+                transform.fields(&level.params, level.fields.clone());
+            }
+            let median = stats.iter().map(|s| s.0).sum::<f64>() / stats.len() as f64;
+            let spread = stats.iter().map(|s| s.1).sum::<f64>() / stats.len() as f64;
+            for v in &mut passes {
+                *v = (f64::from(*v) * spread + median) as f32;
+            }
+            assert!(
+                same(&composed, &passes),
+                "composed and pass-by-pass maps differ"
+            );
+            // Not trivially: the alignment moved the maps.
+            let moved = composed
+                .iter()
+                .zip(&maps)
+                .filter(|(a, b)| a.to_bits() != b.to_bits())
+                .count();
+            assert!(moved > composed.len() / 2);
+        }
     }
 
     #[test]

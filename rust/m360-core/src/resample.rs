@@ -536,40 +536,35 @@ mod simd {
         }
     }
 
-    /// [`super::lerp_f32`] of ERP taps, four at a time with SSE2 (baseline x86-64): the
-    /// same operations in the same order, so the same bits. Each tap's two rows are read as
-    /// 64-bit pairs (top-left and top-right, bottom-left and bottom-right), and the fractions
-    /// of four taps are converted at once. Prefetches once per four taps.
+    /// [`super::lerp_f32`] of ERP taps in each of `M` stacks of the same size (a map and
+    /// its blending weights), four taps at a time with SSE2 (baseline x86-64): the same
+    /// operations in the same order, so the same bits. Each tap's two rows are read as 64-bit
+    /// pairs (top-left and top-right, bottom-left and bottom-right), and the fractions and
+    /// offsets of four taps are decoded once for all stacks. Prefetches once per four taps.
     ///
     /// # Safety
     /// Every tap, its offset in the low [`super::RANK_SHIFT`] bits plus `base`, must satisfy
-    /// `lerp_f32`'s contract for `stack`; `out` is as long as `taps`.
+    /// `lerp_f32`'s contract for each stack; each `outs[m]` is as long as `taps`.
     #[target_feature(enable = "sse2")]
-    pub(super) unsafe fn lerp_run_f32(
-        stack: &[f32],
+    pub(super) unsafe fn lerp_run_f32<const M: usize>(
+        stacks: [&[f32]; M],
         base: usize,
         w: usize,
         taps: &[Tap],
-        out: &mut [f32],
+        mut outs: [&mut [f32]; M],
     ) {
-        debug_assert_eq!(out.len(), taps.len());
-        let src = stack.as_ptr();
+        debug_assert!(outs.iter().all(|o| o.len() == taps.len()));
         let scale = _mm_set1_ps(1.0 / super::FRAC_SCALE);
         let low16 = _mm_set1_epi32(0xffff);
         let offset = |tap: &Tap| base + (tap.index & super::OFFSET_MASK) as usize;
-        // SAFETY (all loads below): `offset(tap) + w + 1 < stack.len()` (contract), so both
-        // 8-byte pairs of a tap are inside `stack`.
-        #[expect(
-            clippy::cast_ptr_alignment,
-            reason = "_mm_load_sd is an unaligned load"
-        )]
-        let pair = |k: usize| unsafe { _mm_castpd_ps(_mm_load_sd(src.add(k).cast::<f64>())) };
         let full = taps.len() / 4 * 4;
         for at in (0..full).step_by(4) {
             let quad = &taps[at..at + 4];
             if let Some(ahead) = taps.get(at + super::PREFETCH_DISTANCE) {
-                super::prefetch(stack, offset(ahead));
-                super::prefetch(stack, offset(ahead) + w);
+                for stack in stacks {
+                    super::prefetch(stack, offset(ahead));
+                    super::prefetch(stack, offset(ahead) + w);
+                }
             }
             // SAFETY: four taps are 32 readable bytes; a Tap is (index, fx | fy << 16) (repr(C)).
             let (a, b) = unsafe {
@@ -594,17 +589,30 @@ mod simd {
                 let (lo, hi) = (_mm_unpacklo_ps(p[0], p[1]), _mm_unpacklo_ps(p[2], p[3]));
                 (_mm_movelh_ps(lo, hi), _mm_movehl_ps(hi, lo))
             };
-            let (tl, tr) = split(k.map(pair));
-            let (bl, br) = split(k.map(|k| pair(k + w)));
             let lerp =
                 |p: __m128, q: __m128, f: __m128| _mm_add_ps(p, _mm_mul_ps(f, _mm_sub_ps(q, p)));
-            let value = lerp(lerp(tl, tr, fx), lerp(bl, br, fx), fy);
-            // SAFETY: `at + 4 ≤ out.len()`.
-            unsafe { _mm_storeu_ps(out.as_mut_ptr().add(at), value) };
+            for (stack, out) in stacks.iter().zip(outs.iter_mut()) {
+                let src = stack.as_ptr();
+                // SAFETY (both loads): `offset(tap) + w + 1 < stack.len()` (contract), so both
+                // 8-byte pairs of a tap are inside `stack`.
+                #[expect(
+                    clippy::cast_ptr_alignment,
+                    reason = "_mm_load_sd is an unaligned load"
+                )]
+                let pair =
+                    |k: usize| unsafe { _mm_castpd_ps(_mm_load_sd(src.add(k).cast::<f64>())) };
+                let (tl, tr) = split(k.map(pair));
+                let (bl, br) = split(k.map(|k| pair(k + w)));
+                let value = lerp(lerp(tl, tr, fx), lerp(bl, br, fx), fy);
+                // SAFETY: `at + 4 ≤ out.len()`.
+                unsafe { _mm_storeu_ps(out.as_mut_ptr().add(at), value) };
+            }
         }
-        for (tap, v) in taps[full..].iter().zip(&mut out[full..]) {
-            // SAFETY: the tap satisfies `lerp_f32`'s contract.
-            *v = unsafe { super::lerp_f32(stack, offset(tap), w, *tap) };
+        for (t, tap) in taps.iter().enumerate().skip(full) {
+            for (stack, out) in stacks.iter().zip(outs.iter_mut()) {
+                // SAFETY: the tap satisfies `lerp_f32`'s contract.
+                out[t] = unsafe { super::lerp_f32(stack, offset(tap), w, *tap) };
+            }
         }
     }
 }
@@ -983,13 +991,32 @@ impl ErpTaps {
     /// # Panics
     /// If `stack` is not the size the taps were built for (the bindings check shapes first).
     pub fn sample(&self, stack: &[f32], i: usize, out: &mut Vec<f32>) {
-        self.assert_stack(stack);
+        self.sample_many([stack], i, [out]);
+    }
+
+    /// [`ErpTaps::sample`] of several stacks of the same size (a map and its blending weights)
+    /// at once: each tap is decoded once for all of them.
+    ///
+    /// # Panics
+    /// If a stack is not the size the taps were built for.
+    pub fn sample_many<const M: usize>(
+        &self,
+        stacks: [&[f32]; M],
+        i: usize,
+        mut outs: [&mut Vec<f32>; M],
+    ) {
+        for stack in stacks {
+            self.assert_stack(stack);
+        }
         let (runs, taps) = self.row_parts(i);
-        out.clear();
-        out.resize(taps.len(), 0.0);
+        for out in &mut outs {
+            out.clear();
+            out.resize(taps.len(), 0.0);
+        }
         for run in runs {
-            // SAFETY: the stack has the size the taps were built for (asserted above).
-            unsafe { self.sample_run(stack, run, &taps[run.taps()], &mut out[run.taps()]) };
+            let parts = outs.each_mut().map(|o| &mut o[run.taps()]);
+            // SAFETY: the stacks have the size the taps were built for (asserted above).
+            unsafe { self.sample_run(stacks, &taps[run.taps()], run, parts) };
         }
     }
 
@@ -1007,15 +1034,38 @@ impl ErpTaps {
         buffer: &mut Vec<f32>,
         mut visit: impl FnMut(&Run, &[f32], Ranks<'_>),
     ) {
-        self.assert_stack(stack);
+        self.sample_runs_many([stack], i, [buffer], |run, [values], ranks| {
+            visit(run, values, ranks);
+        });
+    }
+
+    /// [`ErpTaps::sample_runs`] of several stacks of the same size at once (see
+    /// [`ErpTaps::sample_many`]): `visit` gets the run's values of each.
+    ///
+    /// # Panics
+    /// If a stack is not the size the taps were built for.
+    #[inline]
+    pub fn sample_runs_many<const M: usize>(
+        &self,
+        stacks: [&[f32]; M],
+        i: usize,
+        mut buffers: [&mut Vec<f32>; M],
+        mut visit: impl FnMut(&Run, [&[f32]; M], Ranks<'_>),
+    ) {
+        for stack in stacks {
+            self.assert_stack(stack);
+        }
         let (runs, row_taps) = self.row_parts(i);
         for run in runs {
             let taps = &row_taps[run.taps()];
-            buffer.clear();
-            buffer.resize(taps.len(), 0.0);
-            // SAFETY: the stack has the size the taps were built for (asserted above).
-            unsafe { self.sample_run(stack, run, taps, buffer) };
-            visit(run, buffer, Ranks(taps.iter()));
+            for buffer in &mut buffers {
+                buffer.clear();
+                buffer.resize(taps.len(), 0.0);
+            }
+            let parts = buffers.each_mut().map(|b| &mut b[..]);
+            // SAFETY: the stacks have the size the taps were built for (asserted above).
+            unsafe { self.sample_run(stacks, taps, run, parts) };
+            visit(run, buffers.each_ref().map(|b| &b[..]), Ranks(taps.iter()));
         }
     }
 
@@ -1027,32 +1077,41 @@ impl ErpTaps {
         );
     }
 
-    /// Bilinear values of `stack` at the taps of `run` into `out` (as long as `taps`).
+    /// Bilinear values of each of `stacks` at the taps of `run` into `outs` (each as long as
+    /// `taps`).
     ///
     /// # Safety
-    /// `stack` must have the size the taps were built for.
+    /// Each stack must have the size the taps were built for.
     #[expect(
         clippy::inline_always,
         reason = "per-pixel kernel; inlined it measured faster"
     )]
     #[inline(always)]
-    unsafe fn sample_run(&self, stack: &[f32], run: &Run, taps: &[Tap], out: &mut [f32]) {
+    unsafe fn sample_run<const M: usize>(
+        &self,
+        stacks: [&[f32]; M],
+        taps: &[Tap],
+        run: &Run,
+        outs: [&mut [f32]; M],
+    ) {
         let (w, base) = (self.tangent_width, run.face as usize * self.tangent_pixels);
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: the caller's contract is the kernel's.
-            unsafe { simd::lerp_run_f32(stack, base, w, taps, out) };
+            unsafe { simd::lerp_run_f32(stacks, base, w, taps, outs) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
-            if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
-                let k = base + (ahead.index & OFFSET_MASK) as usize;
-                prefetch(stack, k);
-                prefetch(stack, k + w);
+        for (stack, out) in stacks.iter().zip(outs) {
+            for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
+                if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
+                    let k = base + (ahead.index & OFFSET_MASK) as usize;
+                    prefetch(stack, k);
+                    prefetch(stack, k + w);
+                }
+                // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the
+                // size they were built for (the caller's contract).
+                *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
             }
-            // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the size
-            // they were built for (the caller's contract).
-            *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
         }
     }
 }

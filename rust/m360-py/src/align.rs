@@ -1,13 +1,13 @@
 //! Alignment through a plan: options from a dict in, aligned maps and reports out.
 
 use crate::arrays::{contiguous, output_array, to_numpy, writable};
-use crate::errors::core;
+use crate::errors::{core, input_error};
 use crate::options::align_options;
 use crate::threads::on_pool;
-use m360_core::align::{self, LevelParams, Problem};
+use m360_core::align::{self, Alignment, LevelParams, Overlaps, Problem};
 use m360_core::options::Choice;
 use m360_core::plan::{Need, Plan};
-use numpy::{PyArrayDyn, PyArrayMethods, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -15,8 +15,9 @@ use pyo3::types::PyDict;
 pub(crate) fn align<'py>(
     py: Python<'py>,
     plan: &Plan,
-    maps: &PyReadonlyArray3<'py, f32>,
+    maps: &Bound<'py, PyArray3<f32>>,
     options: &Bound<'py, PyDict>,
+    in_place: bool,
 ) -> PyResult<(
     Bound<'py, PyArrayDyn<f32>>,
     Vec<Bound<'py, PyDict>>,
@@ -25,20 +26,17 @@ pub(crate) fn align<'py>(
 )> {
     let layout = plan.layout();
     let options = align_options(options, Some(layout.tangent_shape()))?;
-    let data = contiguous(maps, "maps")?;
-    let out = output_array::<f32>(py, maps.shape())?;
     let needs = [Need::Overlaps(
         options.sample_fraction,
         options.pole_cap_deg,
     )];
-    let (solved, origins) = {
-        let mut rw = out.readwrite();
-        let dst = writable(&mut rw)?;
-        dst.copy_from_slice(data);
+    // The alignment on the pool, from the overlaps to each level's sample origins as
+    // (tangent a, pixel index in a, tangent b).
+    let run = |solve: &mut (dyn FnMut(&Overlaps) -> Result<Alignment, m360_core::CoreError>
+                         + Send)| {
         core(on_pool(py, Some((plan, &needs)), || {
             let overlaps = plan.overlaps(options.sample_fraction, options.pole_cap_deg);
-            let solved = align::align(layout, dst, &overlaps, &options)?;
-            // Each weighted sample as (tangent a, pixel index in a, tangent b).
+            let solved = solve(&overlaps)?;
             let origins: Vec<Vec<i64>> = solved
                 .levels
                 .iter()
@@ -54,7 +52,26 @@ pub(crate) fn align<'py>(
                 })
                 .collect();
             Ok::<_, m360_core::CoreError>((solved, origins))
-        })?)?
+        })?)
+    };
+    let (out, (solved, origins)) = if in_place {
+        let mut rw = maps
+            .try_readwrite()
+            .map_err(|e| input_error(format!("maps cannot be aligned in place: {e}")))?;
+        let data = rw
+            .as_slice_mut()
+            .map_err(|_| input_error("maps must be a C-contiguous array"))?;
+        let solved = run(&mut |overlaps| align::align(layout, data, overlaps, &options))?;
+        (maps.to_dyn().clone(), solved)
+    } else {
+        let readonly = maps.readonly();
+        let data = contiguous(&readonly, "maps")?;
+        let out = output_array::<f32>(py, maps.shape())?;
+        let mut rw = out.readwrite();
+        let dst = writable(&mut rw)?;
+        let solved = run(&mut |overlaps| align::align_into(layout, data, dst, overlaps, &options))?;
+        drop(rw);
+        (out, solved)
     };
     let fallback = solved.fallback.name();
     let n = layout.cameras.len();

@@ -9,7 +9,7 @@ use m360_core::layout::Layout;
 use m360_core::plan::Need;
 use m360_core::{resample, stitch, TangentCamera};
 use numpy::{
-    PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+    PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
 };
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
@@ -247,13 +247,16 @@ impl Plan {
     /// Align spherical disparity maps (N,h,w) float32 (NaN = invalid) with the options in the
     /// dict `align` (see `stitch_options`): the aligned maps, and per level a report dict and
     /// the fields (N, rows, cols, 2) as (s, o), and the fallback taken for lack of overlap
-    /// samples (`"none"`, `"coarser_grid"`, `"affine"` or `"unaligned"`).
+    /// samples (`"none"`, `"coarser_grid"`, `"affine"` or `"unaligned"`). With `in_place`
+    /// the maps (writable, C-contiguous) are aligned where they are and returned.
+    #[pyo3(signature = (maps, align, in_place=false))]
     #[allow(clippy::type_complexity)]
     fn align<'py>(
         &self,
         py: Python<'py>,
-        maps: PyReadonlyArray3<'py, f32>,
+        maps: &Bound<'py, PyArray3<f32>>,
         align: &Bound<'py, PyDict>,
+        in_place: bool,
     ) -> PyResult<(
         Bound<'py, PyArrayDyn<f32>>,
         Vec<Bound<'py, PyDict>>,
@@ -261,7 +264,7 @@ impl Plan {
         &'static str,
     )> {
         self.check_tangents("maps", maps.shape())?;
-        align::align(py, &self.inner, &maps, align)
+        align::align(py, &self.inner, maps, align, in_place)
     }
 
     /// The first-level alignment problem of `maps` (standardised as `align` does) on grid

@@ -36,14 +36,19 @@ impl RowSamples {
     ) {
         self.runs.clear();
         self.runs.extend_from_slice(taps.runs(i));
-        taps.sample(tangents, i, &mut self.values);
+        if let Some(w) = weights {
+            taps.sample_many(
+                [tangents, w.maps()],
+                i,
+                [&mut self.values, &mut self.weights],
+            );
+        } else {
+            taps.sample(tangents, i, &mut self.values);
+            self.weights.clear();
+        }
         self.ranks.clear();
         if ranks {
             taps.ranks(i, &mut self.ranks);
-        }
-        match weights {
-            Some(w) => w.row_into(taps, i, &mut self.weights),
-            None => self.weights.clear(),
         }
     }
 
@@ -294,18 +299,24 @@ pub(crate) fn blend_rows(
         .enumerate()
         .for_each_init(
             || (Vec::new(), Vec::new(), RowStats::default()),
-            |(buffer, row_weights, stats), (i, (out, out_spread))| {
+            |(buffer, weight_buffer, stats), (i, (out, out_spread))| {
                 let nearest = which == Statistic::Nearest;
                 let spread = out_spread.is_some();
                 stats.start(ew, Extras { nearest, spread });
-                if let Some(w) = weights {
-                    w.row_into(taps, i, row_weights);
+                // Values and weights sampled together: each tap is decoded once.
+                match weights {
+                    Some(w) => taps.sample_runs_many(
+                        [tangents, w.maps()],
+                        i,
+                        [buffer, weight_buffer],
+                        |run, [values, weights], ranks| {
+                            stats.add_run(run.columns(), values, Some(weights), ranks);
+                        },
+                    ),
+                    None => taps.sample_runs(tangents, i, buffer, |run, values, ranks| {
+                        stats.add_run(run.columns(), values, None, ranks);
+                    }),
                 }
-                let row_weights = weights.map(|_| row_weights.as_slice());
-                taps.sample_runs(tangents, i, buffer, |run, values, ranks| {
-                    let run_weights = row_weights.map(|w| &w[run.taps()]);
-                    stats.add_run(run.columns(), values, run_weights, ranks);
-                });
                 stats.finish();
                 out.copy_from_slice(stats.get(which));
                 if let Some(out_spread) = out_spread {
@@ -431,13 +442,19 @@ fn accumulate_row(
     num.fill(0.0);
     den.fill(0.0);
     for run in &row.runs {
-        let samples = row.values[run.taps()].iter().zip(&row.weights[run.taps()]);
-        let cols = run.columns();
-        let sums = num[cols.clone()].iter_mut().zip(&mut den[cols.clone()]);
-        for (((n, d), &m), (&v, &p)) in sums.zip(&at[cols]).zip(samples) {
-            let (a, b) = term(v, p, m);
-            *n += a;
-            *d += b;
+        let (taps, cols) = (run.taps(), run.columns());
+        let len = taps.len();
+        // Equal-length slices indexed in step: the loop vectorises (a chain of zips did not).
+        let (values, weights) = (&row.values[taps.clone()], &row.weights[taps]);
+        let (at, num, den) = (
+            &at[cols.clone()][..len],
+            &mut num[cols.clone()][..len],
+            &mut den[cols][..len],
+        );
+        for k in 0..len {
+            let (a, b) = term(values[k], weights[k], at[k]);
+            num[k] += a;
+            den[k] += b;
         }
     }
 }
