@@ -246,3 +246,25 @@ def test_energy_matches_an_independent_scipy_assembly() -> None:
             e1, g1 = f(res.grids[0].reshape(-1))
             assert level["energy"] == pytest.approx(e1, rel=1e-9)
             assert np.abs(g1).max() == pytest.approx(level["gradient_norm"], rel=1e-4, abs=1e-10)
+
+
+def test_aligning_in_place_gives_the_same_maps_and_refuses_read_only_ones() -> None:
+    from m360.geometry import plan_for
+
+    lay = layout(512)
+    plan = plan_for(lay)
+    spherical = plan.spherical_disparity(syn.distort(tangent_disparity(2, 512), 9, field=0.1))
+    options = {"energy": "normalized"}
+    copy, _, grids, _ = plan.align(spherical, options)
+    before = spherical.copy()
+    same, _, grids_in_place, _ = plan.align(spherical, options, in_place=True)
+    assert same is spherical
+    np.testing.assert_array_equal(spherical, copy)
+    assert not np.array_equal(before, copy, equal_nan=True)  # the alignment moved the maps
+    for g, h in zip(grids, grids_in_place, strict=True):
+        np.testing.assert_array_equal(g, h)
+    before.flags.writeable = False
+    with pytest.raises(InputError, match="in place"):
+        plan.align(before, options, in_place=True)
+    with pytest.raises(InputError, match="C-contiguous"):
+        plan.align(np.asfortranarray(before.copy()), options, in_place=True)

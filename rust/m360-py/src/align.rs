@@ -1,6 +1,6 @@
 //! Alignment through a plan: options from a dict in, aligned maps and reports out.
 
-use crate::arrays::{contiguous, output_array, to_numpy, writable};
+use crate::arrays::{contiguous, contiguous_mut, output_array, to_numpy, writable};
 use crate::errors::{core, input_error};
 use crate::options::align_options;
 use crate::threads::on_pool;
@@ -58,9 +58,7 @@ pub(crate) fn align<'py>(
         let mut rw = maps
             .try_readwrite()
             .map_err(|e| input_error(format!("maps cannot be aligned in place: {e}")))?;
-        let data = rw
-            .as_slice_mut()
-            .map_err(|_| input_error("maps must be a C-contiguous array"))?;
+        let data = contiguous_mut(&mut rw, "maps")?;
         let solved = run(&mut |overlaps| align::align(layout, data, overlaps, &options))?;
         (maps.to_dyn().clone(), solved)
     } else {

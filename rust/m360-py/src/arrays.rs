@@ -2,7 +2,7 @@
 
 use crate::errors::{input_error, internal_error};
 use numpy::ndarray::{Array, IxDyn};
-use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArray3};
+use numpy::{IntoPyArray, PyArrayDyn, PyReadonlyArray3, PyUntypedArrayMethods};
 use pyo3::prelude::*;
 
 /// An owned buffer as a new numpy array of `shape`.
@@ -61,14 +61,29 @@ pub(crate) fn writable<'a, T: numpy::Element>(
         .map_err(|e| internal_error(format!("internal error: output not contiguous: {e}")))
 }
 
-/// The data of an input array, which must be C-contiguous.
+/// The data of an input array, which must be C-contiguous (`as_slice` alone also takes a
+/// Fortran-ordered array, whose data would be read in the wrong order).
 pub(crate) fn contiguous<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
     array: &'a numpy::PyReadonlyArray<'_, T, D>,
     name: &str,
 ) -> PyResult<&'a [T]> {
-    array
-        .as_slice()
-        .map_err(|_| input_error(format!("{name} must be a C-contiguous array")))
+    let not_c = || input_error(format!("{name} must be a C-contiguous array"));
+    if !array.is_c_contiguous() {
+        return Err(not_c());
+    }
+    array.as_slice().map_err(|_| not_c())
+}
+
+/// The data of an array the core writes in place, which must be C-contiguous.
+pub(crate) fn contiguous_mut<'a, T: numpy::Element, D: numpy::ndarray::Dimension>(
+    array: &'a mut numpy::PyReadwriteArray<'_, T, D>,
+    name: &str,
+) -> PyResult<&'a mut [T]> {
+    let not_c = || input_error(format!("{name} must be a C-contiguous array"));
+    if !array.is_c_contiguous() {
+        return Err(not_c());
+    }
+    array.as_slice_mut().map_err(|_| not_c())
 }
 
 pub(crate) fn check_shape(name: &str, actual: &[usize], expected: &[usize]) -> PyResult<()> {
