@@ -444,17 +444,17 @@ fn accumulate_row(
     for run in &row.runs {
         let (taps, cols) = (run.taps(), run.columns());
         let len = taps.len();
-        // Equal-length slices indexed in step: the loop vectorises (a chain of zips did not).
         let (values, weights) = (&row.values[taps.clone()], &row.weights[taps]);
         let (at, num, den) = (
             &at[cols.clone()][..len],
             &mut num[cols.clone()][..len],
             &mut den[cols][..len],
         );
-        for k in 0..len {
-            let (a, b) = term(values[k], weights[k], at[k]);
-            num[k] += a;
-            den[k] += b;
+        let samples = values.iter().zip(weights).zip(at);
+        for ((n, d), ((&v, &p), &m)) in num.iter_mut().zip(den.iter_mut()).zip(samples) {
+            let (a, b) = term(v, p, m);
+            *n += a;
+            *d += b;
         }
     }
 }
@@ -544,10 +544,16 @@ pub fn consensus_blend(
                 out.copy_from_slice(&stats.weighted);
                 for _ in 0..CONSENSUS_ROUNDS {
                     accumulate_row(row, out, num, den, |v, p, m| {
+                        // Computed for every sample and multiplied by 0 or 1: with a select of
+                        // 0 instead, the compiler branched around the division for invalid
+                        // samples, and the loop did not vectorise. An invalid sample stands in
+                        // as the estimate itself (e = 0, r = p), finite wherever the pixel has
+                        // a valid sample.
                         let ok = v.is_finite();
+                        let v = if ok { v } else { m };
                         let e = (v - m) * inv_c;
-                        let r = if ok { p / (1.0 + e * e) } else { 0.0 };
-                        (r * if ok { v } else { 0.0 }, r)
+                        let r = p / (1.0 + e * e) * f32::from(u8::from(ok));
+                        (r * v, r)
                     });
                     for ((m, &n), &d) in out.iter_mut().zip(num.iter()).zip(den.iter()) {
                         *m = if d > 0.0 { n / d } else { *m };
@@ -555,11 +561,12 @@ pub fn consensus_blend(
                 }
                 if let Some(conf) = out_confidence {
                     accumulate_row(row, out, num, den, |v, p, m| {
+                        // As in the rounds: no select around the division.
                         let ok = v.is_finite();
-                        let e = if ok { v - m } else { 0.0 };
+                        let e = if ok { v } else { m } - m;
                         let u = e * inv_c;
                         // Unweighted (p = 1) where the prior weighs every sample 0.
-                        let p = if ok { p.max(1e-6) } else { 0.0 };
+                        let p = p.max(1e-6) * f32::from(u8::from(ok));
                         (p * e * e / (1.0 + u * u), p)
                     });
                     for ((c, &n), &d) in conf.iter_mut().zip(num.iter()).zip(den.iter()) {
