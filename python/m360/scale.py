@@ -102,8 +102,9 @@ def depth_of(disparity: np.ndarray) -> np.ndarray:
     72 MP each is 288 MB, and fresh memory is slow to touch the first time).
     """
     depth = np.empty(disparity.shape, np.float32)
-    rows = max(1, (1 << 20) // max(1, depth[:1].size))  # about a million pixels per block
-    for start in range(0, depth.shape[0], rows):
+    height = len(depth)
+    rows = max(1, (1 << 20) // max(1, depth.size // max(1, height)))  # ~a million pixels a block
+    for start in range(0, height, rows):
         d, out = disparity[start : start + rows], depth[start : start + rows]
         positive = d > 0
         out.fill(np.nan)

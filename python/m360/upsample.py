@@ -116,6 +116,6 @@ def guided_upsample(
     if method == "bilinear":
         return _core.bilinear_upsample(p, (height, width))
     grey_full = _grey_u8(img)
-    grey = cv2.resize(grey_full, (w, h), interpolation=cv2.INTER_AREA)
+    grey = np.asarray(cv2.resize(grey_full, (w, h), interpolation=cv2.INTER_AREA), np.uint8)
     # The fit at the working resolution and the full-resolution pass, one parallel sweep.
     return _core.guided_upsample(p, grey, grey_full, radius, float(eps), edge_low, edge_high)

@@ -60,7 +60,10 @@ impl GuidedFit {
                 format!("must be a positive number, got {eps}"),
             ));
         }
-        if !(edge_low.is_finite() && edge_high.is_finite() && 0.0 <= edge_low && edge_low < edge_high)
+        if !(edge_low.is_finite()
+            && edge_high.is_finite()
+            && 0.0 <= edge_low
+            && edge_low < edge_high)
         {
             return Err(CoreError::option(
                 "edge_low",
@@ -171,7 +174,10 @@ fn window_sums<const C: usize>(column: &[f64], w: usize, radius: usize, window: 
     let mut leave = (w * (radius / w + 1) - radius) % w;
     for out in window.chunks_exact_mut(C) {
         out.copy_from_slice(&sum);
-        let (add, sub) = (&column[enter * C..enter * C + C], &column[leave * C..leave * C + C]);
+        let (add, sub) = (
+            &column[enter * C..enter * C + C],
+            &column[leave * C..leave * C + C],
+        );
         for ((s, a), b) in sum.iter_mut().zip(add).zip(sub) {
             *s += a - b;
         }
@@ -236,11 +242,7 @@ pub(super) fn fit_band(
     // The rows whose fits the second box filter reads: the band widened by r (its reflections
     // at the poles fall inside this range as r < h).
     let fit_rows = rows.start.saturating_sub(r)..(rows.end + r).min(h);
-    let FitScratch {
-        boxes,
-        fits,
-        strip,
-    } = scratch;
+    let FitScratch { boxes, fits, strip } = scratch;
     fits.resize(fit_rows.len() * w * 3, 0.0);
     let first = fit_rows.start;
     // Sums of m, m·I, p0, m·I·p0, m·I² over each window, and the fit from them.
@@ -399,7 +401,8 @@ mod tests {
     #[test]
     fn box_sums_match_direct_window_sums() {
         for (h, w) in [(3, 6), (5, 9), (8, 16), (6, 5)] {
-            let value = |i: usize, j: usize, c: usize| ((i * 31 + j * 7 + c * 13) % 17) as f64 - 4.5;
+            let value =
+                |i: usize, j: usize, c: usize| ((i * 31 + j * 7 + c * 13) % 17) as f64 - 4.5;
             for radius in 1..=4 {
                 let direct = |i: usize, j: usize, c: usize| {
                     let r = radius as isize;
@@ -470,6 +473,10 @@ mod tests {
 
     /// The planes against the definitions evaluated per pixel (direct window loops in f64).
     #[test]
+    #[expect(
+        clippy::float_cmp,
+        reason = "p0, m, lo and hi are copies of input values: exactly equal"
+    )]
     fn planes_match_direct_evaluation() {
         let (h, w) = (9, 18);
         let (disparity, grey) = scene(h, w);
@@ -520,7 +527,11 @@ mod tests {
                             }
                         }
                     }
-                    let (a, b) = if n > 0.0 { (sa / n, sb / n) } else { (0.0, 0.0) };
+                    let (a, b) = if n > 0.0 {
+                        (sa / n, sb / n)
+                    } else {
+                        (0.0, 0.0)
+                    };
                     let px = &planes[(i * w + j) * 7..(i * w + j) * 7 + 7];
                     let close = |got: f32, want: f64| {
                         (f64::from(got) - want).abs() <= 1e-5 * want.abs().max(1.0)
