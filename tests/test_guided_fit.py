@@ -221,3 +221,18 @@ def test_bad_fit_arguments_are_input_errors() -> None:
         _core.guided_upsample(disp[:, ::2], grey[:, ::2], grey, 1, 1e-4, 0.05, 0.15)
     with pytest.raises(InputError, match="radius"):
         guided_upsample(disp, np.zeros((16, 32, 3), np.uint8), radius=8)
+
+
+def test_result_does_not_depend_on_the_thread_count() -> None:
+    disp, _ = _holed_map(40, seed=3)
+    rgb = np.random.default_rng(3).integers(0, 256, (120, 240, 3), dtype=np.uint8)
+    before = _core.get_num_threads()
+    try:
+        outs = []
+        for threads in (1, 2, 3):
+            _core.set_num_threads(threads)
+            outs.append(guided_upsample(disp, rgb))
+    finally:
+        _core.set_num_threads(before)
+    for out in outs[1:]:
+        np.testing.assert_array_equal(out, outs[0])
