@@ -19,8 +19,9 @@ Both passes run in the core, in one parallel loop over bands of output rows
 the few working rows it reads (separable running box sums in f64, so any radius costs the same)
 and evaluates it at its full-resolution pixels (separable, reading the guided model only near
 depth jumps, with exact positions). Nothing the size of the working map is allocated beyond the
-output: at 72 MP from 4096 this is several times faster than the former whole-array fit with
-OpenCV and numpy, whose fresh temporaries dominated (benches/bench_upsample.py). The window
+output: at 72 MP from 4096 this measured about 4x faster on a process's first call and 2x on
+later ones than the former whole-array fit with OpenCV and numpy, whose fresh temporaries
+dominated (benches/bench_upsample.py). The window
 sums wrap in longitude and reflect at the pole rows (OpenCV's ``BORDER_REFLECT``,
 ``fedcba|abcdefgh|hgfedcb``); the 3 × 3 range of the jump detector wraps in longitude and is
 cut at the top and bottom rows. Only the grey conversion and the shrinking of the grey image to
