@@ -14,7 +14,10 @@ __all__ = [
     "PLAN_FORMAT",
     "Plan",
     "__version__",
+    "bilinear_upsample",
     "get_num_threads",
+    "guided_fit",
+    "guided_upsample",
     "icosahedron_cameras",
     "poisson_blend",
     "set_num_threads",
@@ -93,4 +96,24 @@ def upsample_planes(
     planes: npt.NDArray[np.float32],
     out_shape: tuple[int, int],
     grey: npt.NDArray[np.uint8] | None = None,
+) -> npt.NDArray[np.float32]: ...
+def guided_fit(
+    disparity: npt.NDArray[np.float32],
+    grey: npt.NDArray[np.uint8],
+    radius: int,
+    eps: float,
+    edge_low: float,
+    edge_high: float,
+) -> npt.NDArray[np.float32]: ...
+def guided_upsample(
+    disparity: npt.NDArray[np.float32],
+    grey: npt.NDArray[np.uint8],
+    grey_full: npt.NDArray[np.uint8],
+    radius: int,
+    eps: float,
+    edge_low: float,
+    edge_high: float,
+) -> npt.NDArray[np.float32]: ...
+def bilinear_upsample(
+    disparity: npt.NDArray[np.float32], out_shape: tuple[int, int]
 ) -> npt.NDArray[np.float32]: ...
