@@ -268,3 +268,19 @@ def test_aligning_in_place_gives_the_same_maps_and_refuses_read_only_ones() -> N
         plan.align(before, options, in_place=True)
     with pytest.raises(InputError, match="C-contiguous"):
         plan.align(np.asfortranarray(before.copy()), options, in_place=True)
+
+
+def test_the_core_refuses_fortran_ordered_arrays_instead_of_misreading_them() -> None:
+    from m360.geometry import plan_for
+
+    lay = layout(256)
+    plan = plan_for(lay)
+    maps = np.random.default_rng(0).random((20, *lay.tangent_shape), dtype=np.float32)
+    fortran = np.asfortranarray(maps)  # contiguous, but not in C order
+    for call in (
+        lambda: plan.spherical_disparity(fortran),
+        lambda: plan.align(fortran, {}),
+        lambda: plan.blend(fortran, {}),
+    ):
+        with pytest.raises(InputError, match="C-contiguous"):
+            call()

@@ -3,9 +3,8 @@
 //!
 //! Aligning goes through pointwise affine steps: standardise each tangent, apply each solved
 //! level's fields, undo the common standardisation. Applied as they come, each is a pass over the
-//! whole tangent stack (five at the default schedule: 0.2–0.3 s at 8K, where the levels' solves
-//! take less), although a level's problem reads the maps at a fixed budget of overlap samples
-//! only. A [`Transform`] keeps the steps instead: a problem reads the maps through it, computing
+//! whole tangent stack (four with the default schedule: about a third of the alignment's time at
+//! 8K), although a level's problem reads the maps at a fixed budget of overlap samples only. A [`Transform`] keeps the steps instead: a problem reads the maps through it, computing
 //! the few values it needs on demand ([`Transformed`]), and the stack is written once at the end
 //! ([`Transform::apply`]).
 //!
