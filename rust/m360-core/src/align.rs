@@ -1674,20 +1674,30 @@ mod tests {
         (splitmix64(seed ^ (i as u64).wrapping_mul(0x9E37)) >> 11) as f64 / (1u64 << 53) as f64
     }
 
-    /// A small layout and smooth maps with per-tangent affine distortion.
-    fn setup(energy: Energy, cols: usize, rows: usize) -> (Layout, Vec<f32>, Problem) {
-        let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
+    /// Smooth maps of `layout` with per-tangent affine distortion, plus `noise` (uniform, that
+    /// amplitude) and a NaN at every `hole`-th pixel if given.
+    fn distorted_maps(layout: &Layout, noise: f64, hole: Option<usize>) -> Vec<f32> {
         let (h, w) = layout.tangent_shape();
-        let mut maps = Vec::with_capacity(20 * h * w);
+        let mut maps = Vec::with_capacity(layout.cameras.len() * h * w);
         for (t, cam) in layout.cameras.iter().enumerate() {
             let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
             for r in 0..h {
                 for c in 0..w {
                     let d = cam.pixel_direction(c as f64, r as f64);
-                    maps.push((sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z) + sh) as f32);
+                    let v = sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z) + sh;
+                    let v = v + noise * random(3, r * w + c);
+                    let holed = hole.is_some_and(|k| (t * h * w + r * w + c).is_multiple_of(k));
+                    maps.push(if holed { f32::NAN } else { v as f32 });
                 }
             }
         }
+        maps
+    }
+
+    /// A small layout and smooth maps with per-tangent affine distortion.
+    fn setup(energy: Energy, cols: usize, rows: usize) -> (Layout, Vec<f32>, Problem) {
+        let layout = Layout::icosahedron(128, 0.3, None).expect("layout");
+        let mut maps = distorted_maps(&layout, 0.0, None);
         standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
         let overlaps = Overlaps::build(&layout, 0.2, 0.0);
         let params = LevelParams {
@@ -1961,21 +1971,7 @@ mod tests {
     #[test]
     fn composed_steps_equal_one_pass_per_step_bit_for_bit() {
         let layout = Layout::icosahedron(512, 0.3, None).expect("layout");
-        let (h, w) = layout.tangent_shape();
-        let mut maps = Vec::with_capacity(20 * h * w);
-        for (t, cam) in layout.cameras.iter().enumerate() {
-            let (sc, sh) = (0.5 + random(1, t), random(2, t) - 0.5);
-            for r in 0..h {
-                for c in 0..w {
-                    let d = cam.pixel_direction(c as f64, r as f64);
-                    let hole = (t * h * w + r * w + c) % 53 == 0;
-                    let v = sc * (1.0 + 0.3 * d.x + 0.2 * d.y * d.z)
-                        + sh
-                        + 0.002 * random(3, r * w + c);
-                    maps.push(if hole { f32::NAN } else { v as f32 });
-                }
-            }
-        }
+        let maps = distorted_maps(&layout, 0.002, Some(53));
         let overlaps = Overlaps::build(&layout, 0.2, 0.0);
         let same = |a: &[f32], b: &[f32]| a.iter().zip(b).all(|(p, q)| p.to_bits() == q.to_bits());
         for offsets in [Offsets::Perspective, Offsets::Spherical] {
