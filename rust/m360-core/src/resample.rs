@@ -1412,6 +1412,7 @@ mod tests {
 
     /// The vectorised run sampling gives the scalar bilinear value's exact bits (NaN where a
     /// neighbour is NaN), on noise with scattered NaNs: a swapped lane or pair would differ.
+    /// Sampling two stacks at once (`sample_many`) gives each one's bits too.
     #[test]
     fn run_sampling_matches_the_scalar_lerp_bit_for_bit() {
         let layout = Layout::icosahedron(256, 0.3, None).expect("layout");
@@ -1430,21 +1431,26 @@ mod tests {
                 }
             })
             .collect();
+        let other: Vec<f32> = stack.iter().rev().map(|v| 2.0 * v).collect();
+        let same = |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
         let (mut got, mut nan) = (Vec::new(), 0);
+        let (mut first, mut second) = (Vec::new(), Vec::new());
         for i in 0..layout.erp_height {
             taps.sample(&stack, i, &mut got);
+            taps.sample_many([&stack, &other], i, [&mut first, &mut second]);
             let (runs, row_taps) = taps.row_parts(i);
             for run in runs {
                 for t in run.taps() {
                     let tap = row_taps[t];
                     let k = run.face as usize * h * w + (tap.index & OFFSET_MASK) as usize;
-                    // SAFETY: a tap of these taps, on a stack of their size.
-                    let want = unsafe { lerp_f32(&stack, k, w, tap) };
+                    // SAFETY: a tap of these taps, on stacks of their size.
+                    let (want, want_other) =
+                        unsafe { (lerp_f32(&stack, k, w, tap), lerp_f32(&other, k, w, tap)) };
                     nan += usize::from(want.is_nan());
+                    assert!(same(got[t], want), "row {i}, tap {t}: {} vs {want}", got[t]);
                     assert!(
-                        got[t].to_bits() == want.to_bits() || (got[t].is_nan() && want.is_nan()),
-                        "row {i}, tap {t}: {} vs {want}",
-                        got[t]
+                        same(first[t], want) && same(second[t], want_other),
+                        "row {i}"
                     );
                 }
             }

@@ -62,7 +62,9 @@ pub(crate) fn align<'py>(
         let solved = run(&mut |overlaps| align::align(layout, data, overlaps, &options))?;
         (maps.to_dyn().clone(), solved)
     } else {
-        let readonly = maps.readonly();
+        let readonly = maps
+            .try_readonly()
+            .map_err(|e| input_error(format!("maps cannot be read: {e}")))?;
         let data = contiguous(&readonly, "maps")?;
         let out = output_array::<f32>(py, maps.shape())?;
         let mut rw = out.readwrite();
