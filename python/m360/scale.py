@@ -98,8 +98,9 @@ class Scaler(Protocol):
 def depth_of(disparity: np.ndarray) -> np.ndarray:
     """Depth (float32) = 1 / disparity where the disparity is positive, NaN elsewhere.
 
-    One output array, written once, a block of rows at a time: no full-size temporaries (at
-    72 MP each is 288 MB, and fresh memory is slow to touch the first time).
+    One output array, filled a block of rows (about a million pixels) at a time: no
+    full-size temporaries (at 72 MP each is 288 MB, and fresh memory is slow to touch the
+    first time).
     """
     depth = np.empty(disparity.shape, np.float32)
     height = len(depth)

@@ -147,7 +147,7 @@ impl Fields {
 
     /// s·v + o·f at pixel (x, y) of tangent t: [`Fields::line`] at the two grid columns around
     /// x only (the same numbers), then the same interpolation as [`Fields::apply_row`].
-    fn apply_pixel(&self, t: usize, y: usize, x: usize, v: f32, f: f64) -> f32 {
+    fn apply_pixel(&self, t: usize, y: usize, x: usize, f: f64, v: f32) -> f32 {
         let (c0, fx) = self.columns[x];
         let (r0, fy) = self.lines[y];
         let start = 2 * (t * self.cols * self.rows + r0 * self.cols + c0);
@@ -211,7 +211,7 @@ impl Step {
                 let (m, inv) = standardizing(stats[t]);
                 ((f64::from(v) - m * f) * inv) as f32
             }
-            Self::Fields(fields) => fields.apply_pixel(t, y, x, v, f),
+            Self::Fields(fields) => fields.apply_pixel(t, y, x, f, v),
             Self::Restore { spread, median } => (f64::from(v) * spread + median) as f32,
         }
     }
@@ -270,36 +270,35 @@ impl Transform {
 
     /// Apply every step to `maps` (N·h·w) in place, one row at a time.
     pub(super) fn apply(&self, maps: &mut [f32]) {
-        let (h, w) = (self.height, self.width);
+        let w = self.width;
         maps.par_chunks_mut(w).enumerate().for_each_init(
             || (vec![0.0; w], Vec::new()),
-            |(f_row, line), (face_row, row)| {
-                let (t, y) = (face_row / h, face_row % h);
-                self.factors.row(t, y, f_row);
-                for step in &self.steps {
-                    step.apply_row(t, y, f_row, row, line);
-                }
-            },
+            |(f_row, line), (face_row, row)| self.apply_row(face_row, row, f_row, line),
         );
     }
 
     /// [`Transform::apply`] from `maps` into `out` (the same size), leaving `maps` as it is.
     pub(super) fn apply_into(&self, maps: &[f32], out: &mut [f32]) {
-        let (h, w) = (self.height, self.width);
+        let w = self.width;
         out.par_chunks_mut(w)
             .zip(maps.par_chunks(w))
             .enumerate()
             .for_each_init(
                 || (vec![0.0; w], Vec::new()),
                 |(f_row, line), (face_row, (row, raw))| {
-                    let (t, y) = (face_row / h, face_row % h);
                     row.copy_from_slice(raw);
-                    self.factors.row(t, y, f_row);
-                    for step in &self.steps {
-                        step.apply_row(t, y, f_row, row, line);
-                    }
+                    self.apply_row(face_row, row, f_row, line);
                 },
             );
+    }
+
+    /// Every step on `row`, row `face_row` of the stack (`f_row` and `line`: scratch).
+    fn apply_row(&self, face_row: usize, row: &mut [f32], f_row: &mut [f64], line: &mut Vec<f64>) {
+        let (t, y) = (face_row / self.height, face_row % self.height);
+        self.factors.row(t, y, f_row);
+        for step in &self.steps {
+            step.apply_row(t, y, f_row, row, line);
+        }
     }
 
     /// The value at flat index `index` (tangent·h·w + y·w + x) of `maps` after every step.
