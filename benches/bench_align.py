@@ -65,8 +65,8 @@ import _harness as h
 import align_scipy
 import m360
 import m360._core
-import m360._sphere as sph
 import m360.synthetic as syn
+from m360.geometry import _sphere as sph
 from m360.geometry import clear_plan_cache, plan_for
 
 METHODS = {

@@ -10,12 +10,12 @@ from collections.abc import Iterator
 from datetime import timedelta
 
 import m360
-import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from local_http import LocalServer
+from m360.geometry import _sphere as sph
 
 # Profiles (``max_examples`` is the budget of a weight-1 fuzz test; test_fuzz.py scales it per
 # test). "ci", the default: a few hundred examples over all fuzz tests, well under a minute.

@@ -5,13 +5,13 @@ from __future__ import annotations
 import functools
 
 import m360
-import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import pytest
 from conftest import erp_depth, layout, tangent_disparity
 from m360.align import MULTISCALE
 from m360.errors import InputError
+from m360.geometry import _sphere as sph
 
 WIDTH = 1024
 SEEDS = (0, 1, 2)

@@ -424,9 +424,9 @@ def test_ctrl_c_while_a_claim_is_taken_or_released_leaves_no_lock_file(
         return wrapped
 
     if moment == "locked":
-        monkeypatch.setattr(m360.batch, "_try_lock", ctrl_c_after(m360.batch._try_lock))
+        monkeypatch.setattr(m360.batch.image, "_try_lock", ctrl_c_after(m360.batch.image._try_lock))
     else:
-        monkeypatch.setattr(m360.batch.os, "unlink", ctrl_c_after(os.unlink))
+        monkeypatch.setattr(m360.batch.image.os, "unlink", ctrl_c_after(os.unlink))
     run_handler = (
         m360.batch.MainThreadInterrupts(m360.batch._keyboard_interrupt_once())
         if handler == "m360"
@@ -541,7 +541,7 @@ def test_ctrl_c_while_writing_leaves_no_partial_set(
             raise KeyboardInterrupt
         return real_save_png(path, image)
 
-    monkeypatch.setattr(m360.io, "save_png", interrupted_on_the_second)
+    monkeypatch.setattr(m360.io.writing, "save_png", interrupted_on_the_second)
     options = {"model": str(model), "align": "none", "blend": "mean", "progress": False}
     report = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
     assert report.interrupted and report.exit_code == 130
@@ -552,7 +552,7 @@ def test_ctrl_c_while_writing_leaves_no_partial_set(
         "pano_00.json",
         "pano_00.preview.png",
     ]  # nothing of pano_01 (nor its lock), pano_02 not started
-    monkeypatch.setattr(m360.io, "save_png", real_save_png)
+    monkeypatch.setattr(m360.io.writing, "save_png", real_save_png)
     again = m360.batch.run(tmp_path / "in", out, input_size=(64, 96), **options)
     assert [o.stem for o in again.done] == ["pano_01", "pano_02"]
     assert [o.stem for o in again.skipped] == ["pano_00"] and again.exit_code == 0

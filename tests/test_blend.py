@@ -11,7 +11,6 @@ import sys
 from pathlib import Path
 
 import m360
-import m360._sphere as sph
 import numpy as np
 import pytest
 import scipy.sparse.linalg as spla
@@ -25,6 +24,7 @@ from conftest import (
 )
 from m360 import _core
 from m360.errors import InputError, SolverError
+from m360.geometry import _sphere as sph
 from m360.geometry import plan_for
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benches"))

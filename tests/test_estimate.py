@@ -9,7 +9,6 @@ from __future__ import annotations
 from pathlib import Path
 
 import m360
-import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import onnx_graphs as g
@@ -24,6 +23,7 @@ from m360.estimators import (
     ray_norms,
     to_perspective_disparity,
 )
+from m360.geometry import _sphere as sph
 
 NO_NORM = {"mean": (0.0, 0.0, 0.0), "std": (1.0, 1.0, 1.0)}
 

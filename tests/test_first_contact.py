@@ -20,9 +20,9 @@ import onnx
 import onnx_graphs as g
 import pytest
 from local_http import LocalServer
-from m360 import _onnxgraph, models
+from m360 import models
 from m360.errors import InputError, ModelError
-from m360.estimators import OnnxEstimator, load_estimator
+from m360.estimators import OnnxEstimator, _onnxgraph, load_estimator
 from norm_graphs import MEAN, STD, VARIANTS, chain_then_channel, per_channel
 from onnx import TensorProto, helper, numpy_helper
 

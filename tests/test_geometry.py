@@ -5,11 +5,11 @@ from __future__ import annotations
 import itertools
 
 import m360
-import m360._sphere as sph
 import numpy as np
 import pytest
 from conftest import erp_depth, layout, scene, smooth_field, tangent_directions
 from m360.errors import InputError
+from m360.geometry import _sphere as sph
 
 # ------------------------------------------------------------------------------------- layout
 

@@ -1,4 +1,4 @@
-"""Ctrl-C reaches the main thread whichever thread the kernel hands it to (m360._interrupt)."""
+"""Ctrl-C reaches the main thread whichever thread the kernel hands it to (batch._interrupt)."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ pytestmark = pytest.mark.skipif(not sys.platform.startswith("linux"), reason="ne
 # sends SIGINT to the helper thread only: without routing, the main thread never wakes.
 _BLOCKED = """
 import os, signal, sys, threading
-from m360._interrupt import MainThreadInterrupts
+from m360.batch._interrupt import MainThreadInterrupts
 
 routed = sys.argv[1] == "routed"
 calls = []

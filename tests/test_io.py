@@ -100,7 +100,7 @@ def test_a_failed_save_leaves_no_sidecar_and_no_partial_set(
     def broken(path: Path, values: np.ndarray) -> Path:
         raise OSError("disk full")
 
-    monkeypatch.setattr(io, "_write_exr", broken)
+    monkeypatch.setattr(io.files, "_write_exr", broken)
     with pytest.raises(OSError, match="disk full"):
         m360.save(_result(seed=1), tmp_path / "pano", formats=("npy", "exr"))
     # The old sidecar went first (its set was being replaced) and the new arrays written before

@@ -4,12 +4,12 @@ angular scale of the simulated content errors."""
 from __future__ import annotations
 
 import m360
-import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import pytest
 from conftest import erp_depth, scene, tangent_disparity
 from m360.errors import InputError
+from m360.geometry import _sphere as sph
 from m360.geometry import plan_for
 from scipy.spatial import ConvexHull
 

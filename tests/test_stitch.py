@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import m360
-import m360._sphere as sph
 import numpy as np
 import pytest
 from conftest import (
@@ -15,6 +14,7 @@ from conftest import (
     tangent_disparity,
 )
 from m360.errors import InputError
+from m360.geometry import _sphere as sph
 
 
 def raw_abs_rel(disparity: np.ndarray, depth: np.ndarray) -> float:

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import m360._sphere as sph
 import m360.synthetic as syn
 import numpy as np
 import pytest
 from m360.errors import InputError
+from m360.geometry import _sphere as sph
 
 
 @dataclass

@@ -16,7 +16,9 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 
 from __future__ import annotations
 
-from . import align, batch, blend, decode, estimators, eval, io, masks, models, scale, synthetic
+import sys as _sys
+
+from . import batch, estimators, evaluation, geometry, io, pipeline, stitching
 from ._core import __version__, get_num_threads, set_num_threads
 from .errors import (
     AspectRatioError,
@@ -27,12 +29,40 @@ from .errors import (
     ScaleError,
     SolverError,
 )
-from .estimate import EstimateResult, estimate
+from .estimators import registry as models
+from .evaluation import metrics as eval
+from .evaluation import synthetic
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
-from .io import SavedResult, load, save
-from .mesh import Mesh, PointCloud, to_mesh, to_points
-from .options import StitchOptions
-from .stitch import StitchResult, stitch
+from .io import SavedResult, decode, load, mesh, save, viewer
+from .io.mesh import Mesh, PointCloud, to_mesh, to_points
+from .pipeline import masks, memory, scale
+from .pipeline.estimate import EstimateResult, estimate
+from .stitching import align, blend, options, upsample
+from .stitching.options import StitchOptions
+from .stitching.stitch import StitchResult, stitch
+
+#: The module names of the flat layout before the stage packages (docs/architecture.md, "Package
+#: layout"), and where each module lives now. They stay importable under their old names
+#: (``import m360.models``, ``from m360.align import SCHEDULES``): users' scripts use them.
+_FLAT_NAMES = {
+    "align": align,
+    "blend": blend,
+    "decode": decode,
+    "eval": eval,
+    "masks": masks,
+    "memory": memory,
+    "mesh": mesh,
+    "models": models,
+    "options": options,
+    "plan_cache": geometry.plan_cache,
+    "scale": scale,
+    "synthetic": synthetic,
+    "upsample": upsample,
+    "viewer": viewer,
+}
+for _name, _module in _FLAT_NAMES.items():
+    _sys.modules.setdefault(f"{__name__}.{_name}", _module)
+del _name, _module
 
 __all__ = [
     "AspectRatioError",
@@ -60,17 +90,25 @@ __all__ = [
     "estimate",
     "estimators",
     "eval",
+    "evaluation",
+    "geometry",
     "get_num_threads",
     "io",
     "load",
     "masks",
+    "memory",
+    "mesh",
     "models",
+    "options",
+    "pipeline",
     "save",
     "scale",
     "set_num_threads",
     "stitch",
+    "stitching",
     "synthetic",
     "tangents_to_erp",
     "to_mesh",
     "to_points",
+    "upsample",
 ]

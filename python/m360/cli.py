@@ -17,15 +17,15 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from . import __version__, _core, batch, models, synthetic
-from . import masks as m360_masks
-from . import scale as m360_scale
-from .align import ALIGN_MODES, DEFAULT_LOSS, DEFAULT_OFFSETS, ENERGY_WEIGHTS
+from . import batch
+from ._core import __version__
+from ._keywords import add_flags, from_args, plain_text
 from .errors import InputError, M360Error, ModelError
-from .estimate import estimate
-from .estimators import OUTPUT_KINDS, SimulatedEstimator
-from .eval import depth_metrics, format_metrics
-from .geometry import default_layout
+from .estimators import OUTPUT_KINDS, ModelKeywords, ModelOptions, SimulatedEstimator
+from .estimators import registry as models
+from .evaluation import synthetic
+from .evaluation.metrics import depth_metrics, format_metrics
+from .geometry.layout import default_layout
 from .io import (
     GEOMETRY_FORMATS,
     SAVE_FORMATS,
@@ -36,8 +36,11 @@ from .io import (
     save_npy,
     save_png,
 )
-from .masks import SKY_MODES
-from .options import AlignSpec, StitchOptions
+from .pipeline import masks as m360_masks
+from .pipeline import scale as m360_scale
+from .pipeline.estimate import estimate
+from .pipeline.options import JobKeywords
+from .stitching.options import StitchKeywords, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
 ENGINES = batch.ENGINES
@@ -45,7 +48,17 @@ ENGINES = batch.ENGINES
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the ``m360`` command; returns the exit code (0 ok, 1 failed, 2 usage)."""
-    parser = argparse.ArgumentParser(prog="m360", description=__doc__)
+    parser = build_parser()
+    try:
+        args = parser.parse_args(argv)
+    except SystemExit as exc:  # usage error (2) or --help/--version (0)
+        return int(exc.code or 0)
+    return _dispatch(args)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """Build the parser of every ``m360`` command (flags from the shared option lists)."""
+    parser = argparse.ArgumentParser(prog="m360", description=plain_text(__doc__ or ""))
     parser.add_argument("--version", action="version", version=f"m360 {__version__}")
     commands = parser.add_subparsers(dest="command", required=True)
 
@@ -105,12 +118,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         default=1,
         help="processes working at once (--engine ray: model actors, one network session each)",
     )
-    run.add_argument(
-        "--threads",
-        type=int,
-        default=None,
-        help="ONNX Runtime intra-op threads per worker (with --workers > 1 also the core's)",
-    )
     again = run.add_mutually_exclusive_group()
     again.add_argument(
         "--resume",
@@ -147,26 +154,6 @@ def main(argv: Sequence[str] | None = None) -> int:
         help="--engine ray: CPUs per align + blend task (default 1)",
     )
     run.add_argument(
-        "--input-size",
-        type=int,
-        nargs=2,
-        metavar=("H", "W"),
-        default=None,
-        help="network input size of a dynamic-size .onnx file (default: the model's)",
-    )
-    run.add_argument(
-        "--output-kind",
-        choices=OUTPUT_KINDS,
-        default=None,
-        help="what a .onnx file outputs (default: the registry's, or affine_disparity)",
-    )
-    run.add_argument(
-        "--providers",
-        default=None,
-        help="ONNX Runtime providers, comma-separated (e.g. CUDAExecutionProvider,"
-        "CPUExecutionProvider); default CPU",
-    )
-    run.add_argument(
         "--camera-height",
         type=float,
         default=None,
@@ -189,29 +176,8 @@ def main(argv: Sequence[str] | None = None) -> int:
         metavar="DEG",
         help="leave out the cap within DEG degrees of the top pole",
     )
-    run.add_argument(
-        "--working-width",
-        type=_working_width,
-        default=None,
-        metavar="W|native",
-        help="ERP width the method runs at, the result upsampled to the image's resolution along "
-        "its edges (default: the image's width up to 8192, above it 4096)",
-    )
-    run.add_argument(
-        "--padding",
-        type=float,
-        default=None,
-        metavar="P",
-        help="padding of the tangent layout (default 0.7: more tangents vote on each pixel, "
-        "lower error under network content errors; 0.3 is the paper's layout)",
-    )
-    run.add_argument(
-        "--sky",
-        choices=SKY_MODES,
-        default="keep",
-        help="nan: the sky (disparity at or below 2%% of its 90th percentile) gets no depth "
-        "(default: keep)",
-    )
+    add_flags(run.add_argument_group("model (ONNX models given by name or path)"), ModelKeywords)
+    add_flags(run.add_argument_group("job"), JobKeywords)
     _stitch_options(run)
 
     ev = commands.add_parser(
@@ -280,10 +246,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     view.add_argument("--max-points", type=int, default=2_000_000, help="most points displayed")
     view.add_argument("--no-browser", action="store_true", help="do not open a browser")
 
-    try:
-        args = parser.parse_args(argv)
-    except SystemExit as exc:  # usage error (2) or --help/--version (0)
-        return int(exc.code or 0)
+    return parser
+
+
+def _dispatch(args: argparse.Namespace) -> int:
     try:
         if args.command == "demo":
             return _demo(args.output, args.width, args.seed, args.noise, _options(args))
@@ -318,153 +284,14 @@ def _formats(text: str) -> tuple[str, ...]:
     return chosen
 
 
-def _align(text: str) -> AlignSpec:
-    """``--align``: a mode name, or grids ``COLSxROWS[,COLSxROWS...]`` (e.g. ``4x3,8x7``)."""
-    if text in ALIGN_MODES:
-        return text
-    try:
-        grids = [tuple(int(v) for v in g.lower().split("x")) for g in text.split(",")]
-    except ValueError:
-        grids = []
-    if not grids or any(len(g) != 2 for g in grids):
-        raise argparse.ArgumentTypeError(
-            f"{text!r}: use {' or '.join(ALIGN_MODES)}, or grids COLSxROWS[,COLSxROWS...] "
-            "such as 4x3,8x7"
-        )
-    return [(g[0], g[1]) for g in grids]
-
-
 def _stitch_options(parser: argparse.ArgumentParser) -> None:
-    """Add the stitching flags, one per :class:`m360.StitchOptions` keyword.
-
-    The help texts show the core's defaults.
-    """
-    align, blend = _core.DEFAULTS["align"], _core.DEFAULTS["poisson"]
-    choices = _core.CHOICES
-    schedules = "; ".join(
-        f"{energy}: {','.join(f'{c}x{r}' for c, r in levels)}"
-        for energy, levels in _core.DEFAULTS["schedules"].items()
-    )
-    iterations = ", ".join(f"{k} {v}" for k, v in _core.DEFAULTS["iterations"].items())
-    group = parser.add_argument_group("stitching (defaults are the core's)")
-    group.add_argument(
-        "--align",
-        type=_align,
-        default="multiscale",
-        help=f"alignment: multiscale (default; the energy's schedule, {schedules}), none, or "
-        "grids COLSxROWS[,COLSxROWS...]",
-    )
-    group.add_argument(
-        "--blend",
-        choices=choices["blend"],
-        default=None,
-        help=f"blending (default {_core.DEFAULTS['blend']['method']})",
-    )
-    group.add_argument(
-        "--energy", choices=choices["energy"], help=f"alignment energy (default {align['energy']})"
-    )
-    group.add_argument(
-        "--solver", choices=choices["solver"], help=f"alignment solver (default {align['solver']})"
-    )
-    group.add_argument(
-        "--iterations",
-        type=int,
-        help=f"alignment iteration cap per level (default per solver: {iterations})",
-    )
-    group.add_argument(
-        "--tolerance",
-        type=float,
-        help=f"alignment gradient tolerance (default {align['tolerance']:g})",
-    )
-    group.add_argument(
-        "--sample-fraction",
-        type=float,
-        help=f"fraction of overlap pixels in the data term (default {align['sample_fraction']:g})",
-    )
-    group.add_argument(
-        "--pole-cap-deg",
-        type=float,
-        help=f"leave out samples this close to the poles (default {align['pole_cap_deg']:g})",
-    )
-    per_energy = {
-        "smoothness": ", ".join(f"{e} {w[0]:g}" for e, w in ENERGY_WEIGHTS.items()),
-        "scale_weight": ", ".join(f"{e} {w[1]:g}" for e, w in ENERGY_WEIGHTS.items()),
-        "offsets": ", ".join(f"{e} {o}" for e, o in DEFAULT_OFFSETS.items()),
-        "loss": ", ".join(f"{e} {o}" for e, o in DEFAULT_LOSS.items()),
-    }
-    group.add_argument(
-        "--smoothness",
-        type=float,
-        help=f"smoothness weight (default per energy: {per_energy['smoothness']})",
-    )
-    group.add_argument(
-        "--scale-weight",
-        type=float,
-        help=f"scale term weight (default per energy: {per_energy['scale_weight']})",
-    )
-    group.add_argument(
-        "--offsets",
-        choices=choices["offsets"],
-        help=f"where the offset acts (default per energy: {per_energy['offsets']})",
-    )
-    group.add_argument(
-        "--loss",
-        choices=choices["loss"],
-        help=f"data-term loss (default per energy: {per_energy['loss']})",
-    )
-    group.add_argument(
-        "--poisson-fidelity",
-        "--fidelity",
-        dest="poisson_fidelity",
-        choices=choices["fidelity"],
-        help=f"Poisson fidelity target (default {blend['fidelity']})",
-    )
-    group.add_argument(
-        "--poisson-lam",
-        type=float,
-        help=f"Poisson fidelity weight λ (default {blend['lam']:g})",
-    )
-    group.add_argument(
-        "--poisson-tolerance",
-        type=float,
-        help=f"Poisson relative residual (default {blend['tolerance']:g})",
-    )
-    group.add_argument(
-        "--poisson-iterations",
-        type=int,
-        help=f"Poisson iteration cap (default {blend['iterations']})",
-    )
-    group.add_argument(
-        "--poisson-solver",
-        choices=choices["poisson_solver"],
-        help=f"Poisson solver (default {blend['solver']})",
-    )
+    """Add the stitching flags: one per entry of the shared list (the core's defaults shown)."""
+    add_flags(parser.add_argument_group("stitching (defaults are the core's)"), StitchKeywords)
 
 
 def _options(args: argparse.Namespace) -> StitchOptions:
     """Build the :class:`m360.StitchOptions` the stitching flags describe (InputError: exit 2)."""
-    poisson = {
-        "fidelity": args.poisson_fidelity,
-        "lam": args.poisson_lam,
-        "tolerance": args.poisson_tolerance,
-        "iterations": args.poisson_iterations,
-        "solver": args.poisson_solver,
-    }
-    return StitchOptions(
-        args.align,
-        args.blend,
-        energy=args.energy,
-        solver=args.solver,
-        iterations=args.iterations,
-        tolerance=args.tolerance,
-        sample_fraction=args.sample_fraction,
-        pole_cap_deg=args.pole_cap_deg,
-        smoothness=args.smoothness,
-        scale_weight=args.scale_weight,
-        offsets=args.offsets,
-        loss=args.loss,
-        blend_options={k: v for k, v in poisson.items() if v is not None} or None,
-    )
+    return StitchOptions(**from_args(args, StitchKeywords))
 
 
 def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions) -> int:
@@ -496,7 +323,7 @@ def _demo(out: Path, width: int, seed: int, noise: float, options: StitchOptions
 def _view(args: argparse.Namespace) -> int:
     import threading
 
-    from .viewer import serve
+    from .io.viewer import serve
 
     server = serve(
         args.path,
@@ -514,16 +341,6 @@ def _view(args: argparse.Namespace) -> int:
     finally:
         server.stop()
     return 0
-
-
-def _working_width(text: str) -> int | str:
-    """Parse --working-width: an even width or "native" (checked by m360.memory)."""
-    if text == "native":
-        return text
-    try:
-        return int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a width or 'native', got {text!r}") from None
 
 
 def _caps(nadir: float | None, zenith: float | None) -> list[m360_masks.Cap] | None:
@@ -550,23 +367,18 @@ def _run(args: argparse.Namespace) -> int:
         preview=not args.no_preview,
         confidence=args.confidence,
         workers=args.workers,
-        threads=args.threads,
         resume=args.resume,
         recursive=args.recursive,
         fix_aspect=args.fix_aspect,
         progress=not args.no_progress,
         on_outcome=report_failure,
-        providers=args.providers.split(",") if args.providers else None,
-        input_size=tuple(args.input_size) if args.input_size else None,
-        output_kind=args.output_kind,
         scale=None if args.camera_height is None else m360_scale.camera_height(args.camera_height),
         mask=_caps(args.nadir, args.zenith),
-        sky=args.sky,
-        working_width=args.working_width,
-        padding=args.padding,
         engine=args.engine,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,
+        model_options=ModelOptions(**from_args(args, ModelKeywords)),
+        **from_args(args, JobKeywords),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code
@@ -652,7 +464,7 @@ def _models_check(args: argparse.Namespace) -> int:
 
 
 def _plans_command(action: str, stale_only: bool) -> int:
-    from . import plan_cache
+    from .geometry import plan_cache
 
     if action == "clear":
         freed = plan_cache.clear(stale_only=stale_only)

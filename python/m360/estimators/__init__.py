@@ -10,23 +10,28 @@ into one.
 from __future__ import annotations
 
 import os
-from collections.abc import Sequence
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import TYPE_CHECKING, Protocol, runtime_checkable
 
 import numpy as np
 
-from .. import models as _models
 from ..errors import InputError
+from . import registry as _models
 from .kinds import OUTPUT_KINDS, OutputKind, check_output_kind, ray_norms, to_perspective_disparity
 from .onnx import MAX_NETWORK_SIZE, RESIZE_MODES, OnnxEstimator, is_file, network_size
+from .options import ModelKeywords, ModelOptions
 from .simulated import SimulatedEstimator
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = [
     "MAX_NETWORK_SIZE",
     "OUTPUT_KINDS",
     "RESIZE_MODES",
     "Estimator",
+    "ModelKeywords",
+    "ModelOptions",
     "OnnxEstimator",
     "OutputKind",
     "SimulatedEstimator",
@@ -72,12 +77,8 @@ class Estimator(Protocol):
 def load_estimator(
     model: str | os.PathLike[str] | Estimator = _models.DEFAULT_MODEL,
     *,
-    providers: Sequence[str] | None = None,
-    threads: int | None = None,
-    input_size: tuple[int, int] | None = None,
-    output_kind: str | None = None,
-    mean: Sequence[float] | None = None,
-    std: Sequence[float] | None = None,
+    model_options: ModelOptions | None = None,
+    **keywords: Unpack[ModelKeywords],
 ) -> Estimator:
     """Resolve ``model`` to an estimator.
 
@@ -89,18 +90,12 @@ def load_estimator(
         affine disparity, ImageNet normalisation unless the graph applies it, 384 px) or an
         object with ``predict`` and ``output_kind`` (returned as is; the options below are
         refused for it).
-    providers : list of str, optional
-        ONNX Runtime execution providers in order of preference.
-    threads : int, optional
-        ONNX Runtime intra-op threads.
-    input_size : (int, int), optional
-        Network (height, width) of a dynamic-size model; for a model whose file fixes its
-        input size, any other size is an :class:`m360.InputError` naming the size it takes.
-    output_kind : str, optional
-        What the model outputs (:data:`OUTPUT_KINDS`).
-    mean, std : 3 floats, optional
-        Explicit input normalisation per RGB channel (wins over what the graph holds; default:
-        the model's own, applied by m360 only if the graph does not apply it).
+    model_options : ModelOptions, optional
+        The model options at once (then give none of them as a keyword).
+    **keywords
+        The model options (:class:`ModelKeywords`): ``providers``, ``threads``,
+        ``input_size`` (a model whose file fixes its input size refuses any other, naming the
+        size it takes), ``output_kind`` (:data:`OUTPUT_KINDS`), ``mean``, ``std``.
 
     Returns
     -------
@@ -114,6 +109,10 @@ def load_estimator(
     m360.InputError
         For unusable options.
     """
+    given = ModelOptions.build(model_options, **keywords).keywords()
+    providers, threads = given.get("providers"), given.get("threads")
+    input_size, output_kind = given.get("input_size"), given.get("output_kind")
+    mean, std = given.get("mean"), given.get("std")
     if isinstance(model, (str, os.PathLike)):
         text = os.fspath(model)
         if text in _models.REGISTRY:
@@ -149,15 +148,7 @@ def load_estimator(
             )
         _models.get(text)  # raises ModelError naming the registered models
     if isinstance(model, Estimator):
-        given = {
-            "providers": providers,
-            "threads": threads,
-            "input_size": input_size,
-            "output_kind": output_kind,
-            "mean": mean,
-            "std": std,
-        }
-        ignored = [k for k, v in given.items() if v is not None]
+        ignored = list(given)
         if ignored:
             raise InputError(
                 f"{', '.join(ignored)} apply to ONNX models given by name or path; configure "

@@ -18,7 +18,7 @@ import numpy as np
 
 from .._validate import as_array
 from ..errors import InputError
-from ..geometry import Layout, plan_for
+from ..geometry.layout import Layout, plan_for
 
 __all__ = [
     "OUTPUT_KINDS",

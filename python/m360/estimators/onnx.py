@@ -20,11 +20,11 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .. import models as _models
 from .._compat import renamed
 from .._validate import as_array, integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError, ModelError
+from . import onnx_file
 from .kinds import check_output_kind
 
 __all__ = ["MAX_NETWORK_SIZE", "RESIZE_MODES", "OnnxEstimator", "is_file", "network_size"]
@@ -85,7 +85,7 @@ def _session(
     try:
         session = ort.InferenceSession(data, sess_options=options, providers=list(providers))
     except Exception as exc:  # onnxruntime raises its own exception types per failure
-        reason = _models.sniff_onnx(path)
+        reason = onnx_file.sniff_onnx(path)
         detail = reason if reason else f"ONNX Runtime says: {str(exc).strip()[:300]}"
         raise ModelError(f"cannot load {path} as an ONNX model: {detail}") from exc
     with _SESSIONS_LOCK:
@@ -228,13 +228,13 @@ class OnnxEstimator:
         self.input_size = (
             None if input_size is None else size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
         )
-        expected = expected_normalization or (_models.IMAGENET_MEAN, _models.IMAGENET_STD)
+        expected = expected_normalization or (onnx_file.IMAGENET_MEAN, onnx_file.IMAGENET_STD)
         if not isinstance(expected, (tuple, list)) or len(expected) != 2:
             raise InputError(
                 f"expected_normalization must be (mean, std), got {expected_normalization!r}"
             )
-        self.mean = _check_triple(expected[0] if mean is None else mean, "mean")
-        self.std = _check_triple(expected[1] if std is None else std, "std")
+        self.mean = check_triple(expected[0] if mean is None else mean, "mean")
+        self.std = check_triple(expected[1] if std is None else std, "std")
         if np.any(np.abs(self.mean) > _NORMALISATION_LIMIT):
             raise InputError(f"mean must be at most {_NORMALISATION_LIMIT:g} in magnitude")
         if np.any(self.std < 1 / _NORMALISATION_LIMIT) or np.any(self.std > _NORMALISATION_LIMIT):
@@ -268,7 +268,7 @@ class OnnxEstimator:
         self.providers = tuple(self.session.get_providers())
         # Read from the graph (the bytes the session was made from), not a model card: the
         # same file is used both ways in the wild.
-        self.normalization = _models.input_normalization(
+        self.normalization = onnx_file.input_normalization(
             self.path,
             None if mean is None else tuple(self.mean),
             None if std is None else tuple(self.std),
@@ -428,7 +428,7 @@ def is_file(path: Path) -> bool:
         return False
 
 
-def _check_triple(value: Sequence[float], name: str) -> np.ndarray:
+def check_triple(value: Sequence[float], name: str) -> np.ndarray:
     try:
         array = np.asarray(value, dtype=np.float64)
     except (TypeError, ValueError) as exc:

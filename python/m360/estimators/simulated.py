@@ -8,7 +8,7 @@ import numpy as np
 
 from .._compat import renamed
 from ..errors import InputError
-from ..geometry import Layout
+from ..geometry.layout import Layout
 
 __all__ = ["SimulatedEstimator"]
 
@@ -49,7 +49,7 @@ class SimulatedEstimator:
         shift: float = 0.3,
         noise: float = 0.0,
     ) -> None:
-        from .. import synthetic
+        from ..evaluation import synthetic
 
         if not isinstance(layout, Layout):
             raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")

@@ -12,8 +12,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from ._validate import check_erp_shape
-from .errors import AspectRatioError, ReadError
+from .._validate import check_erp_shape
+from ..errors import AspectRatioError, ReadError
 
 __all__ = [
     "IMAGE_SUFFIXES",

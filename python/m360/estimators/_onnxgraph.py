@@ -19,7 +19,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .errors import ModelError
+from ..errors import ModelError
 
 # Field numbers of onnx.proto3 (ModelProto, GraphProto, NodeProto, AttributeProto, TensorProto).
 _MODEL_GRAPH = 7
@@ -337,7 +337,8 @@ class InputAffine:
 
 def _per_channel(value: np.ndarray, rank: int, axis: int) -> np.ndarray | None:
     """The 3 per-channel values of a constant broadcast against a rank-``rank`` tensor whose
-    channels are on ``axis``; None if it does not vary along the channels only."""
+    channels are on ``axis``; None if it does not vary along the channels only.
+    """
     if value.size == 1:
         return np.full(3, float(value.reshape(-1)[0]))
     if value.ndim > rank or value.size != 3:

@@ -64,7 +64,7 @@ from typing import Literal, TypedDict
 
 import numpy as np
 
-from . import _core
+from .. import _core
 
 __all__ = [
     "ALIGN_MODES",

@@ -23,10 +23,10 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .errors import InputError
+from ..errors import InputError
 
 if TYPE_CHECKING:
-    from .geometry import Layout
+    from ..geometry.layout import Layout
 
 __all__ = [
     "available_memory",
@@ -117,7 +117,7 @@ def estimate_memory(
     """
     work = width if working_width is None else working_width
     if layout is None:  # taps per pixel hardly depend on the width: counted at 2048
-        from .geometry import default_layout
+        from ..geometry.layout import default_layout
 
         layout = default_layout(2048)
     taps = taps_per_pixel(layout)
@@ -140,7 +140,7 @@ def taps_per_pixel(layout: Layout) -> float:
 
 @functools.lru_cache(maxsize=16)
 def _taps_per_pixel(layout: Layout) -> float:
-    from . import _sphere
+    from ..geometry import _sphere
 
     directions = _sphere.erp_directions(64, 128).reshape(-1, 3)
     seen = np.zeros(len(directions), np.int32)

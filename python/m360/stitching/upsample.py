@@ -33,9 +33,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from . import _core
-from ._validate import as_array
-from .errors import InputError
+from .. import _core
+from .._validate import as_array
+from ..errors import InputError
 
 __all__ = ["UPSAMPLE_METHODS", "guided_upsample"]
 

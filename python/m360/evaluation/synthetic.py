@@ -21,15 +21,15 @@ from typing import Any
 import numpy as np
 
 from m360._compat import renamed
-from m360._sphere import (
+from m360._validate import MAX_ERP_WIDTH, as_array, integer, number
+from m360._validate import seed as check_seed
+from m360.errors import InputError
+from m360.geometry._sphere import (
     camera_pixel_directions,
     erp_latitudes,
     erp_longitudes,
     lonlat_to_directions,
 )
-from m360._validate import MAX_ERP_WIDTH, as_array, integer, number
-from m360._validate import seed as check_seed
-from m360.errors import InputError
 
 __all__ = [
     "Box",

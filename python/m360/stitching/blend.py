@@ -68,7 +68,7 @@ from __future__ import annotations
 
 from typing import Literal, TypedDict
 
-from . import _core
+from .. import _core
 
 __all__ = [
     "BLEND_METHODS",

@@ -9,25 +9,205 @@ and limits live in one place.
 
 from __future__ import annotations
 
+import argparse
 import copy
 import warnings
 from collections.abc import Mapping, Sequence
-from typing import Any, TypedDict
+from typing import TYPE_CHECKING, Annotated, Any, TypedDict
 
 import numpy as np
 
-from . import _core
-from ._validate import count, real, text
-from .align import AlignSolver, Energy, Loss, Offsets
+from .. import _core
+from .._keywords import Option, document, split
+from .._validate import count, real, text
+from ..errors import InputError
+from .align import (
+    ALIGN_MODES,
+    DEFAULT_LOSS,
+    DEFAULT_OFFSETS,
+    ENERGY_WEIGHTS,
+    AlignSolver,
+    Energy,
+    Loss,
+    Offsets,
+)
 from .blend import BlendMethod, Fidelity, PoissonSolver
-from .errors import InputError
 
-__all__ = ["AlignOptions", "AlignSpec", "BlendOptions", "StitchOptions"]
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
+__all__ = [
+    "AlignOptions",
+    "AlignSpec",
+    "BlendOptions",
+    "StitchKeywords",
+    "StitchOptions",
+    "StitchTuning",
+    "parse_align",
+]
 
 #: What ``align`` may be: ``"multiscale"``, ``"none"``, a (cols, rows) grid or a list of grids.
 AlignSpec = str | tuple[int, int] | Sequence[tuple[int, int]]
 
+
+def parse_align(text: str) -> AlignSpec:
+    """Read ``--align``: a mode name, or grids ``COLSxROWS[,COLSxROWS...]`` (e.g. ``4x3,8x7``)."""
+    if text in ALIGN_MODES:
+        return text
+    try:
+        grids = [tuple(int(v) for v in g.lower().split("x")) for g in text.split(",")]
+    except ValueError:
+        grids = []
+    if not grids or any(len(g) != 2 for g in grids):
+        raise argparse.ArgumentTypeError(
+            f"{text!r}: use {' or '.join(ALIGN_MODES)}, or grids COLSxROWS[,COLSxROWS...] "
+            "such as 4x3,8x7"
+        )
+    return [(g[0], g[1]) for g in grids]
+
+
+# The help texts show the core's defaults (names, defaults and limits live in the core).
+_ALIGN = _core.DEFAULTS["align"]
+_POISSON = _core.DEFAULTS["poisson"]
+_CHOICES = _core.CHOICES
+_SCHEDULES = "; ".join(
+    f"{energy}: {','.join(f'{c}x{r}' for c, r in levels)}"
+    for energy, levels in _core.DEFAULTS["schedules"].items()
+)
+_PER_SOLVER = ", ".join(f"{k} {v}" for k, v in _core.DEFAULTS["iterations"].items())
+
+
+def _per_energy(values: Mapping[str, Any]) -> str:
+    return ", ".join(f"{energy} {value}" for energy, value in values.items())
+
+
+@document
+class StitchTuning(TypedDict, total=False):
+    """The stitching options beyond ``align`` and ``blend`` (:mod:`m360.align`, :mod:`m360.blend`).
+
+    Each is None or absent for the core's default.
+    """
+
+    energy: Annotated[
+        Energy | None,
+        Option(f"alignment energy (default {_ALIGN['energy']})", choices=_CHOICES["energy"]),
+    ]
+    solver: Annotated[
+        AlignSolver | None,
+        Option(f"alignment solver (default {_ALIGN['solver']})", choices=_CHOICES["solver"]),
+    ]
+    iterations: Annotated[
+        int | None,
+        Option(f"alignment iteration cap per level (default per solver: {_PER_SOLVER})", parse=int),
+    ]
+    tolerance: Annotated[
+        float | None,
+        Option(f"alignment gradient tolerance (default {_ALIGN['tolerance']:g})", parse=float),
+    ]
+    sample_fraction: Annotated[
+        float | None,
+        Option(
+            f"fraction of overlap pixels in the data term (default {_ALIGN['sample_fraction']:g})",
+            parse=float,
+        ),
+    ]
+    pole_cap_deg: Annotated[
+        float | None,
+        Option(
+            f"leave out samples this close to the poles (default {_ALIGN['pole_cap_deg']:g})",
+            parse=float,
+        ),
+    ]
+    smoothness: Annotated[
+        float | None,
+        Option(
+            "smoothness weight (default per energy: "
+            f"{_per_energy({e: f'{w[0]:g}' for e, w in ENERGY_WEIGHTS.items()})})",
+            parse=float,
+        ),
+    ]
+    scale_weight: Annotated[
+        float | None,
+        Option(
+            "scale term weight (default per energy: "
+            f"{_per_energy({e: f'{w[1]:g}' for e, w in ENERGY_WEIGHTS.items()})})",
+            parse=float,
+        ),
+    ]
+    offsets: Annotated[
+        Offsets | None,
+        Option(
+            f"where the offset acts (default per energy: {_per_energy(DEFAULT_OFFSETS)})",
+            choices=_CHOICES["offsets"],
+        ),
+    ]
+    loss: Annotated[
+        Loss | None,
+        Option(
+            f"data-term loss (default per energy: {_per_energy(DEFAULT_LOSS)})",
+            choices=_CHOICES["loss"],
+        ),
+    ]
+    blend_options: Annotated[
+        Mapping[str, Any] | None,
+        Option(
+            "Poisson blend options fidelity, lam, tolerance, iterations, solver (they select "
+            "the Poisson blend when blend is not given)",
+            parts={
+                "fidelity": Option(
+                    f"Poisson fidelity target (default {_POISSON['fidelity']})",
+                    choices=_CHOICES["fidelity"],
+                    flag="--poisson-fidelity",
+                    aliases=("--fidelity",),
+                ),
+                "lam": Option(
+                    f"Poisson fidelity weight λ (default {_POISSON['lam']:g})",
+                    parse=float,
+                    flag="--poisson-lam",
+                ),
+                "tolerance": Option(
+                    f"Poisson relative residual (default {_POISSON['tolerance']:g})",
+                    parse=float,
+                    flag="--poisson-tolerance",
+                ),
+                "iterations": Option(
+                    f"Poisson iteration cap (default {_POISSON['iterations']})",
+                    parse=int,
+                    flag="--poisson-iterations",
+                ),
+                "solver": Option(
+                    f"Poisson solver (default {_POISSON['solver']})",
+                    choices=_CHOICES["poisson_solver"],
+                    flag="--poisson-solver",
+                ),
+            },
+        ),
+    ]
+
+
+@document
+class StitchKeywords(StitchTuning, total=False):
+    """Every stitching option as a keyword: what ``stitch``, ``estimate``, ``batch.run`` take."""
+
+    align: Annotated[
+        AlignSpec | None,
+        Option(
+            f"alignment: multiscale (default; the energy's schedule, {_SCHEDULES}), none, or "
+            "grids COLSxROWS[,COLSxROWS...]",
+            parse=parse_align,
+        ),
+    ]
+    blend: Annotated[
+        BlendMethod | None,
+        Option(
+            f"blending (default {_core.DEFAULTS['blend']['method']})", choices=_CHOICES["blend"]
+        ),
+    ]
+
+
 _LIMIT_ITERATIONS = int(_core.LIMITS["max_iterations"])
+#: The real-valued alignment options.
+_REAL_KEYS = ("tolerance", "sample_fraction", "pole_cap_deg", "smoothness", "scale_weight")
 #: The Poisson keys of ``blend_options``, named by the core.
 _POISSON_KEYS = tuple(k for k in _core.DEFAULTS["poisson"] if k != "method")
 #: Old spellings of ``blend_options`` keys, still accepted with a DeprecationWarning.
@@ -111,19 +291,13 @@ class StitchOptions:
         self,
         align: AlignSpec = "multiscale",
         blend: BlendMethod | None = None,
-        *,
-        energy: Energy | None = None,
-        solver: AlignSolver | None = None,
-        iterations: int | None = None,
-        tolerance: float | None = None,
-        sample_fraction: float | None = None,
-        pole_cap_deg: float | None = None,
-        smoothness: float | None = None,
-        scale_weight: float | None = None,
-        offsets: Offsets | None = None,
-        blend_options: Mapping[str, Any] | None = None,
-        loss: Loss | None = None,
+        **keywords: Unpack[StitchTuning],
     ) -> None:
+        (given,) = split(keywords, StitchTuning, where="StitchOptions")
+        energy, solver, loss, offsets = (
+            given.get(k) for k in ("energy", "solver", "loss", "offsets")
+        )
+        blend_options = given.get("blend_options")
         levels = _levels(align)
         raw_align: dict[str, Any] | None = None
         if levels is not False:
@@ -131,12 +305,8 @@ class StitchOptions:
                 "levels": levels,
                 "energy": _choice(energy, "energy", "energy"),
                 "solver": _choice(solver, "solver", "solver"),
-                "iterations": _count(iterations, "iterations"),
-                "tolerance": _real(tolerance, "tolerance"),
-                "sample_fraction": _real(sample_fraction, "sample_fraction"),
-                "pole_cap_deg": _real(pole_cap_deg, "pole_cap_deg"),
-                "smoothness": _real(smoothness, "smoothness"),
-                "scale_weight": _real(scale_weight, "scale_weight"),
+                "iterations": _count(given.get("iterations"), "iterations"),
+                **{k: _real(given.get(k), k) for k in _REAL_KEYS},
                 "offsets": _choice(offsets, "offsets", "offsets"),
                 "loss": _choice(loss, "loss", "loss"),
             }
@@ -246,29 +416,22 @@ class StitchOptions:
         return f"StitchOptions(align={self._align!r}, blend={self._blend!r})"
 
 
-def build(
-    options: StitchOptions | None,
-    align: AlignSpec = "multiscale",
-    blend: BlendMethod | None = None,
-    **keywords: Any,
-) -> StitchOptions:
+def build(options: StitchOptions | None, **keywords: Unpack[StitchKeywords]) -> StitchOptions:
     """``options``, or the options the stitching keywords describe (not both).
 
     The one place the callers of :class:`StitchOptions` (``stitch``, ``estimate``,
-    ``batch.run``) turn their keywords into options.
+    ``batch.run``) turn their keywords into options; keywords given as None count as absent.
     """
+    given = {k: v for k, v in keywords.items() if v is not None}
     if options is None:
-        return StitchOptions(align, blend, **keywords)
+        return StitchOptions(**given)  # type: ignore[arg-type]  # mypy: one TypedDict into another
     if not isinstance(options, StitchOptions):
         raise InputError(f"options must be an m360.StitchOptions, got {type(options).__name__}")
-    given = [k for k, v in keywords.items() if v is not None]
-    if isinstance(align, str) and align == "multiscale" and blend is None and not given:
+    if given.get("align") == "multiscale":
+        del given["align"]  # the default, spelt out
+    if not given:
         return options
-    named = ", ".join(
-        ([] if isinstance(align, str) and align == "multiscale" else ["align"])
-        + ([] if blend is None else ["blend"])
-        + given
-    )
+    named = ", ".join(given)
     raise InputError(f"give either options= or the stitching keywords, not both (got {named})")
 
 

@@ -18,8 +18,8 @@ from typing import Any
 
 import numpy as np
 
-from ._validate import integer, one_of
-from .errors import InputError
+from .._validate import integer, one_of
+from ..errors import InputError
 
 __all__ = ["DEFAULT_MAX_POINTS", "Scene3D", "load_scene", "serve"]
 
@@ -38,7 +38,7 @@ class Scene3D:
 
 
 def _depth_colours(xyz: np.ndarray) -> np.ndarray:
-    from .io import colorize
+    from .files import colorize
 
     distance = np.linalg.norm(xyz, axis=1)
     with np.errstate(divide="ignore"):
@@ -59,7 +59,8 @@ def load_scene(path: str | os.PathLike[str], *, mesh: bool = False, colour: str 
         A missing or unreadable file or stem.
     """
     from . import mesh as mesh_mod
-    from .io import load, output_stem
+    from .files import output_stem
+    from .reading import load
 
     colour = one_of(colour, "colour", ("rgb", "depth"))
     p = Path(path)
@@ -87,8 +88,8 @@ def load_scene(path: str | os.PathLike[str], *, mesh: bool = False, colour: str 
 
 
 def _read_3d(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
+    from ..errors import ReadError
     from .decode import read_bytes
-    from .errors import ReadError
     from .mesh import _trimesh
 
     trimesh = _trimesh()

@@ -11,19 +11,23 @@ import logging
 import time
 from collections.abc import Mapping
 from dataclasses import dataclass, field
-from typing import Any, Literal, TypedDict, overload
+from typing import TYPE_CHECKING, Any, Literal, TypedDict, overload
 
 import numpy as np
 
+from .._compat import moved, renamed
+from .._keywords import split
+from .._validate import as_array, check_shape, flag
+from ..errors import InputError
+from ..geometry.layout import Layout, check_tangents, plan_for
 from . import align as _align
 from . import blend as _blend
-from ._compat import moved, renamed
-from ._validate import as_array, check_shape, flag
-from .align import AlignLevelReport, AlignSolver, Energy, Loss, Offsets
+from .align import AlignLevelReport
 from .blend import BlendMethod, BlendReport
-from .errors import InputError
-from .geometry import Layout, check_tangents, plan_for
-from .options import AlignSpec, StitchOptions, build
+from .options import AlignSpec, StitchOptions, StitchTuning, build
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["StitchReport", "StitchResult", "stitch"]
 
@@ -112,19 +116,9 @@ def stitch(
     blend: BlendMethod | None = ...,
     *,
     mask: np.ndarray | None = ...,
-    energy: Energy | None = ...,
-    solver: AlignSolver | None = ...,
-    iterations: int | None = ...,
-    tolerance: float | None = ...,
-    sample_fraction: float | None = ...,
-    pole_cap_deg: float | None = ...,
-    smoothness: float | None = ...,
-    scale_weight: float | None = ...,
-    offsets: Offsets | None = ...,
-    loss: Loss | None = ...,
-    blend_options: Mapping[str, Any] | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[False] = ...,
+    **keywords: Unpack[StitchTuning],
 ) -> np.ndarray: ...
 
 
@@ -136,19 +130,9 @@ def stitch(
     blend: BlendMethod | None = ...,
     *,
     mask: np.ndarray | None = ...,
-    energy: Energy | None = ...,
-    solver: AlignSolver | None = ...,
-    iterations: int | None = ...,
-    tolerance: float | None = ...,
-    sample_fraction: float | None = ...,
-    pole_cap_deg: float | None = ...,
-    smoothness: float | None = ...,
-    scale_weight: float | None = ...,
-    offsets: Offsets | None = ...,
-    loss: Loss | None = ...,
-    blend_options: Mapping[str, Any] | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[True],
+    **keywords: Unpack[StitchTuning],
 ) -> StitchResult: ...
 
 
@@ -160,19 +144,9 @@ def stitch(
     blend: BlendMethod | None = None,
     *,
     mask: np.ndarray | None = None,
-    energy: Energy | None = None,
-    solver: AlignSolver | None = None,
-    iterations: int | None = None,
-    tolerance: float | None = None,
-    sample_fraction: float | None = None,
-    pole_cap_deg: float | None = None,
-    smoothness: float | None = None,
-    scale_weight: float | None = None,
-    offsets: Offsets | None = None,
-    loss: Loss | None = None,
-    blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
     return_details: bool = False,
+    **keywords: Unpack[StitchTuning],
 ) -> np.ndarray | StitchResult:
     """Stitch per-tangent perspective disparity into one ERP spherical disparity map.
 
@@ -199,18 +173,16 @@ def stitch(
     mask : (N, h, w) bool, optional
         False marks pixels with no estimate (sky, tripod). They never contribute, not even
         through a bilinear neighbour, and are left out of standardisation and overlaps.
-    energy, solver, iterations, tolerance, sample_fraction : optional
-        Alignment options (:mod:`m360.align`); None takes the core's default.
-    pole_cap_deg, smoothness, scale_weight, offsets, loss : optional
-        Alignment options (:mod:`m360.align`); None takes the core's default.
-    blend_options : mapping, optional
-        Options of ``blend="poisson"`` (which they select when ``blend`` is None):
-        ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (:mod:`m360.blend`).
-        A solve that does not reach ``tolerance`` raises :class:`m360.SolverError`.
     options : StitchOptions, optional
-        All of the above at once (then leave the keywords at their defaults).
+        Every stitching option at once (then give none of them as a keyword).
     return_details : bool
         Return a :class:`StitchResult` instead of the disparity array.
+    **keywords
+        The other stitching options, :class:`m360.stitching.options.StitchTuning` (``energy``,
+        ``solver``, ``iterations``, ``tolerance``, ``sample_fraction``, ``pole_cap_deg``,
+        ``smoothness``, ``scale_weight``, ``offsets``, ``loss``, ``blend_options``; see
+        :mod:`m360.align` and :mod:`m360.blend`); None or absent takes the core's default. A
+        Poisson solve that does not reach its tolerance raises :class:`m360.SolverError`.
 
     Returns
     -------
@@ -228,22 +200,8 @@ def stitch(
     """
     t0 = time.perf_counter()
     data = check_tangents(tangents, layout, "tangents")
-    opts = build(
-        options,
-        align,
-        blend,
-        energy=energy,
-        solver=solver,
-        iterations=iterations,
-        tolerance=tolerance,
-        sample_fraction=sample_fraction,
-        pole_cap_deg=pole_cap_deg,
-        smoothness=smoothness,
-        scale_weight=scale_weight,
-        offsets=offsets,
-        loss=loss,
-        blend_options=blend_options,
-    ).checked_for(layout.tangent_shape)
+    (tuning,) = split(keywords, StitchTuning, where="stitch")
+    opts = build(options, align=align, blend=blend, **tuning).checked_for(layout.tangent_shape)
     valid = None if mask is None else _check_mask(mask, layout)
     flag(return_details, "return_details")
 

@@ -43,11 +43,11 @@ from typing import Any
 
 import ray as _ray
 
-from . import batch as _batch
+from ..errors import InputError, ModelError
+from ..io import remove_stale_temporaries
+from . import image as _image
 from ._interrupt import deferred
-from .batch import ImageOutcome, Job, _Settings
-from .errors import InputError, ModelError
-from .io import remove_stale_temporaries
+from .image import ImageOutcome, Job, _Settings
 
 # Ray's annotations are partial (untyped functions, ObjectRef not unpackable): use it untyped.
 ray: Any = _ray
@@ -77,8 +77,9 @@ _LAYOUTS: dict[tuple[int, float | None], Any] = {}
 
 def _layout(width: int, padding: float | None) -> Any:
     """The default layout of a width (and padding), kept per worker process (its plan is cached
-    in the core): the one :func:`m360.estimate` makes."""
-    from .geometry import default_layout
+    in the core): the one :func:`m360.estimate` makes.
+    """
+    from ..geometry.layout import default_layout
 
     if (width, padding) not in _LAYOUTS:
         _LAYOUTS[width, padding] = default_layout(width, padding)
@@ -86,7 +87,7 @@ def _layout(width: int, padding: float | None) -> Any:
 
 
 def _use_threads(threads: int) -> None:
-    from . import get_num_threads, set_num_threads
+    from .._core import get_num_threads, set_num_threads
 
     if get_num_threads() != threads:
         set_num_threads(threads)
@@ -102,28 +103,28 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     """
     import cv2
 
-    from .estimate import _check_erp_rgb
-    from .geometry import erp_to_tangents
-    from .memory import working_width_for
+    from ..geometry.layout import erp_to_tangents
+    from ..pipeline.estimate import _check_erp_rgb
+    from ..pipeline.memory import working_width_for
 
     _use_threads(threads)
     try:
         t0 = time.perf_counter()
-        read = _batch._read_job(job, settings)
+        read = _image._read_job(job, settings)
         rgb = _check_erp_rgb(read.rgb)
         height, width = rgb.shape[:2]
-        work_width = working_width_for(settings.working_width, width)
+        work_width = working_width_for(settings.job["working_width"], width)
         working = rgb
         if work_width != width:
             size = (work_width, work_width // 2)
             working = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         t_read = time.perf_counter()
-        tangents = erp_to_tangents(working, _layout(work_width, settings.padding))
+        tangents = erp_to_tangents(working, _layout(work_width, settings.job["padding"]))
         t_project = time.perf_counter()
     except Exception as exc:
-        return _batch._error_outcome(job, exc), None
+        return _image._error_outcome(job, exc), None
     timings = {"read": t_read - t0, "project": t_project - t_read}
-    keep = _batch._needs_rgb(settings) or work_width != width
+    keep = _image._needs_rgb(settings) or work_width != width
     read.rgb = rgb if keep else None
     return (read, (height, width), work_width, timings), tangents
 
@@ -132,10 +133,12 @@ class _Network:
     """Stage 2: one estimator (ONNX Runtime session) per actor, loaded once."""
 
     def __init__(self, settings: _Settings, threads: int | None) -> None:
-        from .estimators import load_estimator
+        from ..estimators import ModelOptions, load_estimator
 
-        self.estimator = load_estimator(settings.model, threads=threads, **settings.model_options)
-        self.padding = settings.padding
+        # The actor's threads (its reserved CPUs unless the run names them) win.
+        given = {**settings.model_options.keywords(), "threads": threads}
+        self.estimator = load_estimator(settings.model, model_options=ModelOptions(**given))
+        self.padding = settings.job["padding"]
 
     def ready(self) -> bool:
         """Tell the driver the model loaded (a failure is the constructor's exception)."""
@@ -143,7 +146,7 @@ class _Network:
 
     def predict(self, tangents: Any, width: int) -> tuple[Any, Any]:
         """(meta, raw): meta is (model info, seconds) or the exception the network raised."""
-        from .estimate import _model_info, _predict
+        from ..pipeline.estimate import _model_info, _predict
 
         layout = _layout(width, self.padding)
         t0 = time.perf_counter()
@@ -165,16 +168,16 @@ def _stitch_write(
     raw: Any,
 ) -> ImageOutcome:
     """Stage 3: the rest of m360.estimate, then the atomic write (the driver holds the claim)."""
-    from .estimate import _from_network, _split_mask
+    from ..pipeline.estimate import _from_network, _split_mask
 
     _use_threads(threads)
     if isinstance(network_meta, Exception):
-        return _batch._error_outcome(job, network_meta)
+        return _image._error_outcome(job, network_meta)
     read, erp_shape, work_width, timings = read_meta
     info, kind, network_seconds = network_meta
     try:
-        layout = _layout(work_width, settings.padding)
-        mask, erp_valid = _split_mask(_batch._image_mask(read, settings), layout, erp_shape)
+        layout = _layout(work_width, settings.job["padding"])
+        mask, erp_valid = _split_mask(_image._image_mask(read, settings), layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
         result = _from_network(
@@ -187,18 +190,19 @@ def _stitch_write(
             before,
             mask=mask,
             erp_valid=erp_valid,
-            sky_mode=settings.sky,
+            sky_mode=settings.job["sky"],
             scale=settings.scale,
             guide=read.rgb if work_width != erp_shape[1] else None,
+            upsample=settings.job["upsample"],
         )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting
         t_write = time.perf_counter()
         # An earlier attempt at this image lost its worker mid-write; the claim is still ours.
         remove_stale_temporaries(job.stem)
-        _batch._write_job(job, result, read.records, settings, read.rgb)
+        _image._write_job(job, result, read.records, settings, read.rgb)
         write = time.perf_counter() - t_write
     except Exception as exc:
-        return _batch._error_outcome(job, exc)
+        return _image._error_outcome(job, exc)
     stages = {"read": timings["read"], **result.timings, "write": write}
     stages.pop("total")
     return ImageOutcome(str(job.input), job.name, "done", timings=stages)
@@ -353,19 +357,19 @@ class _Driver:
         s = self.settings
         while self.queue and self.in_flight < self.window:
             job = self.queue.popleft()
-            unusable = _batch._make_job_folder(job)
+            unusable = _image._make_job_folder(job)
             if unusable is not None:
                 self.record(job, unusable)
                 continue
             claim = contextlib.ExitStack()
             self.claims.add(claim)  # first: Ctrl-C from here on still releases it
             with deferred():  # Ctrl-C lands once the claim is in the stack, not halfway
-                claimed = claim.enter_context(_batch._claim(job.stem))
+                claimed = claim.enter_context(_image._claim(job.stem))
             if not claimed:
                 self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "busy"))
                 continue
-            if s.resume and _batch.is_done(job, s.fingerprint):
+            if s.resume and _image.is_done(job, s.fingerprint):
                 self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "skipped"))
                 continue
@@ -435,7 +439,8 @@ class _Driver:
 
     def _await_restart(self, actor: Any) -> None:
         """Give ``actor`` no image until it is alive again (Ray restarts it, on another node
-        if its node is gone): an image sent to a restarting actor would fail unseen."""
+        if its node is gone): an image sent to a restarting actor would fail unseen.
+        """
         ready = actor.ready.options(max_task_retries=-1).remote()
         self.pending[ready] = ("restarted", None, actor)
 

@@ -36,7 +36,6 @@ from __future__ import annotations
 import contextlib
 import csv
 import datetime
-import hashlib
 import json
 import multiprocessing
 import os
@@ -49,36 +48,37 @@ from collections import deque
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path, PurePath
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
-import numpy as np
-
-from . import models as _models
-from ._gpano import place as place_crop
-from ._gpano import read_gpano
-from ._interrupt import MainThreadInterrupts, deferred, install_for_process
-from ._validate import MAX_THREADS, flag, integer, number, one_of
-from ._validate import threads as check_threads
-from .align import AlignSolver, Energy, Loss, Offsets
-from .blend import BlendMethod
-from .decode import IMAGE_SUFFIXES, decode_image, fix_aspect_ratio, read_input_bytes
-from .errors import InputError, M360Error, ReadError
-from .estimators import OnnxEstimator
-from .geometry import DEFAULT_PADDING, default_layout
-from .io import (
-    GEOMETRY_FILES,
-    GEOMETRY_FORMATS,
+from .._keywords import definition, resolved, split
+from .._validate import MAX_THREADS, flag, integer
+from ..errors import InputError, ReadError
+from ..estimators import OnnxEstimator
+from ..estimators import registry as _models
+from ..estimators.options import ModelKeywords, ModelOptions
+from ..geometry.layout import DEFAULT_PADDING
+from ..io import (
     check_formats,
-    listed_files,
-    read_sidecar,
-    remove_stale_temporaries,
-    save,
 )
-from .masks import SKY_MODES
-from .memory import check_working_width
-from .options import AlignSpec, StitchOptions, build
+from ..io.decode import IMAGE_SUFFIXES
+from ..pipeline.options import EstimateKeywords, JobKeywords
+from ..stitching.options import StitchKeywords, StitchOptions, build
+from ._interrupt import MainThreadInterrupts, install_for_process
+from .image import (
+    ImageOutcome,
+    Job,
+    _check_masks,
+    _describe_masks,
+    _failure,
+    _Settings,
+    _Worker,
+    is_done,
+)
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
 
@@ -88,33 +88,6 @@ FAILURES_FILE = "failures.jsonl"
 ENGINES = ("local", "ray")
 #: Stages reported per image: reading the file, m360.estimate's stages, writing the outputs.
 STAGES = ("read", "load", "project", "network", "convert", "align", "blend", "write")
-
-
-@dataclass(frozen=True)
-class Job:
-    """One image of a batch: where it comes from and the output stem inside OUT."""
-
-    input: Path
-    stem: Path
-    name: str  # the stem relative to OUT
-    source: str = ""  # where the job came from (folder, manifest line) for messages
-
-
-@dataclass
-class ImageOutcome:
-    """What happened to one image.
-
-    ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
-    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
-    written).
-    """
-
-    input: str
-    stem: str
-    status: str
-    error: str | None = None
-    message: str | None = None
-    timings: dict[str, float] = field(default_factory=dict)
 
 
 @dataclass
@@ -310,299 +283,6 @@ def _inside(out: Path, rel: PurePath, where: str) -> Path:
     return stem
 
 
-def _failure(source: Path, stem: str, exc: BaseException) -> ImageOutcome:
-    return ImageOutcome(str(source), stem, "failed", type(exc).__name__, str(exc))
-
-
-# --------------------------------------------------------------------------------------------
-# One image.
-
-
-@dataclass(frozen=True)
-class _Settings:
-    """Everything a worker needs to process images (picklable)."""
-
-    model: Any
-    model_options: dict[str, Any]
-    options: StitchOptions
-    formats: tuple[str, ...]
-    preview: bool
-    fix_aspect: bool
-    resume: bool
-    fingerprint: dict[str, Any]
-    run_id: str
-    threads: int | None
-    scale: Any = None
-    masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
-    sky: str = "keep"
-    confidence: bool = False
-    working_width: int | str | None = None  # m360.estimate's, per image
-    padding: float | None = None  # of the default layout (m360.estimate's)
-
-
-class _Worker:
-    """Per-process state: the estimator is loaded once; the plan cache lives in the process."""
-
-    def __init__(self, settings: _Settings, estimator: Any | None = None) -> None:
-        from .estimators import load_estimator
-
-        self.settings = settings
-        self.estimator = estimator or load_estimator(
-            settings.model, threads=settings.threads, **settings.model_options
-        )
-
-    def process(self, job: Job) -> ImageOutcome:
-        from .estimate import estimate
-
-        s = self.settings
-        unusable = _make_job_folder(job)
-        if unusable is not None:
-            return unusable
-        with _claim(job.stem) as claimed:
-            if not claimed:
-                return ImageOutcome(str(job.input), job.name, "busy")
-            if s.resume and is_done(job, s.fingerprint):
-                return ImageOutcome(str(job.input), job.name, "skipped")
-            remove_stale_temporaries(job.stem)
-            try:
-                t0 = time.perf_counter()
-                read = _read_job(job, s)
-                t_read = time.perf_counter()
-                result = estimate(
-                    read.rgb,
-                    self.estimator,
-                    options=s.options,
-                    scale=s.scale,
-                    mask=_image_mask(read, s),
-                    sky=s.sky,
-                    working_width=s.working_width,
-                    padding=s.padding,
-                )
-                t_estimate = time.perf_counter()
-                _write_job(job, result, read.records, s, read.rgb)
-                t_write = time.perf_counter()
-            except Exception as exc:
-                return _error_outcome(job, exc)
-        timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
-        timings.pop("total", None)
-        return ImageOutcome(str(job.input), job.name, "done", timings=timings)
-
-
-# The pieces of one image, shared by the local engine (_Worker.process) and the Ray engine
-# (m360._ray_engine), which runs them in different processes: the same bytes either way.
-
-
-def _make_job_folder(job: Job) -> ImageOutcome | None:
-    """Create the folder of ``job``'s outputs; a failed outcome if that is impossible."""
-    try:
-        job.stem.parent.mkdir(parents=True, exist_ok=True)
-    except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
-        message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
-        return _failure(job.input, job.name, InputError(message))
-    return None
-
-
-@dataclass
-class _Read:
-    """An input image as the stages need it."""
-
-    rgb: Any  # (H, W, 3) uint8 ERP: a partial panorama is placed in its full canvas
-    captured: Any  # (H, W) bool, the captured part of a partial panorama; None: all of it
-    records: dict[str, Any]  # the sidecar's "input" record, and "crop" for a partial panorama
-
-
-def _read_job(job: Job, s: _Settings) -> _Read:
-    """Read and decode ``job``'s image.
-
-    A partial panorama with GPano crop metadata goes into its full canvas, the rest masked;
-    without metadata W != 2H is refused (or resized, ``fix_aspect``) as before.
-    """
-    data = read_input_bytes(job.input)
-    stat = job.input.stat()
-    rgb = decode_image(data, job.input)
-    original = rgb.shape[:2]
-    crop = read_gpano(data, str(job.input))
-    captured = None
-    if crop is not None:
-        rgb, captured = place_crop(rgb, crop, str(job.input))
-    else:
-        rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
-    source = {
-        "path": str(job.input),
-        "sha256": hashlib.sha256(data).hexdigest(),
-        "size": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
-        "shape": list(original),
-        "aspect_fixed": crop is None and tuple(original) != rgb.shape[:2],
-        "exif_orientation": "ignored",
-    }
-    records = {"input": source} | ({} if crop is None else {"crop": crop.as_dict()})
-    return _Read(rgb, captured, records)
-
-
-def _image_mask(read: _Read, s: _Settings) -> list[Any] | None:
-    """Give the masks of one image for :func:`m360.estimate`: its captured part and the run's."""
-    masks = [*([] if read.captured is None else [read.captured]), *s.masks]
-    return masks or None
-
-
-def _check_masks(mask: Any) -> tuple[Any, ...]:
-    """Check ``run``'s ``mask``; returns a tuple of caps and (H, W) bool arrays.
-
-    They are not combined: images may differ in size, and a cap fits any.
-    """
-    from .masks import Cap
-
-    if mask is None:
-        return ()
-    items = list(mask) if isinstance(mask, (list, tuple)) else [mask]
-    for item in items:
-        if isinstance(item, Cap):
-            continue
-        if not isinstance(item, np.ndarray) or item.ndim != 2 or item.dtype != np.bool_:
-            raise InputError(
-                "mask must be m360.masks.nadir/zenith caps or (H, W) bool arrays (True = use), "
-                f"got {type(item).__name__}"
-                + (f" {item.dtype} of shape {item.shape}" if isinstance(item, np.ndarray) else "")
-            )
-    return tuple(items)
-
-
-def _describe_masks(masks: Sequence[Any]) -> list[dict[str, Any]]:
-    """Describe the masks as JSON for the resume fingerprint (arrays by sha256)."""
-    return [
-        {"array": hashlib.sha256(np.packbits(m).tobytes()).hexdigest(), "shape": list(m.shape)}
-        if isinstance(m, np.ndarray)
-        else {"cap": m.pole, "degrees": m.degrees}
-        for m in masks
-    ]
-
-
-def _needs_rgb(s: _Settings) -> bool:
-    """Whether writing needs the panorama's colours (the 3D formats)."""
-    return any(fmt in GEOMETRY_FORMATS for fmt in s.formats)
-
-
-def _write_job(
-    job: Job, result: Any, records: dict[str, Any], s: _Settings, rgb: Any | None
-) -> None:
-    """Write ``job``'s outputs atomically, the sidecar (with input and fingerprint) last.
-
-    ``rgb`` colours the 3D formats; it may be None when :func:`_needs_rgb` is False.
-    """
-    save(
-        result,
-        job.stem,
-        formats=s.formats,
-        preview=s.preview,
-        extra={**records, "batch": {"fingerprint": s.fingerprint, "run": s.run_id}},
-        rgb=rgb,
-        confidence=s.confidence,
-    )
-
-
-def _error_outcome(job: Job, exc: Exception) -> ImageOutcome:
-    """Make the failed outcome of ``job`` for an exception raised while processing it."""
-    outcome = _failure(job.input, job.name, exc)
-    if not isinstance(exc, M360Error):  # a bug or a library error: still only this image fails
-        outcome.message = f"{exc} (unexpected; please report it)"
-    return outcome
-
-
-def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
-    """Tell whether ``job`` is already done with these options.
-
-    True if its sidecar exists, its files exist, and it was made from the same input file (path,
-    size, mtime) with the same ``fingerprint`` (see :func:`fingerprint`).
-    """
-    try:
-        meta = read_sidecar(job.stem)
-        stat = job.input.stat()
-    except (M360Error, OSError):
-        return False
-    source = meta.get("input")
-    batch = meta.get("batch")
-    if not isinstance(source, dict) or not isinstance(batch, dict):
-        return False
-    if batch.get("fingerprint") != json.loads(json.dumps(fingerprint)):
-        return False
-    same_input = (source.get("path"), source.get("size"), source.get("mtime_ns")) == (
-        str(job.input),
-        stat.st_size,
-        stat.st_mtime_ns,
-    )
-    try:
-        names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
-    except M360Error:
-        return False
-    for extra in ("preview", *(kind for kind, _ in GEOMETRY_FILES.values())):
-        entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
-        for name in entry.values() if isinstance(entry, dict) else [entry]:
-            if isinstance(name, str) and Path(name).name == name:
-                names.append(name)
-    return same_input and bool(names) and all((job.stem.parent / n).is_file() for n in names)
-
-
-@contextlib.contextmanager
-def _claim(stem: Path) -> Iterator[bool]:
-    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem``.
-
-    Yields False if another process holds it. The OS releases the lock when its process dies,
-    so a killed run blocks nothing. The lock file is removed while still held, after the work;
-    a claimer that locked a file which was removed meanwhile retries on the new one, so two
-    claimers never both hold it. Ctrl-C is held back while the claim is taken and released
-    (:func:`m360._interrupt.deferred`): arriving between creating the file and the ``try``
-    that removes it, it used to leave the file behind.
-    """
-    stem.parent.mkdir(parents=True, exist_ok=True)
-    path = stem.with_name(f".{stem.name}.lock")
-    fd: int | None = None
-    try:
-        with deferred():  # a Ctrl-C held back here is raised inside the try
-            fd = _lock_current(path)
-        yield fd is not None
-    finally:
-        if fd is not None:
-            with deferred():
-                with contextlib.suppress(FileNotFoundError):
-                    os.unlink(path)
-                os.close(fd)
-
-
-def _lock_current(path: Path) -> int | None:
-    """Open and lock the lock file now at ``path``; None if another claimer holds it."""
-    while True:
-        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
-        if not _try_lock(fd):
-            os.close(fd)
-            return None
-        try:
-            current = os.stat(path).st_ino
-        except FileNotFoundError:
-            current = -1
-        if current == os.fstat(fd).st_ino:
-            return fd
-        os.close(fd)  # locked a file its holder had just removed: take the current one
-
-
-def _try_lock(fd: int) -> bool:
-    try:
-        import fcntl
-    except ImportError:  # Windows
-        import msvcrt
-
-        try:
-            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)  # type: ignore[attr-defined]
-        except OSError:
-            return False
-        return True
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except BlockingIOError:
-        return False
-    return True
-
-
 # --------------------------------------------------------------------------------------------
 # The run.
 
@@ -612,41 +292,23 @@ def run(
     out_dir: str | os.PathLike[str],
     *,
     model: Any = _models.DEFAULT_MODEL,
-    align: AlignSpec = "multiscale",
-    blend: BlendMethod | None = None,
-    energy: Energy | None = None,
-    solver: AlignSolver | None = None,
-    iterations: int | None = None,
-    tolerance: float | None = None,
-    sample_fraction: float | None = None,
-    pole_cap_deg: float | None = None,
-    smoothness: float | None = None,
-    scale_weight: float | None = None,
-    offsets: Offsets | None = None,
-    loss: Loss | None = None,
-    blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
+    model_options: ModelOptions | None = None,
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
     confidence: bool = False,
     workers: int = 1,
-    threads: int | None = None,
     resume: bool = True,
     recursive: bool = False,
     fix_aspect: bool = False,
     progress: bool = True,
     on_outcome: Callable[[ImageOutcome], None] | None = None,
-    providers: Sequence[str] | None = None,
-    input_size: tuple[int, int] | None = None,
-    output_kind: str | None = None,
     scale: Any = None,
     mask: Any = None,
-    sky: str = "keep",
-    working_width: int | str | None = None,
-    padding: float | None = None,
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
+    **keywords: Unpack[EstimateKeywords],
 ) -> BatchReport:
     """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
 
@@ -659,10 +321,10 @@ def run(
     model : str, path or estimator
         As for :func:`m360.estimate`. With ``workers > 1`` an estimator object must be
         picklable.
-    align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
-        The stitching options, as for :func:`m360.stitch`.
-    pole_cap_deg, smoothness, scale_weight, offsets, loss, blend_options, options : optional
-        The stitching options, as for :func:`m360.stitch`.
+    options : StitchOptions, optional
+        Every stitching option at once (then give none of them as a keyword).
+    model_options : ModelOptions, optional
+        Every model option at once (then give none of them as a keyword).
     formats : sequence of str
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
     confidence : bool
@@ -670,9 +332,6 @@ def run(
     workers : int
         Processes working on images at once (1 = in this process); with ``engine="ray"`` the
         number of model actors (one network session each).
-    threads : int, optional
-        ONNX Runtime intra-op threads per worker; with ``workers > 1`` also the core's threads
-        per worker (default: the CPU count divided among the workers).
     resume : bool
         Skip images already done with the same input and options (default); False redoes them.
     recursive : bool
@@ -683,8 +342,6 @@ def run(
         Show a progress bar (tqdm) over the images.
     on_outcome : callable, optional
         Called in this process with each :class:`ImageOutcome` as it arrives.
-    providers, input_size, output_kind : optional
-        ONNX model options, as for :func:`m360.estimate`.
     scale : scaler, optional
         Metric scale per image (:mod:`m360.scale`, e.g. ``camera_height(1.6)``); an image whose
         fit fails is a failure (``ScaleError``), nothing of it is written in metres.
@@ -692,14 +349,6 @@ def run(
         ERP pixels to leave out of every image (:mod:`m360.masks`): ``nadir(deg)`` /
         ``zenith(deg)`` caps, (H, W) bool arrays (True = use; an image of another size fails),
         or a list of them; combined with a partial panorama's own mask.
-    sky : {"keep", "nan"}
-        As for :func:`m360.estimate`: ``"nan"`` gives the sky no depth.
-    working_width : int or "native", optional
-        As for :func:`m360.estimate`: the ERP width the method runs at (default: the image's
-        width up to 8192, above it 4096), upsampled to the image's resolution.
-    padding : float, optional
-        As for :func:`m360.estimate`: the padding of every image's layout (default 0.7; 0.3
-        is the paper's layout).
     engine : {"local", "ray"}
         Where images run: local processes, or a Ray cluster (``pip install "m360[ray]"``; the
         cluster in ``RAY_ADDRESS``, else a local one). Same outputs, resume, failures, claims
@@ -708,13 +357,19 @@ def run(
         Ray only: GPUs per model actor (default 1 if ``providers`` asks for CUDA, else 0).
     cpus_per_stitch : float
         Ray only: CPUs per align + blend task (also the core's threads in it).
+    **keywords
+        Every option of :func:`m360.estimate` beyond its named ones, for every image: one list,
+        :class:`m360.pipeline.options.EstimateKeywords` (the stitching options, the model
+        options, ``working_width``, ``upsample``, ``padding``, ``sky``). ``threads`` is also
+        the core's threads per worker with ``workers > 1`` (default: the CPU count divided
+        among the workers).
 
     Returns
     -------
     BatchReport
         Per-image outcomes, failures, time per stage; ``exit_code`` as ``m360 run`` uses it.
     """
-    from .estimators import load_estimator
+    from ..estimators import load_estimator
 
     started = time.perf_counter()
     if not isinstance(out_dir, (str, os.PathLike)):
@@ -724,32 +379,19 @@ def run(
         raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
+    stitch_keywords, model_keywords, job_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="run"
+    )
+    model_opts = ModelOptions.build(model_options, **model_keywords)
+    job_options = resolved(job_keywords, JobKeywords)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
-    ray_resources = _ray_resources(engine, workers, gpus_per_model, cpus_per_stitch, providers)
-    threads = check_threads(threads)
+    ray_resources = _ray_resources(
+        engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
+    )
     chosen = check_formats(formats)
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
-    check_working_width(working_width)
-    if padding is not None:  # checked now (by the core) rather than once per image
-        padding = default_layout(2048, number(padding, "padding")).padding
-    sky = one_of(sky, "sky", SKY_MODES)
-    opts = build(
-        options,
-        align,
-        blend,
-        energy=energy,
-        solver=solver,
-        iterations=iterations,
-        tolerance=tolerance,
-        sample_fraction=sample_fraction,
-        pole_cap_deg=pole_cap_deg,
-        smoothness=smoothness,
-        scale_weight=scale_weight,
-        offsets=offsets,
-        loss=loss,
-        blend_options=blend_options,
-    )
+    opts = build(options, **stitch_keywords)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)
@@ -757,17 +399,12 @@ def run(
         raise InputError(f"no images found in {inputs} (looked for {', '.join(IMAGE_SUFFIXES)})")
 
     # Resolve (download, verify) the model once, here: a bad model fails the run, not each image.
-    given: dict[str, Any] = {
-        "providers": providers,
-        "input_size": input_size,
-        "output_kind": output_kind,
-    }
-    model_options = {k: v for k, v in given.items() if v is not None}
-    estimator = load_estimator(model, threads=threads, **model_options)
+    estimator = load_estimator(model, model_options=model_opts)
     settings = _Settings(
         model=model,
-        model_options=model_options,
+        model_options=model_opts,
         options=opts,
+        job=job_options,
         formats=chosen,
         preview=bool(preview),
         fix_aspect=bool(fix_aspect),
@@ -781,28 +418,24 @@ def run(
             confidence=confidence,
         ),
         run_id=uuid.uuid4().hex[:12],
-        threads=threads,
         scale=scale,
         masks=masks,
-        sky=sky,
         confidence=confidence,
-        working_width=working_width,
-        padding=padding,
     )
     # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
     # fingerprints of earlier runs stay valid).
     if scale is not None:
-        from .scale import describe
+        from ..pipeline.scale import describe
 
         settings.fingerprint["scale"] = describe(scale)
     if masks:
         settings.fingerprint["mask"] = _describe_masks(masks)
-    if sky != "keep":
-        settings.fingerprint["sky"] = sky
-    if working_width is not None:
-        settings.fingerprint["working_width"] = working_width
+    # The job's options that differ from their defaults (absent otherwise, as above).
+    defaults = {name: o.default for name, o in definition(JobKeywords).items()}
+    settings.fingerprint.update({k: v for k, v in job_options.items() if v != defaults[k]})
     # Always: the default padding changed (0.3 → 0.7), so an image written before under the
     # default (no key) is redone, and one written with --padding 0.7 is kept.
+    padding = job_options["padding"]
     settings.fingerprint["padding"] = DEFAULT_PADDING if padding is None else padding
     if workers > 1 or ray_resources is not None:
         _check_picklable(settings)
@@ -1055,7 +688,7 @@ def _on_sigint(signum: int, frame: Any) -> None:
 
 def _init_process(settings: _Settings, core_threads: int) -> None:
     global _PROCESS_WORKER
-    from . import set_num_threads
+    from .._core import set_num_threads
 
     install_for_process(_on_sigint)
     set_num_threads(core_threads)

@@ -1,4 +1,4 @@
-"""Tangent layouts and resampling between the equirectangular image and its tangent images.
+"""Tangent layouts, their compiled plans, and resampling between the ERP image and its tangents.
 
 Conventions (docs/conventions.md): world frame x right, y down, z forward. ERP pixel (row i,
 column j) of an H x 2H image looks at longitude 2π(j+0.5)/W − π and latitude π/2 − π(i+0.5)/H. A
@@ -17,9 +17,9 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from . import _core
-from ._compat import renamed
-from ._validate import (
+from .. import _core
+from .._compat import renamed
+from .._validate import (
     MAX_ERP_WIDTH,
     as_array,
     check_erp_shape,
@@ -28,9 +28,26 @@ from ._validate import (
     integer,
     number,
 )
-from .errors import InputError
+from ..errors import InputError
 
-__all__ = ["Layout", "TangentCamera", "clear_plan_cache", "erp_to_tangents", "tangents_to_erp"]
+__all__ = [
+    "DEFAULT_PADDING",
+    "PAPER_PADDING",
+    "Layout",
+    "TangentCamera",
+    "clear_plan_cache",
+    "default_layout",
+    "erp_to_tangents",
+    "tangents_to_erp",
+]
+
+#: Padding of the icosahedron layout when none is given, in gnomonic units: the layout
+#: :func:`m360.estimate` runs on. Wider than the paper's 0.3, so that most pixels are seen by three
+#: or more tangents and the consensus blend can outvote one tangent's content error
+#: (docs/method.md, "More overlap").
+DEFAULT_PADDING = 0.7
+#: The paper's padding (``padding="paper"`` names it): the 20 tangents of 400x346 at W = 2048.
+PAPER_PADDING = 0.3
 
 
 @dataclass(frozen=True, eq=False)
@@ -107,7 +124,7 @@ class Layout:
     def icosahedron(
         cls,
         erp_width: int,
-        padding: float = 0.3,
+        padding: float | str | None = None,
         tangent_width: int | None = None,
         subdivisions: int = 0,
     ) -> Layout:
@@ -134,8 +151,11 @@ class Layout:
         erp_width : int
             Width W of the ERP images (height W/2); even, in
             [``LIMITS["min_erp_width"]``, ``LIMITS["max_erp_width"]``] of ``m360._core``.
-        padding : float
-            Edge offset in gnomonic units (the paper's p = 0.3).
+        padding : float or "paper", optional
+            Edge offset in gnomonic units. Default :data:`DEFAULT_PADDING` (0.7, the layout
+            :func:`m360.estimate` uses); ``"paper"`` (or :data:`PAPER_PADDING`) is the paper's
+            p = 0.3. Subdivided layouts default to 0.3: at 0.7 more than 16 of their smaller
+            tangents would see one direction.
         tangent_width : int, optional
             Tangent width in pixels; default 400 at W = 2048, scaled linearly (800x693 at 4K);
             with subdivisions, the width that keeps the paper's angular pixel size.
@@ -145,10 +165,10 @@ class Layout:
         """
         # Types here (machine-sized integers); the core judges the values (_core.LIMITS).
         erp_width = integer(erp_width, "erp_width", low=0, high=sys.maxsize)
-        padding = number(padding, "padding")
+        subdivisions = integer(subdivisions, "subdivisions", low=0, high=sys.maxsize)
+        padding = _padding(padding, subdivisions)
         if tangent_width is not None:
             tangent_width = integer(tangent_width, "tangent_width", low=0, high=sys.maxsize)
-        subdivisions = integer(subdivisions, "subdivisions", low=0, high=sys.maxsize)
         rotations, intrinsics, (h, w), faces = _core.icosahedron_cameras(
             erp_width, float(padding), tangent_width, subdivisions
         )
@@ -257,20 +277,25 @@ class Layout:
         )
 
 
-#: Padding of the layout :func:`m360.estimate` uses when none is given. Wider than the paper's
-#: 0.3, so that most pixels are seen by three or more tangents and the consensus blend can
-#: outvote one tangent's content error (docs/method.md, "More overlap").
-DEFAULT_PADDING = 0.7
-
-
-def default_layout(erp_width: int, padding: float | None = None) -> Layout:
+def default_layout(erp_width: int, padding: float | str | None = None) -> Layout:
     """Return the layout :func:`m360.estimate` and the batch engines use when none is given.
 
-    ``Layout.icosahedron(erp_width, padding)``, with :data:`DEFAULT_PADDING` (0.7) unless
-    ``padding`` is given (the ``padding=`` option of :func:`m360.estimate` and
-    :func:`m360.batch.run`); ``padding=0.3`` is the paper's layout.
+    ``Layout.icosahedron(erp_width, padding)``: :data:`DEFAULT_PADDING` (0.7) unless ``padding``
+    is given (the ``padding=`` option of :func:`m360.estimate` and :func:`m360.batch.run`);
+    ``padding="paper"`` is the paper's layout.
     """
-    return Layout.icosahedron(erp_width, DEFAULT_PADDING if padding is None else padding)
+    return Layout.icosahedron(erp_width, padding)
+
+
+def _padding(padding: float | str | None, subdivisions: int) -> float:
+    """Resolve ``padding`` for ``Layout.icosahedron``: a number, ``"paper"``, or the default."""
+    if padding is None:
+        return DEFAULT_PADDING if subdivisions == 0 else PAPER_PADDING
+    if isinstance(padding, str):
+        if padding == "paper":
+            return PAPER_PADDING
+        raise InputError(f"padding must be a number or 'paper' (the paper's 0.3), got {padding!r}")
+    return number(padding, "padding")
 
 
 # --------------------------------------------------------------------------------------------

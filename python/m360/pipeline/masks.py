@@ -26,8 +26,8 @@ from typing import Any
 
 import numpy as np
 
-from ._validate import as_array, number
-from .errors import InputError
+from .._validate import as_array, number
+from ..errors import InputError
 
 __all__ = [
     "SKY_MODES",
@@ -126,7 +126,7 @@ def tangent_mask(mask: np.ndarray, layout: Any) -> np.ndarray:
 
     A tangent pixel is used when its whole bilinear footprint in the ERP is used.
     """
-    from .geometry import erp_to_tangents
+    from ..geometry.layout import erp_to_tangents
 
     sampled = erp_to_tangents(mask.astype(np.float32), layout)
     return sampled >= 1.0 - 1e-6
@@ -198,8 +198,8 @@ def partial_panorama(path: str | os.PathLike[str]) -> PartialPanorama | None:
         Unreadable file, or metadata that is incomplete, not equirectangular or contradicts the
         image's pixel size.
     """
-    from ._gpano import place, read_gpano
-    from .decode import decode_image, read_input_bytes
+    from ..io._gpano import place, read_gpano
+    from ..io.decode import decode_image, read_input_bytes
 
     data = read_input_bytes(path)
     crop = read_gpano(data, str(path))

@@ -28,9 +28,9 @@ from typing import Any
 
 import numpy as np
 
-from ._validate import as_array, flag, integer, number
-from .errors import InputError
-from .scale import depth_of
+from .._validate import as_array, flag, integer, number
+from ..errors import InputError
+from ..stitching.depth import depth_of
 
 __all__ = [
     "DEFAULT_MAX_DEPTH_RATIO",
@@ -113,7 +113,7 @@ class Mesh:
 def _depth_of(source: Any, quantity: str | None) -> tuple[np.ndarray, str]:
     """(H, W) float32 radial depth (NaN = invalid) and its units, from any accepted source."""
     if isinstance(source, (str, os.PathLike)):
-        from .io import load
+        from .reading import load
 
         source = load(source)
     units = str(getattr(source, "units", "relative"))
@@ -430,7 +430,7 @@ def write_ply(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
     ``vertex_indices`` lists of 3 int32. Written straight from numpy record arrays (no copy of
     the whole file in memory, no per-vertex Python).
     """
-    from .io import atomic_path
+    from .files import atomic_path
 
     vertices, faces, rgb = _geometry(item)
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -468,7 +468,7 @@ def write_glb(path: str | os.PathLike[str], item: Mesh | PointCloud) -> Path:
     """
     import json
 
-    from .io import atomic_path
+    from .files import atomic_path
 
     vertices, faces, rgb = _geometry(item)
     positions = np.ascontiguousarray(vertices * np.array([1.0, -1.0, -1.0], np.float32))

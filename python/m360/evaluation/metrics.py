@@ -19,7 +19,7 @@ from m360._validate import as_array, integer, number, one_of, real_array
 from m360.errors import InputError
 
 if TYPE_CHECKING:
-    from m360.geometry import Layout
+    from m360.geometry.layout import Layout
 
 __all__ = ["depth_metrics", "fit_scale_shift", "format_metrics", "seam_score"]
 
@@ -291,7 +291,7 @@ def _edges(labels: np.ndarray) -> np.ndarray:
 
 
 def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:
-    from m360.geometry import plan_for
+    from m360.geometry.layout import plan_for
 
     key = (layout.key, band)
     with _SEAM_LOCK:
@@ -353,7 +353,7 @@ def seam_score(
         elsewhere (1 = no visible seam, larger = seams); ``elsewhere``: the mean gradient error
         away from both bands (in ground-truth disparity units).
     """
-    from m360.geometry import Layout
+    from m360.geometry.layout import Layout
 
     if not isinstance(layout, Layout):
         raise InputError(f"layout must be an m360.Layout, got {type(layout).__name__}")

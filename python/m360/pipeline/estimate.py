@@ -10,27 +10,30 @@ from __future__ import annotations
 
 import os
 import time
-from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import cv2
 import numpy as np
 
-from . import estimators as _estimators
+from .. import estimators as _estimators
+from .._compat import moved
+from .._keywords import resolved, split
+from .._validate import as_array, check_erp_shape
+from ..errors import InputError, M360Error, ModelError
+from ..estimators import registry as _models
+from ..estimators.options import ModelKeywords, ModelOptions
+from ..geometry.layout import Layout, default_layout, erp_to_tangents
+from ..stitching.options import StitchKeywords, StitchOptions, build
+from ..stitching.stitch import StitchResult, stitch
+from ..stitching.upsample import guided_upsample
 from . import masks as _masks
 from . import memory as _memory
-from . import models as _models
-from ._compat import moved
-from ._validate import as_array, check_erp_shape, one_of
-from .align import AlignSolver, Energy, Loss, Offsets
-from .blend import BlendMethod
-from .errors import InputError, M360Error, ModelError
-from .geometry import Layout, default_layout, erp_to_tangents
-from .options import AlignSpec, StitchOptions, build
+from .options import EstimateKeywords, JobKeywords
 from .scale import depth_of, scale_disparity
-from .stitch import StitchResult, stitch
-from .upsample import UPSAMPLE_METHODS, guided_upsample
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = ["EstimateResult", "estimate"]
 
@@ -125,33 +128,12 @@ def estimate(
     erp: np.ndarray,
     model: str | os.PathLike[str] | _estimators.Estimator = _models.DEFAULT_MODEL,
     *,
-    align: AlignSpec = "multiscale",
-    blend: BlendMethod | None = None,
-    energy: Energy | None = None,
-    solver: AlignSolver | None = None,
-    iterations: int | None = None,
-    tolerance: float | None = None,
-    sample_fraction: float | None = None,
-    pole_cap_deg: float | None = None,
-    smoothness: float | None = None,
-    scale_weight: float | None = None,
-    offsets: Offsets | None = None,
-    loss: Loss | None = None,
-    blend_options: Mapping[str, Any] | None = None,
     options: StitchOptions | None = None,
+    model_options: ModelOptions | None = None,
     layout: Layout | None = None,
     mask: Any = None,
-    providers: Sequence[str] | None = None,
-    threads: int | None = None,
-    input_size: tuple[int, int] | None = None,
-    output_kind: str | None = None,
-    mean: Sequence[float] | None = None,
-    std: Sequence[float] | None = None,
     scale: Any = None,
-    sky: str = "keep",
-    working_width: int | str | None = None,
-    upsample: str = "guided",
-    padding: float | None = None,
+    **keywords: Unpack[EstimateKeywords],
 ) -> EstimateResult:
     """Estimate the depth of an equirectangular panorama (the paper's pipeline, end to end).
 
@@ -164,13 +146,10 @@ def estimate(
         A registry name (default ``"midas-v21-small"``, downloaded and verified on first use;
         see ``m360 models``), a path to an ``.onnx`` file, or any object with
         ``predict(tangents) -> (N, h, w)`` and ``output_kind``.
-    align, blend, energy, solver, iterations, tolerance, sample_fraction : optional
-        The stitching options, as for :func:`m360.stitch`.
-    pole_cap_deg, smoothness, scale_weight, offsets, loss, blend_options : optional
-        The stitching options, as for :func:`m360.stitch` (defaults: the core's, the method's
-        ``"multiscale"`` alignment and ``"consensus"`` blend).
     options : StitchOptions, optional
-        All stitching options at once (then leave their keywords at their defaults).
+        Every stitching option at once (then give none of them as a keyword).
+    model_options : ModelOptions, optional
+        Every model option at once (then give none of them as a keyword).
     layout : Layout, optional
         Tangent layout; default ``Layout.icosahedron(W, padding)`` at the working width W.
     mask : optional
@@ -178,31 +157,35 @@ def estimate(
         ``m360.masks.nadir(deg)`` / ``zenith(deg)``, or a list of them. Masked pixels take no
         part in alignment or blending and are NaN in the outputs. An (N, h, w) bool array is a
         tangent mask, passed to :func:`m360.stitch` as it is.
-    providers, threads : optional
-        ONNX Runtime execution providers and intra-op threads (ONNX models only).
-    input_size, output_kind, mean, std : optional
-        Override the model's preprocessing / declared output (ONNX models).
     scale : scaler, optional
         Metric scale (:mod:`m360.scale`: ``camera_height(1.6)``, ``points(...)``,
         ``metric_map(...)``), fitted on the final disparity; the result is then in metres and
         records the fit in ``scale``. A failed fit raises :class:`m360.ScaleError`.
-    sky : {"keep", "nan"}
-        ``"nan"``: pixels whose disparity is at or below ``m360.masks.SKY_THRESHOLD`` times its
-        90th percentile (the sky, or beyond) become NaN instead of a huge fake distance.
-    working_width : int or "native", optional
-        ERP width to run projection, network, alignment and blend at; the disparity is then
-        upsampled to the input's resolution (``upsample``). Default: the input's width up to
-        8192, above it 4096. ``"native"`` always runs at the input's width.
-    upsample : {"guided", "bilinear"}
-        How a working-resolution result is brought to the input's resolution: ``"guided"``
-        follows the photo's edges at depth discontinuities (:func:`m360.upsample.guided_upsample`).
-    padding : float, optional
-        Padding of the default layout's tangents in gnomonic units (not with ``layout``).
-        Default 0.7 (:data:`m360.geometry.DEFAULT_PADDING`), wider than the paper's 0.3: more
-        tangents see each pixel, so the consensus blend can vote down a network's local
-        errors; 0.7 measured about a third lower AbsRel than 0.3 under simulated content errors
-        at the same network cost, with wider (≈ 125°) tiles (docs/method.md). ``padding=0.3``
-        is the paper's layout.
+    **keywords
+        Any option of :class:`m360.pipeline.options.EstimateKeywords` (None or absent: its
+        default), one list shared with :func:`m360.batch.run` and ``m360 run``:
+
+        - the stitching options, as for :func:`m360.stitch`: ``align``, ``blend``,
+          ``energy``, ``solver``, ``iterations``, ``tolerance``, ``sample_fraction``,
+          ``pole_cap_deg``, ``smoothness``, ``scale_weight``, ``offsets``, ``loss``,
+          ``blend_options`` (defaults: the core's, the method's ``"multiscale"`` alignment and
+          ``"consensus"`` blend);
+        - the model options (ONNX models only, :class:`m360.ModelOptions`): ``providers``,
+          ``threads``, ``input_size``, ``output_kind``, ``mean``, ``std``;
+        - ``working_width`` (int or ``"native"``): the ERP width projection, network,
+          alignment and blend run at, the disparity then upsampled to the input's resolution
+          (``upsample``: ``"guided"`` follows the photo's edges at depth discontinuities,
+          :func:`m360.upsample.guided_upsample`; or ``"bilinear"``). Default: the input's
+          width up to 8192, above it 4096; ``"native"`` always runs at the input's width;
+        - ``padding`` of the default layout's tangents in gnomonic units (not with
+          ``layout``): default 0.7 (:data:`m360.geometry.DEFAULT_PADDING`), wider than the
+          paper's 0.3, so more tangents see each pixel and the consensus blend can vote down a
+          network's local errors; 0.7 measured about a third lower AbsRel than 0.3 under
+          simulated content errors at the same network cost, with wider (≈ 125°) tiles
+          (docs/method.md). ``padding="paper"`` is the paper's layout;
+        - ``sky``: ``"nan"`` makes pixels whose disparity is at or below
+          ``m360.masks.SKY_THRESHOLD`` times its 90th percentile (the sky, or beyond) NaN
+          instead of a huge fake distance; default ``"keep"``.
 
     Returns
     -------
@@ -211,26 +194,16 @@ def estimate(
         ``confidence``, ``tangents``, ``timings`` per stage and what ran.
     """
     t_start = time.perf_counter()
+    stitch_keywords, model_keywords, job_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="estimate"
+    )
     rgb = _check_erp_rgb(erp)
     height, width = rgb.shape[:2]
+    job = resolved(job_keywords, JobKeywords)
+    working_width, padding = job["working_width"], job["padding"]
     work_width = _memory.working_width_for(working_width, width)
-    upsample = one_of(upsample, "upsample", UPSAMPLE_METHODS)
-    opts = build(
-        options,
-        align,
-        blend,
-        energy=energy,
-        solver=solver,
-        iterations=iterations,
-        tolerance=tolerance,
-        sample_fraction=sample_fraction,
-        pole_cap_deg=pole_cap_deg,
-        smoothness=smoothness,
-        scale_weight=scale_weight,
-        offsets=offsets,
-        loss=loss,
-        blend_options=blend_options,
-    )
+    opts = build(options, **stitch_keywords)
+    model_opts = ModelOptions.build(model_options, **model_keywords)
     if layout is None:
         layout = default_layout(work_width, padding)
     elif padding is not None:
@@ -247,21 +220,13 @@ def estimate(
         _memory.estimate_memory(width, work_width, opts.method, layout),
         f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
     )
-    sky_mode = one_of(sky, "sky", _masks.SKY_MODES)
+    sky_mode = job["sky"]
     mask, erp_valid = _split_mask(mask, layout, (height, width))
     guide = None
     if work_width != width:
         guide = rgb  # the full-resolution photo guides the upsampling
         rgb = cv2.resize(rgb, (work_width, work_width // 2), interpolation=cv2.INTER_AREA)
-    estimator = _estimators.load_estimator(
-        model,
-        providers=providers,
-        threads=threads,
-        input_size=input_size,
-        output_kind=output_kind,
-        mean=mean,
-        std=std,
-    )
+    estimator = _estimators.load_estimator(model, model_options=model_opts)
     t_load = time.perf_counter()
     tangents = erp_to_tangents(rgb, layout)
     t_project = time.perf_counter()
@@ -286,7 +251,7 @@ def estimate(
         sky_mode=sky_mode,
         scale=scale,
         guide=guide,
-        upsample=upsample,
+        upsample=job["upsample"],
     )
     result.timings["total"] = time.perf_counter() - t_start
     return result

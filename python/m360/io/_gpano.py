@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from .errors import ReadError
+from ..errors import ReadError
 
 GPANO_NS = "http://ns.google.com/photos/1.0/panorama/"
 _FIELDS = {

@@ -23,8 +23,8 @@ import os
 from dataclasses import dataclass
 from pathlib import Path
 
-from . import _core
-from .errors import InputError
+from .. import _core
+from ..errors import InputError
 
 __all__ = ["Usage", "clear", "directory", "enabled", "limit_bytes", "set_enabled", "trim", "usage"]
 
@@ -74,7 +74,7 @@ def directory() -> Path:
     pathlib.Path
         The folder (it may not exist yet).
     """
-    from .models import home_dir
+    from .._home import home_dir
 
     return home_dir() / "plans"
 

@@ -27,8 +27,9 @@ from typing import Any, Protocol
 
 import numpy as np
 
-from ._validate import as_array, number
-from .errors import InputError, ScaleError
+from .._validate import as_array, number
+from ..errors import InputError, ScaleError
+from ..stitching.depth import depth_of
 
 __all__ = [
     "CameraHeight",
@@ -37,6 +38,7 @@ __all__ = [
     "Scaler",
     "apply",
     "camera_height",
+    "depth_of",
     "describe",
     "metric_map",
     "points",
@@ -93,24 +95,6 @@ class Scaler(Protocol):
     def fit(self, disparity: np.ndarray, *, affine: bool = False) -> ScaleFit:
         """Fit the metric scale of an (H, W) relative spherical disparity map."""
         ...
-
-
-def depth_of(disparity: np.ndarray) -> np.ndarray:
-    """Depth (float32) = 1 / disparity where the disparity is positive, NaN elsewhere.
-
-    One output array, filled a block of rows (about a million pixels) at a time: no
-    full-size temporaries (at 72 MP each is 288 MB, and fresh memory is slow to touch the
-    first time).
-    """
-    depth = np.empty(disparity.shape, np.float32)
-    height = len(depth)
-    rows = max(1, (1 << 20) // max(1, depth.size // max(1, height)))  # ~a million pixels a block
-    for start in range(0, height, rows):
-        d, out = disparity[start : start + rows], depth[start : start + rows]
-        positive = d > 0
-        out.fill(np.nan)
-        np.divide(np.float32(1), d, out=out, where=positive, casting="unsafe")
-    return depth
 
 
 def _check_disparity(disparity: Any) -> np.ndarray:

@@ -1,0 +1,357 @@
+"""One image of a batch: claim it, read it, estimate it, write it; shared by both engines.
+
+The local engine (:mod:`m360.batch.run`) runs these pieces in one process per image; the Ray
+engine (:mod:`m360.batch._ray_engine`) runs them in separate stages, so the bytes written are the
+same either way. Also the resume check (:func:`is_done`) and the per-image OS lock (:func:`claim`).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import os
+import time
+from collections.abc import Iterator, Mapping, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from ..errors import InputError, M360Error
+from ..estimators.options import ModelOptions
+from ..io import (
+    GEOMETRY_FILES,
+    GEOMETRY_FORMATS,
+    listed_files,
+    read_sidecar,
+    remove_stale_temporaries,
+    save,
+)
+from ..io._gpano import place as place_crop
+from ..io._gpano import read_gpano
+from ..io.decode import decode_image, fix_aspect_ratio, read_input_bytes
+from ..stitching.options import StitchOptions
+from ._interrupt import deferred
+
+
+@dataclass(frozen=True)
+class Job:
+    """One image of a batch: where it comes from and the output stem inside OUT."""
+
+    input: Path
+    stem: Path
+    name: str  # the stem relative to OUT
+    source: str = ""  # where the job came from (folder, manifest line) for messages
+
+
+@dataclass
+class ImageOutcome:
+    """What happened to one image.
+
+    ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
+    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
+    written).
+    """
+
+    input: str
+    stem: str
+    status: str
+    error: str | None = None
+    message: str | None = None
+    timings: dict[str, float] = field(default_factory=dict)
+
+
+def _failure(source: Path, stem: str, exc: BaseException) -> ImageOutcome:
+    return ImageOutcome(str(source), stem, "failed", type(exc).__name__, str(exc))
+
+
+# --------------------------------------------------------------------------------------------
+# One image.
+
+
+@dataclass(frozen=True)
+class _Settings:
+    """Everything a worker needs to process images (picklable)."""
+
+    model: Any
+    model_options: ModelOptions
+    options: StitchOptions
+    job: dict[str, Any]  # m360.pipeline.options.JobKeywords, every entry (defaults filled in)
+    formats: tuple[str, ...]
+    preview: bool
+    fix_aspect: bool
+    resume: bool
+    fingerprint: dict[str, Any]
+    run_id: str
+    scale: Any = None
+    masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
+    confidence: bool = False
+
+    @property
+    def threads(self) -> int | None:
+        """ONNX Runtime's threads per worker, and the core's with several workers."""
+        threads: int | None = self.model_options.threads
+        return threads
+
+
+class _Worker:
+    """Per-process state: the estimator is loaded once; the plan cache lives in the process."""
+
+    def __init__(self, settings: _Settings, estimator: Any | None = None) -> None:
+        from ..estimators import load_estimator
+
+        self.settings = settings
+        self.estimator = estimator or load_estimator(
+            settings.model, model_options=settings.model_options
+        )
+
+    def process(self, job: Job) -> ImageOutcome:
+        from ..pipeline.estimate import estimate
+
+        s = self.settings
+        unusable = _make_job_folder(job)
+        if unusable is not None:
+            return unusable
+        with _claim(job.stem) as claimed:
+            if not claimed:
+                return ImageOutcome(str(job.input), job.name, "busy")
+            if s.resume and is_done(job, s.fingerprint):
+                return ImageOutcome(str(job.input), job.name, "skipped")
+            remove_stale_temporaries(job.stem)
+            try:
+                t0 = time.perf_counter()
+                read = _read_job(job, s)
+                t_read = time.perf_counter()
+                result = estimate(
+                    read.rgb,
+                    self.estimator,
+                    options=s.options,
+                    scale=s.scale,
+                    mask=_image_mask(read, s),
+                    **s.job,
+                )
+                t_estimate = time.perf_counter()
+                _write_job(job, result, read.records, s, read.rgb)
+                t_write = time.perf_counter()
+            except Exception as exc:
+                return _error_outcome(job, exc)
+        timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
+        timings.pop("total", None)
+        return ImageOutcome(str(job.input), job.name, "done", timings=timings)
+
+
+# The pieces of one image, shared by the local engine (_Worker.process) and the Ray engine
+# (m360._ray_engine), which runs them in different processes: the same bytes either way.
+
+
+def _make_job_folder(job: Job) -> ImageOutcome | None:
+    """Create the folder of ``job``'s outputs; a failed outcome if that is impossible."""
+    try:
+        job.stem.parent.mkdir(parents=True, exist_ok=True)
+    except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
+        message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
+        return _failure(job.input, job.name, InputError(message))
+    return None
+
+
+@dataclass
+class _Read:
+    """An input image as the stages need it."""
+
+    rgb: Any  # (H, W, 3) uint8 ERP: a partial panorama is placed in its full canvas
+    captured: Any  # (H, W) bool, the captured part of a partial panorama; None: all of it
+    records: dict[str, Any]  # the sidecar's "input" record, and "crop" for a partial panorama
+
+
+def _read_job(job: Job, s: _Settings) -> _Read:
+    """Read and decode ``job``'s image.
+
+    A partial panorama with GPano crop metadata goes into its full canvas, the rest masked;
+    without metadata W != 2H is refused (or resized, ``fix_aspect``) as before.
+    """
+    data = read_input_bytes(job.input)
+    stat = job.input.stat()
+    rgb = decode_image(data, job.input)
+    original = rgb.shape[:2]
+    crop = read_gpano(data, str(job.input))
+    captured = None
+    if crop is not None:
+        rgb, captured = place_crop(rgb, crop, str(job.input))
+    else:
+        rgb = fix_aspect_ratio(rgb, job.input, fix=s.fix_aspect)
+    source = {
+        "path": str(job.input),
+        "sha256": hashlib.sha256(data).hexdigest(),
+        "size": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+        "shape": list(original),
+        "aspect_fixed": crop is None and tuple(original) != rgb.shape[:2],
+        "exif_orientation": "ignored",
+    }
+    records = {"input": source} | ({} if crop is None else {"crop": crop.as_dict()})
+    return _Read(rgb, captured, records)
+
+
+def _image_mask(read: _Read, s: _Settings) -> list[Any] | None:
+    """Give the masks of one image for :func:`m360.estimate`: its captured part and the run's."""
+    masks = [*([] if read.captured is None else [read.captured]), *s.masks]
+    return masks or None
+
+
+def _check_masks(mask: Any) -> tuple[Any, ...]:
+    """Check ``run``'s ``mask``; returns a tuple of caps and (H, W) bool arrays.
+
+    They are not combined: images may differ in size, and a cap fits any.
+    """
+    from ..pipeline.masks import Cap
+
+    if mask is None:
+        return ()
+    items = list(mask) if isinstance(mask, (list, tuple)) else [mask]
+    for item in items:
+        if isinstance(item, Cap):
+            continue
+        if not isinstance(item, np.ndarray) or item.ndim != 2 or item.dtype != np.bool_:
+            raise InputError(
+                "mask must be m360.masks.nadir/zenith caps or (H, W) bool arrays (True = use), "
+                f"got {type(item).__name__}"
+                + (f" {item.dtype} of shape {item.shape}" if isinstance(item, np.ndarray) else "")
+            )
+    return tuple(items)
+
+
+def _describe_masks(masks: Sequence[Any]) -> list[dict[str, Any]]:
+    """Describe the masks as JSON for the resume fingerprint (arrays by sha256)."""
+    return [
+        {"array": hashlib.sha256(np.packbits(m).tobytes()).hexdigest(), "shape": list(m.shape)}
+        if isinstance(m, np.ndarray)
+        else {"cap": m.pole, "degrees": m.degrees}
+        for m in masks
+    ]
+
+
+def _needs_rgb(s: _Settings) -> bool:
+    """Whether writing needs the panorama's colours (the 3D formats)."""
+    return any(fmt in GEOMETRY_FORMATS for fmt in s.formats)
+
+
+def _write_job(
+    job: Job, result: Any, records: dict[str, Any], s: _Settings, rgb: Any | None
+) -> None:
+    """Write ``job``'s outputs atomically, the sidecar (with input and fingerprint) last.
+
+    ``rgb`` colours the 3D formats; it may be None when :func:`_needs_rgb` is False.
+    """
+    save(
+        result,
+        job.stem,
+        formats=s.formats,
+        preview=s.preview,
+        extra={**records, "batch": {"fingerprint": s.fingerprint, "run": s.run_id}},
+        rgb=rgb,
+        confidence=s.confidence,
+    )
+
+
+def _error_outcome(job: Job, exc: Exception) -> ImageOutcome:
+    """Make the failed outcome of ``job`` for an exception raised while processing it."""
+    outcome = _failure(job.input, job.name, exc)
+    if not isinstance(exc, M360Error):  # a bug or a library error: still only this image fails
+        outcome.message = f"{exc} (unexpected; please report it)"
+    return outcome
+
+
+def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
+    """Tell whether ``job`` is already done with these options.
+
+    True if its sidecar exists, its files exist, and it was made from the same input file (path,
+    size, mtime) with the same ``fingerprint`` (see :func:`fingerprint`).
+    """
+    try:
+        meta = read_sidecar(job.stem)
+        stat = job.input.stat()
+    except (M360Error, OSError):
+        return False
+    source = meta.get("input")
+    batch = meta.get("batch")
+    if not isinstance(source, dict) or not isinstance(batch, dict):
+        return False
+    if batch.get("fingerprint") != json.loads(json.dumps(fingerprint)):
+        return False
+    same_input = (source.get("path"), source.get("size"), source.get("mtime_ns")) == (
+        str(job.input),
+        stat.st_size,
+        stat.st_mtime_ns,
+    )
+    try:
+        names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
+    except M360Error:
+        return False
+    for extra in ("preview", *(kind for kind, _ in GEOMETRY_FILES.values())):
+        entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
+        for name in entry.values() if isinstance(entry, dict) else [entry]:
+            if isinstance(name, str) and Path(name).name == name:
+                names.append(name)
+    return same_input and bool(names) and all((job.stem.parent / n).is_file() for n in names)
+
+
+@contextlib.contextmanager
+def _claim(stem: Path) -> Iterator[bool]:
+    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem``.
+
+    Yields False if another process holds it. The OS releases the lock when its process dies,
+    so a killed run blocks nothing. The lock file is removed while still held, after the work;
+    a claimer that locked a file which was removed meanwhile retries on the new one, so two
+    claimers never both hold it. Ctrl-C is held back while the claim is taken and released
+    (:func:`m360._interrupt.deferred`): arriving between creating the file and the ``try``
+    that removes it, it used to leave the file behind.
+    """
+    stem.parent.mkdir(parents=True, exist_ok=True)
+    path = stem.with_name(f".{stem.name}.lock")
+    fd: int | None = None
+    try:
+        with deferred():  # a Ctrl-C held back here is raised inside the try
+            fd = _lock_current(path)
+        yield fd is not None
+    finally:
+        if fd is not None:
+            with deferred():
+                with contextlib.suppress(FileNotFoundError):
+                    os.unlink(path)
+                os.close(fd)
+
+
+def _lock_current(path: Path) -> int | None:
+    """Open and lock the lock file now at ``path``; None if another claimer holds it."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o666)
+        if not _try_lock(fd):
+            os.close(fd)
+            return None
+        try:
+            current = os.stat(path).st_ino
+        except FileNotFoundError:
+            current = -1
+        if current == os.fstat(fd).st_ino:
+            return fd
+        os.close(fd)  # locked a file its holder had just removed: take the current one
+
+
+def _try_lock(fd: int) -> bool:
+    try:
+        import fcntl
+    except ImportError:  # Windows
+        import msvcrt
+
+        try:
+            msvcrt.locking(fd, msvcrt.LK_NBLCK, 1)  # type: ignore[attr-defined]
+        except OSError:
+            return False
+        return True
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except BlockingIOError:
+        return False
+    return True

@@ -1,0 +1,230 @@
+"""Writing one result, never leaving a half-written set: :func:`save`.
+
+Every file goes through :func:`m360.io.files.atomic_path`; the sidecar ``STEM.json`` is written
+last, so a sidecar means the whole set is there (:func:`m360.io.results.load` refuses a stem
+without one).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import datetime
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._validate import flag
+from ..errors import InputError
+from . import mesh
+from .files import (
+    ERP_CONVENTION,
+    FORMAT_SUFFIXES,
+    GEOMETRY_FILES,
+    GEOMETRY_FORMATS,
+    QUANTITIES,
+    SAVE_FORMATS,
+    _check_map,
+    check_formats,
+    colorize,
+    save_json,
+    save_png,
+    write_array,
+)
+
+
+def save(
+    result: Any,
+    stem: str | os.PathLike[str],
+    *,
+    formats: Sequence[str] | str = ("npy",),
+    preview: bool = True,
+    extra: Mapping[str, Any] | None = None,
+    rgb: np.ndarray | None = None,
+    confidence: bool = False,
+) -> dict[str, Path]:
+    """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
+
+    Files: ``STEM.disparity.EXT`` and ``STEM.depth.EXT`` per format (``npy``, ``pfm``, ``exr``:
+    float32, NaN = invalid; ``png16``: ``.png`` 16-bit, 0 = invalid, value = offset +
+    (code − 1)·scale with offset/scale in the sidecar), ``STEM.preview.png`` (colour preview of
+    the disparity) and last ``STEM.json``, the sidecar: quantities and units, ERP convention,
+    model and its sha256, layout, options, timings, m360 version, the files (plus ``extra``,
+    e.g. the input file and its sha256). Any earlier sidecar is removed first and the files of
+    this call are removed again if it fails, so a sidecar always describes a complete set.
+
+    Parameters
+    ----------
+    result : EstimateResult
+        Or any object with ``disparity``/``depth`` (H, W) float arrays (``model``, ``units``,
+        ``options``, ``timings``, ``layout`` are recorded when present).
+    stem : path
+        Output path without suffix, e.g. ``out/pano``; folders are created.
+    formats : sequence of str
+        Any of ``"npy"`` (default), ``"pfm"``, ``"exr"``, ``"png16"``, and the 3D formats
+        (extra ``m360[3d]``) ``"ply"`` (``STEM.points.ply``: the point cloud, m360 frame) and
+        ``"glb"`` (``STEM.mesh.glb``: the mesh of :func:`m360.to_mesh`, glTF frame, y up); the
+        sidecar's ``frame`` says which frame each 3D file is in.
+    preview : bool
+        Also write the colour preview PNG.
+    extra : mapping, optional
+        More JSON-serialisable fields for the sidecar.
+    rgb : (H, W, 3) uint8, optional
+        The panorama: colours of the 3D files.
+    confidence : bool
+        Also write ``result.confidence`` (the overlap disagreement left, in disparity units,
+        lower = more consistent; NaN = unseen) as ``STEM.confidence.EXT`` in every format, and
+        describe it in the sidecar.
+
+    Returns
+    -------
+    dict
+        Role (``disparity.npy``, ``depth.pfm`` …, ``preview``, ``sidecar``) → path written.
+    """
+    from .._core import __version__
+
+    chosen = check_formats(formats)
+    with np.errstate(over="ignore"):  # float64 beyond float32's range is ±inf, as in m360's maps
+        arrays = {
+            q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
+            for q in QUANTITIES
+        }
+    flag(confidence, "confidence")
+    if confidence:
+        with np.errstate(over="ignore"):
+            arrays["confidence"] = np.ascontiguousarray(
+                _check_map(getattr(result, "confidence", None), "confidence"), dtype=np.float32
+            )
+        if arrays["confidence"].shape != arrays["disparity"].shape:
+            raise InputError(
+                f"result.confidence {arrays['confidence'].shape} and result.disparity "
+                f"{arrays['disparity'].shape} differ in shape"
+            )
+    if arrays["disparity"].shape != arrays["depth"].shape:
+        raise InputError(
+            f"result.disparity {arrays['disparity'].shape} and result.depth "
+            f"{arrays['depth'].shape} differ in shape"
+        )
+    base = Path(stem)
+    sidecar_path = base.with_name(base.name + ".json")
+    written: dict[str, Path] = {}
+    files: dict[str, Any] = {q: {} for q in arrays}
+    png16: dict[str, Any] = {}
+    with contextlib.suppress(FileNotFoundError):
+        sidecar_path.unlink()  # the old set is incomplete from here on
+    try:
+        for fmt in [f for f in chosen if f in SAVE_FORMATS]:
+            for quantity, values in arrays.items():
+                path = base.with_name(f"{base.name}.{quantity}{FORMAT_SUFFIXES[fmt]}")
+                params = write_array(path, values, fmt)
+                if params:
+                    png16[quantity] = params
+                written[f"{quantity}.{fmt}"] = path
+                files[quantity][fmt] = path.name
+        if preview:
+            written["preview"] = save_png(
+                base.with_name(base.name + ".preview.png"), colorize(arrays["disparity"])
+            )
+            files["preview"] = written["preview"].name
+        frames = _save_geometry(result, base, chosen, rgb, written, files)
+        sidecar = _sidecar(result, arrays["disparity"], files, png16, __version__)
+        if frames:
+            sidecar["frame"] = frames
+        if extra:
+            sidecar.update(extra)
+        written["sidecar"] = save_json(sidecar_path, sidecar)
+    except BaseException:
+        for path in written.values():
+            with contextlib.suppress(FileNotFoundError):
+                path.unlink()
+        raise
+    return written
+
+
+def _save_geometry(
+    result: Any,
+    base: Path,
+    chosen: Sequence[str],
+    rgb: np.ndarray | None,
+    written: dict[str, Path],
+    files: dict[str, Any],
+) -> dict[str, str]:
+    """Write the 3D formats among ``chosen``; returns file name → frame for the sidecar."""
+    frames: dict[str, str] = {}
+    for fmt in [f for f in chosen if f in GEOMETRY_FORMATS]:
+        kind, tail = GEOMETRY_FILES[fmt]
+        path = base.with_name(base.name + tail)
+        if fmt == "ply":
+            geometry: Any = mesh.to_points(result, rgb=rgb)
+            mesh.write_ply(path, geometry)
+        else:
+            geometry = mesh.to_mesh(result, rgb=rgb)
+            mesh.write_glb(path, geometry)
+        written[f"{kind}.{fmt}"] = path
+        files[kind] = {fmt: path.name}
+        frames[path.name] = mesh.FRAMES[fmt]
+    return frames
+
+
+def _sidecar(
+    result: Any,
+    disparity: np.ndarray,
+    files: dict[str, Any],
+    png16: dict[str, Any],
+    version: str,
+) -> dict[str, Any]:
+    units = getattr(result, "units", "relative")
+    layout = getattr(result, "layout", None)
+    sidecar: dict[str, Any] = {
+        "m360_version": version,
+        "created": datetime.datetime.now(datetime.timezone.utc).isoformat(timespec="seconds"),
+        "files": files,
+        "quantities": {
+            "disparity": {
+                "meaning": "spherical disparity 1/distance"
+                + (" up to a global scale and shift" if units == "relative" else ""),
+                "units": "relative" if units == "relative" else "1/metres",
+                "dtype": "float32",
+                "invalid": "NaN (png16: 0)",
+            },
+            "depth": {
+                "meaning": "radial distance |P| = 1/disparity where disparity > 0",
+                "units": units,
+                "dtype": "float32",
+                "invalid": "NaN (png16: 0)",
+            },
+        },
+        "shape": list(disparity.shape),
+        "erp_convention": ERP_CONVENTION,
+        "model": getattr(result, "model", None),
+        "layout": None
+        if layout is None
+        else {
+            "name": layout.name,
+            "erp_shape": list(layout.erp_shape),
+            "cameras": len(layout),
+            "tangent_shape": list(layout.tangent_shape),
+            "padding": layout.padding,
+            "key": layout.key,
+        },
+        "options": getattr(result, "options", {}),
+        "timings_s": {k: round(float(v), 6) for k, v in getattr(result, "timings", {}).items()},
+        "valid_fraction": float(np.isfinite(disparity).mean()),
+    }
+    if "confidence" in files:
+        sidecar["quantities"]["confidence"] = {
+            "meaning": "overlap disagreement left after blending (lower = more consistent)",
+            "units": "disparity units",
+            "dtype": "float32",
+            "invalid": "NaN (png16: 0)",
+        }
+    report = getattr(getattr(result, "stitch", None), "report", None)
+    if isinstance(report, Mapping) and "align_fallback" in report:
+        sidecar["alignment"] = {"fallback": report["align_fallback"]}
+    if png16:
+        sidecar["png16"] = png16
+    if getattr(result, "scale", None) is not None:
+        sidecar["scale"] = result.scale
+    return sidecar

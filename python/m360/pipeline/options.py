@@ -1,0 +1,112 @@
+"""The options of the end-to-end job, written once: :class:`EstimateKeywords`.
+
+Every keyword :func:`m360.estimate` and :func:`m360.batch.run` take beyond their named
+parameters: the stitching options (:class:`m360.stitching.options.StitchKeywords`), the model
+options (:class:`m360.estimators.ModelKeywords`) and the job's own (:class:`JobKeywords`). ``m360
+run`` builds one flag per entry from the same lists (m360._keywords).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Annotated, Any, TypedDict
+
+from .._keywords import Option, document
+from .._validate import one_of
+from ..estimators.options import ModelKeywords
+from ..geometry.layout import DEFAULT_PADDING, PAPER_PADDING, default_layout
+from ..stitching.options import StitchKeywords
+from ..stitching.upsample import UPSAMPLE_METHODS
+from .masks import SKY_MODES, SKY_THRESHOLD
+from .memory import DEFAULT_WORKING_WIDTH, NATIVE_WIDTH_LIMIT, check_working_width
+
+__all__ = ["EstimateKeywords", "JobKeywords"]
+
+
+def _working_width(value: Any, name: str) -> int | str | None:
+    check_working_width(value)
+    return value  # type: ignore[no-any-return]  # checked: None, "native" or an even int
+
+
+def _parse_working_width(text: str) -> int | str:
+    if text == "native":
+        return text
+    try:
+        return int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a width or 'native', got {text!r}") from None
+
+
+def _padding(value: Any, name: str) -> float:
+    # The core judges the value (the layout it allows), once here rather than per image.
+    padding = default_layout(2048, value).padding
+    assert padding is not None  # an icosahedron layout has one
+    return padding
+
+
+def _parse_padding(text: str) -> float | str:
+    if text == "paper":
+        return text
+    try:
+        return float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number or 'paper', got {text!r}") from None
+
+
+@document
+class JobKeywords(TypedDict, total=False):
+    """The job's own options: which layout, at which width, what to do with the sky."""
+
+    working_width: Annotated[
+        int | str | None,
+        Option(
+            "ERP width the method runs at, the result upsampled to the image's resolution "
+            f"along its edges (default: the image's width up to {NATIVE_WIDTH_LIMIT}, above it "
+            f"{DEFAULT_WORKING_WIDTH}; native: always the image's)",
+            check=_working_width,
+            parse=_parse_working_width,
+            metavar="W|native",
+        ),
+    ]
+    upsample: Annotated[
+        str | None,
+        Option(
+            "how a working-width result reaches the image's resolution: guided follows the "
+            "photo's edges at depth discontinuities, bilinear does not",
+            check=lambda v, n: one_of(v, n, UPSAMPLE_METHODS),
+            choices=UPSAMPLE_METHODS,
+            default="guided",
+        ),
+    ]
+    padding: Annotated[
+        float | str | None,
+        Option(
+            f"padding of the tangent layout in gnomonic units (default {DEFAULT_PADDING}: more "
+            f"tangents vote on each pixel, lower error under network content errors; paper: "
+            f"the paper's {PAPER_PADDING})",
+            check=_padding,
+            parse=_parse_padding,
+            metavar="P|paper",
+        ),
+    ]
+    sky: Annotated[
+        str | None,
+        Option(
+            f"nan: the sky (disparity at or below {SKY_THRESHOLD:.0%} of its 90th percentile) "
+            "gets no depth, instead of a huge fake distance",
+            check=lambda v, n: one_of(v, n, SKY_MODES),
+            choices=SKY_MODES,
+            default="keep",
+        ),
+    ]
+
+
+@document
+class EstimateKeywords(StitchKeywords, ModelKeywords, JobKeywords, total=False):
+    """Every keyword of :func:`m360.estimate` and :func:`m360.batch.run` beyond their named ones.
+
+    The stitching options (``align``, ``blend``, ``energy`` …; :mod:`m360.align`,
+    :mod:`m360.blend`), the model options (``providers``, ``threads``, ``input_size``,
+    ``output_kind``, ``mean``, ``std``) and the job's own (``working_width``, ``upsample``,
+    ``padding``, ``sky``). None or absent: the default.
+    """
