@@ -394,12 +394,12 @@ def test_eval_prints_the_metrics_of_an_output(tmp_path: Path) -> None:
 
 def test_a_claim_is_exclusive_and_leaves_nothing_behind(tmp_path: Path) -> None:
     stem = tmp_path / "sub" / "pano"
-    with m360.batch._claim(stem) as first:
-        with m360.batch._claim(stem) as second:  # another open file: as another process
+    with m360.batch.image._claim(stem) as first:
+        with m360.batch.image._claim(stem) as second:  # another open file: as another process
             assert first and not second
         assert (tmp_path / "sub" / ".pano.lock").exists()
     assert not list((tmp_path / "sub").iterdir())
-    with m360.batch._claim(stem) as again:
+    with m360.batch.image._claim(stem) as again:
         assert again
 
 
@@ -428,12 +428,12 @@ def test_ctrl_c_while_a_claim_is_taken_or_released_leaves_no_lock_file(
     else:
         monkeypatch.setattr(m360.batch.image.os, "unlink", ctrl_c_after(os.unlink))
     run_handler = (
-        m360.batch.MainThreadInterrupts(m360.batch._keyboard_interrupt_once())
+        m360.batch._interrupt.MainThreadInterrupts(m360.batch.runner._keyboard_interrupt_once())
         if handler == "m360"
         else contextlib.nullcontext()
     )
     with pytest.raises(KeyboardInterrupt), run_handler:
-        with m360.batch._claim(stem) as claimed:
+        with m360.batch.image._claim(stem) as claimed:
             body_ran = claimed
             if moment == "unlinked":
                 assert claimed
