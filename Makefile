@@ -22,12 +22,34 @@ BUILT := $(if $(wildcard $(DEV_STAMP)),$(DEV_STAMP),$(RELEASE_STAMP))
 EXTRAS := test,lint,bench,ray,3d
 PYTEST_ARGS ?=
 
+# The release install runs `pip install -v` so that the Rust build shows as it runs, but pip -v
+# prints thousands of lines. PIP_PROGRESS (POSIX sh) reads that output, followed by a last line
+# "m360-exit STATUS", and keeps pip's phases, cargo's Compiling/Finished lines, warnings and
+# errors, with one dot per dependency collected; it exits with STATUS, after the last 40 lines of
+# the whole log ($(VENV)/install.log) when STATUS is not 0.
+PIP_PROGRESS = { dots=0; rc=1; \
+  while IFS= read -r line; do case $$line in \
+    "m360-exit "*) rc=$${line\#m360-exit };; \
+    "Collecting "*) [ $$dots -gt 0 ] || printf '   collecting the dependencies '; \
+      dots=$$((dots + 1)); printf .;; \
+    *" Compiling "*|*" Finished "*|*"Downloaded "*" crates"*|*"Found pyo3"*|*"Built wheel"*|\
+    "Processing "*|*"Building wheel for "*"started"|"Successfully built"*|*"warning: "*|*"error: "*|\
+    *"error["*|"ERROR: "*|"WARNING: "*|"Successfully installed"*) \
+      [ $$dots -eq 0 ] || { echo " $$dots"; dots=0; }; \
+      case $$line in "Successfully installed"*) set -f; set -- $$line; \
+        line="Successfully installed m360 and $$(($$\# - 3)) other packages";; esac; \
+      printf '%s\n' "$$line";; \
+  esac; done; [ $$dots -eq 0 ] || echo " $$dots"; \
+  [ "$$rc" = 0 ] || { echo "pip failed (exit $$rc); the end of $(VENV)/install.log:"; \
+    tail -n 40 $(VENV)/install.log; }; exit $$rc; }
+
 .PHONY: help demo test lint format rust-test bench venv install build-dev wheel clean
 
 help:  ## list the targets
 	@grep -E '^[a-z-]+:.*## ' $(MAKEFILE_LIST) | awk -F':.*## ' '{printf "  make %-10s %s\n", $$1, $$2}'
 
 $(BIN)/activate:
+	@echo "==> m360: creating the virtual environment $(VENV)"
 	$(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
 
@@ -35,12 +57,18 @@ venv: $(BIN)/activate  ## create .venv (Python virtual environment)
 
 $(RELEASE_STAMP): $(BIN)/activate pyproject.toml $(RUST_SRC) $(PY_SRC)
 	rm -f $(DEV_STAMP) python/m360/_core*.so python/m360/_core*.pyd
-	$(PY) -m pip install --quiet ".[$(EXTRAS)]"
+	@echo "==> m360: installing m360[$(EXTRAS)] into $(VENV): the dependencies (about 1 min),"
+	@echo "    then the Rust core m360._core, release build (3-5 min on 2 cores, 1-2 min on 8)"
+	@echo '$(PY) -m pip install -v ".[$(EXTRAS)]"  (filtered; whole log: $(VENV)/install.log)'
+	@{ $(PY) -m pip install -v ".[$(EXTRAS)]" 2>&1; echo "m360-exit $$?"; } \
+	  | tee $(VENV)/install.log | $(PIP_PROGRESS)
 	touch $@
 
 $(DEV_STAMP): $(BIN)/activate pyproject.toml $(RUST_SRC)
 	$(PY) -m pip install --quiet "$(MATURIN)"
-	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/maturin develop --quiet --extras $(EXTRAS)
+	@echo "==> m360: maturin develop: the dependencies, then the Rust core, debug build"
+	@echo "    (about 2 min on 2 cores the first time, seconds after a small change)"
+	VIRTUAL_ENV=$(abspath $(VENV)) $(BIN)/maturin develop --extras $(EXTRAS)
 	rm -f $(RELEASE_STAMP)
 	touch $@
 
@@ -58,12 +86,14 @@ rust-test:  ## Rust unit tests of the core
 	cargo test --workspace
 
 $(VENV)/.wheel-tools: $(BIN)/activate Makefile
+	@echo "==> m360: installing the release tools (maturin, zig: about 50 MB, auditwheel)"
 	$(PY) -m pip install --quiet "$(MATURIN)" "$(ZIGLANG)" "$(AUDITWHEEL)"
 	touch $@
 
 # maturin runs `python -m ziglang` from PATH: the venv's bin comes first.
 dist/.stamp: $(VENV)/.wheel-tools pyproject.toml README.md $(RUST_SRC) $(PY_SRC)
 	rm -rf dist
+	@echo "==> m360: the release wheel (maturin + zig: 3-5 min on 2 cores) and the sdist"
 	PATH="$(abspath $(BIN)):$$PATH" $(BIN)/maturin build --release --zig \
 	  --compatibility $(MANYLINUX) --out dist
 	$(BIN)/maturin sdist --out dist

@@ -10,6 +10,7 @@ from __future__ import annotations
 import base64
 import itertools
 import json
+import os
 import shutil
 import subprocess
 import threading
@@ -37,8 +38,29 @@ CHROMIUM_FLAGS = [
 ]
 
 
+#: The browsers tried, in this order, on PATH: Chromium (chromium on Debian, Arch, Alpine;
+#: chromium-browser on Fedora) or Google Chrome (google-chrome, e.g. on GitHub's Ubuntu runners).
+#: ``M360_BROWSER`` (a name or a path) chooses one instead. .ci/run reads this list.
+BROWSER_NAMES = ("chromium", "chromium-browser", "google-chrome", "google-chrome-stable")
+
+
 def chromium_path() -> str | None:
-    return shutil.which("chromium") or shutil.which("chromium-browser")
+    """The headless browser's executable, or None (see `missing_browser` for why)."""
+    chosen = os.environ.get("M360_BROWSER")
+    if chosen:
+        return shutil.which(chosen)
+    return next((path for name in BROWSER_NAMES if (path := shutil.which(name))), None)
+
+
+def missing_browser() -> str:
+    """Why `chromium_path` found no browser: the viewer test's skip (or failure) reason."""
+    chosen = os.environ.get("M360_BROWSER")
+    if chosen:
+        return f"M360_BROWSER={chosen} is not an executable browser"
+    return (
+        f"no headless browser: none of {', '.join(BROWSER_NAMES)} is on PATH "
+        "(install Chromium, e.g. apt-get install chromium, or set M360_BROWSER to Chrome's path)"
+    )
 
 
 def read_line(stream: Any, predicate: Callable[[str], bool], deadline: float) -> str:

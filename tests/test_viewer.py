@@ -14,7 +14,7 @@ import m360.synthetic as syn
 import m360.viewer as viewer
 import numpy as np
 import pytest
-from browser import chromium, chromium_path, read_line
+from browser import chromium, chromium_path, missing_browser, read_line
 
 pytest.importorskip("viser")
 pytest.importorskip("trimesh")
@@ -72,9 +72,10 @@ def test_load_scene_and_subsample(tmp_path):
 
 def test_view_in_headless_chromium(tmp_path):
     if chromium_path() is None:
+        # .ci/run sets M360_REQUIRE_BROWSER where it found or installed a browser.
         if os.environ.get("M360_REQUIRE_BROWSER"):
-            pytest.fail("chromium is not installed (.ci/run installs it)")
-        pytest.skip("chromium is not installed (apt-get install chromium)")
+            pytest.fail(f"{missing_browser()}, and M360_REQUIRE_BROWSER is set")
+        pytest.skip(missing_browser())
     deadline = time.monotonic() + WATCHDOG_S
     banded_output(tmp_path / "pano")
     port = free_port()
