@@ -199,14 +199,14 @@ def test_taps_per_pixel_is_the_plans_own_count() -> None:
     """The memory model's count of tangents per ERP pixel, from a coarse grid and no plan,
     against the built plan's coverage map (which the taps are)."""
     for lay in (
-        m360.Layout.icosahedron(512),
+        m360.Layout.icosahedron(512, padding="paper"),
         m360.geometry.default_layout(512),
         m360.Layout.icosahedron(512, padding=0.15, subdivisions=1),
     ):
         counted = float(plan_for(lay).coverage().mean())
         assert taps_per_pixel(lay) == pytest.approx(counted, rel=0.005)
     assert taps_per_pixel(m360.geometry.default_layout(512)) > 1.3 * taps_per_pixel(
-        m360.Layout.icosahedron(512)
+        m360.Layout.icosahedron(512, padding="paper")
     )
 
 

@@ -17,7 +17,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "python" / "m360"
 
 #: The stages from the bottom up; a module may import its own stage and those listed before it.
 LAYERS: list[tuple[str, ...]] = [
-    ("m360._core", "m360.errors", "m360._validate", "m360._compat", "m360._home"),
+    ("m360._core", "m360.errors", "m360._validate", "m360._compat", "m360._home", "m360._keywords"),
     ("m360.geometry",),
     ("m360.evaluation",),
     ("m360.estimators",),

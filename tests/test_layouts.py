@@ -61,15 +61,15 @@ def in_image(cam: m360.TangentCamera, d: np.ndarray) -> np.ndarray:
 
 
 def test_subdivisions_0_is_the_papers_layout() -> None:
-    paper = m360.Layout.icosahedron(1024)
-    assert m360.Layout.icosahedron(1024, subdivisions=0) == paper
+    paper = m360.Layout.icosahedron(1024, padding="paper")
+    assert m360.Layout.icosahedron(1024, padding=0.3, subdivisions=0) == paper
     assert len(paper) == 20 and paper.subdivisions == 0
 
 
 @pytest.mark.parametrize(("n", "padding"), [(1, 0.15), (1, 0.3), (2, 0.075)])
 def test_subdivided_cameras_look_at_the_sub_face_centroids(n: int, padding: float) -> None:
     lay = m360.Layout.icosahedron(2048, padding=padding, subdivisions=n)
-    paper = m360.Layout.icosahedron(2048)
+    paper = m360.Layout.icosahedron(2048, padding="paper")
     faces = subdivided_faces(n)
     assert len(lay) == len(faces) == 20 * 4**n
     centroids = faces.sum(axis=1)
@@ -251,7 +251,7 @@ def fair_content_errors(lay: m360.Layout, seed: int) -> tuple[np.ndarray, np.nda
     """Affine-only and content-error tangents of room ``seed`` for ``lay``, the errors of the
     paper layout's angular size, density per solid angle and blur (benches/bench_layouts.py)."""
     width = lay.erp_shape[1]
-    paper = m360.Layout.icosahedron(width)
+    paper = m360.Layout.icosahedron(width, padding="paper")
     exact = syn.tangent_perspective_disparity(scene(seed), lay.cameras)
     ratio = lay.cameras[0].fx / paper.cameras[0].fx
     h, w = paper.tangent_shape
@@ -267,7 +267,7 @@ def test_the_default_layout_meets_the_content_error_goal_on_every_scene() -> Non
     with least squares + Poisson (the defaults before): better on every room, under content
     errors and under the affine distortion alone, and ≤ 0.025 median under content errors."""
     width = 1024
-    paper = m360.Layout.icosahedron(width)
+    paper = m360.Layout.icosahedron(width, padding="paper")
     wide = m360.geometry.default_layout(width)
     assert wide.padding == 0.7
     before = {"loss": "squared", "blend": "poisson"}

@@ -180,10 +180,10 @@ def test_old_keywords_and_names_warn_and_still_work() -> None:
         m360.StitchOptions(blend_options={"tol": 1e-5, "tolerance": 1e-5})
 
     stitch_module = importlib.import_module("m360.stitch")  # m360.stitch is the function
-    with pytest.warns(DeprecationWarning, match=r"m360\.blend\.BLEND_METHODS"):
+    with pytest.warns(DeprecationWarning, match=r"m360\.stitching\.blend\.BLEND_METHODS"):
         modes = stitch_module.BLEND_MODES
     assert modes == BLEND_METHODS
-    with pytest.warns(DeprecationWarning, match=r"m360\.blend\.MIN_POISSON_TOLERANCE"):
+    with pytest.warns(DeprecationWarning, match=r"m360\.stitching\.blend\.MIN_POISSON_TOLERANCE"):
         assert stitch_module.MIN_POISSON_TOL == _core.LIMITS["min_poisson_tolerance"]
 
     with pytest.warns(DeprecationWarning, match=r"m360\.estimators\.OnnxEstimator"):

@@ -60,7 +60,10 @@ _FLAT_NAMES = {
     "upsample": upsample,
     "viewer": viewer,
 }
-for _name, _module in _FLAT_NAMES.items():
+#: Flat modules whose name is now that of a function (``m360.stitch``, ``m360.estimate``): only
+#: ``from m360.stitch import ...`` reaches the module (it holds names kept for old scripts).
+_FLAT_MODULES_OF_FUNCTIONS = {"estimate": pipeline.estimate, "stitch": stitching.stitch}
+for _name, _module in {**_FLAT_NAMES, **_FLAT_MODULES_OF_FUNCTIONS}.items():
     _sys.modules.setdefault(f"{__name__}.{_name}", _module)
 del _name, _module
 

@@ -143,7 +143,7 @@ class _Worker:
 
 
 # The pieces of one image, shared by the local engine (_Worker.process) and the Ray engine
-# (m360._ray_engine), which runs them in different processes: the same bytes either way.
+# (m360.batch._ray_engine), which runs them in different processes: the same bytes either way.
 
 
 def _make_job_folder(job: Job) -> ImageOutcome | None:
@@ -305,7 +305,7 @@ def _claim(stem: Path) -> Iterator[bool]:
     so a killed run blocks nothing. The lock file is removed while still held, after the work;
     a claimer that locked a file which was removed meanwhile retries on the new one, so two
     claimers never both hold it. Ctrl-C is held back while the claim is taken and released
-    (:func:`m360._interrupt.deferred`): arriving between creating the file and the ``try``
+    (:func:`m360.batch._interrupt.deferred`): arriving between creating the file and the ``try``
     that removes it, it used to leave the file behind.
     """
     stem.parent.mkdir(parents=True, exist_ok=True)

@@ -645,7 +645,7 @@ def _keyboard_interrupt_once() -> Callable[[int, Any], None]:
     """SIGINT handler of an in-process run: KeyboardInterrupt once, then nothing.
 
     Once is enough, and a second one could break the clean-up of the first (the handler may
-    run twice for one Ctrl-C: see :mod:`m360._interrupt`).
+    run twice for one Ctrl-C: see :mod:`m360.batch._interrupt`).
     """
     raised = False
 
