@@ -6,7 +6,8 @@ walked over a memoryview, so the multi-hundred-megabyte weights are skipped, nev
 
 :func:`input_affine` follows the image input through the first operations of the graph and
 returns the per-channel affine map ``x * scale + offset`` they apply, if any: that is how m360
-finds whether a model normalises its input itself (estimators/registry.py decides what the map means).
+finds whether a model normalises its input itself (``onnx_file.input_normalization`` decides
+what the map means).
 """
 
 from __future__ import annotations
