@@ -9,6 +9,7 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 >>> tangents = m360.erp_to_tangents(erp, layout)          # (20, 346, 400[, C])
 >>> disp = m360.stitch(tangents, layout, align="none", blend="mean")
 >>> opts = m360.StitchOptions(energy="paper", blend="frustum")  # validated, canonical
+>>> model = m360.ModelOptions(input_size=(224, 224), mean=(0, 0, 0), std=(1, 1, 1))
 >>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
 >>> m360.save(result, "out/pano", formats=("npy", "exr"))      # m360.load("out/pano") reads it
 >>> report = m360.batch.run(["photos/"], "out/", workers=2)     # many images, resumable
@@ -29,6 +30,7 @@ from .errors import (
     ScaleError,
     SolverError,
 )
+from .estimators import ModelOptions
 from .estimators import registry as models
 from .evaluation import metrics as eval
 from .evaluation import synthetic
@@ -74,6 +76,7 @@ __all__ = [
     "Layout",
     "M360Error",
     "Mesh",
+    "ModelOptions",
     "ModelError",
     "PointCloud",
     "ReadError",
