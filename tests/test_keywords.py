@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import inspect
 import pickle
+from pathlib import Path
 from typing import Annotated, TypedDict
 
 import m360
@@ -220,3 +221,19 @@ def test_one_default_padding_for_the_layout_estimate_uses() -> None:
     assert m360.estimate(
         rgb, Flat(), align="none", padding="paper"
     ).layout == paper.__class__.icosahedron(256, padding=0.3)
+
+
+def test_multiple_of_reaches_the_network_from_the_api_and_the_cli(tmp_path: Path) -> None:
+    # The option added through its one entry (ModelKeywords.multiple_of) and load_estimator.
+    from m360.estimators import load_estimator
+    from onnx_graphs import channel
+
+    path = channel(tmp_path / "dyn.onnx", 0)
+    plain = load_estimator(path, input_size=(200, 200))
+    assert plain.network_size((346, 400)) == (173, 200)
+    by32 = load_estimator(path, input_size=(200, 200), multiple_of=32)
+    assert by32.multiple_of == 32 and by32.network_size((346, 400)) == (160, 192)
+    args = _run_parser().parse_args(["x.jpg", "-o", "o", "--multiple-of", "32"])
+    assert from_args(args, ModelKeywords) == {"multiple_of": 32}
+    with pytest.raises(m360.InputError, match="multiple_of"):
+        ModelOptions(multiple_of=0)

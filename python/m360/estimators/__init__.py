@@ -95,7 +95,8 @@ def load_estimator(
     **keywords
         The model options (:class:`ModelKeywords`): ``providers``, ``threads``,
         ``input_size`` (a model whose file fixes its input size refuses any other, naming the
-        size it takes), ``output_kind`` (:data:`OUTPUT_KINDS`), ``mean``, ``std``.
+        size it takes), ``output_kind`` (:data:`OUTPUT_KINDS`), ``multiple_of``, ``mean``,
+        ``std``.
 
     Returns
     -------
@@ -113,6 +114,7 @@ def load_estimator(
     providers, threads = given.get("providers"), given.get("threads")
     input_size, output_kind = given.get("input_size"), given.get("output_kind")
     mean, std = given.get("mean"), given.get("std")
+    multiple_of = given.get("multiple_of")
     if isinstance(model, (str, os.PathLike)):
         text = os.fspath(model)
         if text in _models.REGISTRY:
@@ -125,7 +127,7 @@ def load_estimator(
                 mean=mean,
                 std=std,
                 expected_normalization=(entry.mean, entry.std),
-                multiple_of=entry.multiple_of,
+                multiple_of=entry.multiple_of if multiple_of is None else multiple_of,
                 resize=entry.resize,
                 providers=providers,
                 threads=threads,
@@ -143,6 +145,7 @@ def load_estimator(
                 input_size=input_size,
                 mean=mean,
                 std=std,
+                multiple_of=1 if multiple_of is None else multiple_of,
                 providers=providers,
                 threads=threads,
             )

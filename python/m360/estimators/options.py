@@ -12,7 +12,7 @@ from collections.abc import Mapping, Sequence
 from typing import TYPE_CHECKING, Annotated, Any, TypedDict
 
 from .._keywords import Option, checked, document, split
-from .._validate import size_pair
+from .._validate import integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError
 from .kinds import OUTPUT_KINDS, OutputKind, check_output_kind
@@ -83,6 +83,16 @@ class ModelKeywords(TypedDict, total=False):
             "what the model outputs (default: the registry's, or affine_disparity)",
             check=check_output_kind,
             choices=OUTPUT_KINDS,
+        ),
+    ]
+    multiple_of: Annotated[
+        int | None,
+        Option(
+            "the network's input height and width are rounded to a multiple of this (a dynamic "
+            "model that needs it, e.g. 32; default: the registry's, or 1)",
+            check=lambda v, n: integer(v, n, low=1, high=MAX_NETWORK_SIZE),
+            parse=int,
+            metavar="N",
         ),
     ]
     mean: Annotated[
