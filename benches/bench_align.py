@@ -86,7 +86,7 @@ NEWTON_CAP = 100
 
 
 def scene_inputs(width: int, seed: int) -> tuple[m360.Layout, np.ndarray, np.ndarray]:
-    layout = m360.Layout.icosahedron(width)
+    layout = m360.Layout.icosahedron(width, padding=0.3)
     scene = syn.room(seed)
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
     tiles = syn.distort(exact, seed + 100, scale=(0.5, 2.0), shift=0.3, field=0.1, noise=0.01)

@@ -57,7 +57,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import _harness as h
 import m360
 import onnx_graphs
-from m360.estimate import OnnxEstimator
+from m360.estimators import OnnxEstimator
 
 
 def make_panoramas(folder: Path, count: int, width: int) -> list[Path]:

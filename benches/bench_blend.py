@@ -43,7 +43,7 @@ def tangents(width: int) -> np.ndarray:
     tangents, with residual per-tangent affine error and a smooth field (as after alignment)."""
     _, depth = m360.synthetic.render(m360.synthetic.room(0), 2048)
     disp = cv2.resize((1.0 / depth).astype(np.float32), (width, width // 2))
-    tiles = m360.erp_to_tangents(disp, m360.Layout.icosahedron(width))
+    tiles = m360.erp_to_tangents(disp, m360.Layout.icosahedron(width, padding=0.3))
     return m360.synthetic.distort(tiles, 1, scale=(0.97, 1.03), shift=0.02, field=0.02)
 
 
@@ -102,7 +102,7 @@ def numpy_frustum(layout: m360.Layout, tiles: np.ndarray) -> h.Timing:
 
 
 def bench_size(size: int, repeats: int, scipy_max: int) -> list[list]:
-    layout = m360.Layout.icosahedron(size)
+    layout = m360.Layout.icosahedron(size, padding=0.3)
     tiles = tangents(size)
     rows = []
     baselines: dict[str, tuple[h.Timing, int | None, float | None]] = {}
@@ -163,7 +163,7 @@ def bench_size(size: int, repeats: int, scipy_max: int) -> list[list]:
 
 
 RSS_CODE = """
-lay = m360.Layout.icosahedron({w})
+lay = m360.Layout.icosahedron({w}, padding=0.3)
 hh, ww = lay.tangent_shape
 offsets = 1.0 + 0.01 * np.arange(20, dtype=np.float32)
 tiles = offsets[:, None, None] * np.ones((20, hh, ww), np.float32)

@@ -23,7 +23,6 @@ Run: ``.venv/bin/python benches/bench_estimate.py [--sizes 2048 4096] [--repeats
 
 from __future__ import annotations
 
-import inspect
 import statistics
 import sys
 import tempfile
@@ -37,12 +36,12 @@ sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import _harness as h
 import m360
 import onnx_graphs
-from m360.estimate import OnnxEstimator
+from m360.estimators import OnnxEstimator
 
 STAGES = ("project", "network", "convert", "align", "blend", "total")
-#: m360.estimate's own defaults, read from its signature (so the labels cannot drift).
-DEFAULT_ALIGN = inspect.signature(m360.estimate).parameters["align"].default
-DEFAULT_BLEND = m360._core.DEFAULTS["blend"]["method"]  # what blend=None selects
+#: m360.estimate's own defaults, read from the options it builds (so the labels cannot drift).
+DEFAULT_ALIGN = "multiscale"  # StitchOptions' align: the energy's schedule
+DEFAULT_BLEND = m360.StitchOptions().method  # what blend=None selects
 
 
 def conv_flops(size: int, width: int, layers: int) -> float:
@@ -85,7 +84,7 @@ def stage_table(
 
 
 def network_table(model: Path, repeats: int) -> list[dict]:
-    tiles = m360.erp_to_tangents(panorama(2048), m360.Layout.icosahedron(2048))
+    tiles = m360.erp_to_tangents(panorama(2048), m360.Layout.icosahedron(2048, padding=0.3))
     rows = []
     for threads in (1, 2):
         for batch in (1, 20):
@@ -95,7 +94,7 @@ def network_table(model: Path, repeats: int) -> list[dict]:
                 f"est = OnnxEstimator({str(model)!r}, threads={threads}, batch_size={batch})\n"
                 "est.predict(np.zeros((20, 346, 400, 3), np.uint8))\n"
             )
-            setup = "import numpy as np, onnxruntime\nfrom m360.estimate import OnnxEstimator\n"
+            setup = "import numpy as np, onnxruntime\nfrom m360.estimators import OnnxEstimator\n"
             rss = h.fresh_process_rss(code, setup=setup, timeout=600)
             per_tile = t.median / 20 * 1e3
             rows.append(

@@ -83,7 +83,7 @@ def layout_of(
 ) -> m360.Layout:
     layout = m360.Layout.icosahedron(width, padding=padding, subdivisions=subdivisions)
     if extra and extra.get("paper_pixels"):
-        paper = m360.Layout.icosahedron(width)
+        paper = m360.Layout.icosahedron(width, padding=0.3)
         tangent_width = round(layout.tangent_shape[1] * paper.cameras[0].fx / layout.cameras[0].fx)
         layout = m360.Layout.icosahedron(width, padding=padding, tangent_width=tangent_width)
     return layout

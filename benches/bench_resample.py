@@ -105,7 +105,7 @@ def _blocks(values: np.ndarray, width: int = 1024) -> np.ndarray:
 def bench_size(size: int, repeats: int, e2p_repeats: int) -> list[Row]:
     """Every timing of one ERP width: (width, operation, implementation, timing, baseline s)."""
     out: list[Row] = []
-    layout = m360.Layout.icosahedron(size)
+    layout = m360.Layout.icosahedron(size, padding=0.3)
     rgb = panorama(size)
 
     def build_plan(which: str) -> None:
@@ -223,7 +223,7 @@ def peak_rss(sizes: list[int]) -> list[list]:
     stitch(align='none', blend='mean'): [size, peak MB, peak - baseline MB, baseline MB,
     counter, wall s]."""
     code = (
-        "lay = m360.Layout.icosahedron({w})\n"
+        "lay = m360.Layout.icosahedron({w}, padding=0.3)\n"
         "tiles = np.ones((20, *lay.tangent_shape), np.float32)\n"
         "m360.stitch(tiles, lay, align='none', blend='mean')\n"
     )
