@@ -66,8 +66,8 @@ import align_scipy
 import m360
 import m360._core
 import m360.synthetic as syn
-from m360.geometry import _sphere as sph
 from m360.geometry import clear_plan_cache, plan_for
+from m360.geometry import sphere as sph
 
 METHODS = {
     "no alignment": {"align": "none"},

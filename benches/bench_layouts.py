@@ -51,7 +51,7 @@ import _harness as h
 import m360
 import m360.synthetic as syn
 import onnx_graphs
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 #: Alignment schedule of the 80-face layouts: nodes about as far apart, in angle, as the
 #: default 4x3 → 8x7 on the paper's twice-as-wide tiles (8x7 on them costs 4-5x the time).

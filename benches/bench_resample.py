@@ -32,8 +32,8 @@ import numpy as np
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as h
 import m360
-from m360.geometry import _sphere as sph
 from m360.geometry import clear_plan_cache, plan_for
+from m360.geometry import sphere as sph
 
 Row = tuple[int, str, str, h.Timing, "float | None"]
 

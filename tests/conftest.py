@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, settings
 from local_http import LocalServer
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 # Profiles (``max_examples`` is the budget of a weight-1 fuzz test; test_fuzz.py scales it per
 # test). "ci", the default: a few hundred examples over all fuzz tests, well under a minute.

@@ -11,7 +11,7 @@ import pytest
 from conftest import erp_depth, layout, tangent_disparity
 from m360.align import MULTISCALE
 from m360.errors import InputError
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 WIDTH = 1024
 SEEDS = (0, 1, 2)

@@ -24,8 +24,8 @@ from conftest import (
 )
 from m360 import _core
 from m360.errors import InputError, SolverError
-from m360.geometry import _sphere as sph
 from m360.geometry import plan_for
+from m360.geometry import sphere as sph
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "benches"))
 import blend_scipy

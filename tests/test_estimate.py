@@ -23,7 +23,7 @@ from m360.estimators import (
     ray_norms,
     to_perspective_disparity,
 )
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 NO_NORM = {"mean": (0.0, 0.0, 0.0), "std": (1.0, 1.0, 1.0)}
 

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 from conftest import erp_depth, layout, scene, smooth_field, tangent_directions
 from m360.errors import InputError
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 # ------------------------------------------------------------------------------------- layout
 

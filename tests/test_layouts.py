@@ -9,8 +9,8 @@ import numpy as np
 import pytest
 from conftest import erp_depth, scene, tangent_disparity
 from m360.errors import InputError
-from m360.geometry import _sphere as sph
 from m360.geometry import plan_for
+from m360.geometry import sphere as sph
 from scipy.spatial import ConvexHull
 
 # ------------------------------------------------------------------ oracle: the icosahedron

@@ -14,7 +14,7 @@ from conftest import (
     tangent_disparity,
 )
 from m360.errors import InputError
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 
 def raw_abs_rel(disparity: np.ndarray, depth: np.ndarray) -> float:

@@ -8,7 +8,7 @@ import m360.synthetic as syn
 import numpy as np
 import pytest
 from m360.errors import InputError
-from m360.geometry import _sphere as sph
+from m360.geometry import sphere as sph
 
 
 @dataclass

@@ -29,9 +29,9 @@ from ..io import (
     remove_stale_temporaries,
     save,
 )
-from ..io._gpano import place as place_crop
-from ..io._gpano import read_gpano
 from ..io.decode import decode_image, fix_aspect_ratio, read_input_bytes
+from ..io.gpano import place as place_crop
+from ..io.gpano import read_gpano
 from ..stitching.options import StitchOptions
 from ._interrupt import deferred
 

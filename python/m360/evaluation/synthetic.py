@@ -24,7 +24,7 @@ from m360._compat import renamed
 from m360._validate import MAX_ERP_WIDTH, as_array, integer, number
 from m360._validate import seed as check_seed
 from m360.errors import InputError
-from m360.geometry._sphere import (
+from m360.geometry.sphere import (
     camera_pixel_directions,
     erp_latitudes,
     erp_longitudes,

@@ -198,8 +198,8 @@ def partial_panorama(path: str | os.PathLike[str]) -> PartialPanorama | None:
         Unreadable file, or metadata that is incomplete, not equirectangular or contradicts the
         image's pixel size.
     """
-    from ..io._gpano import place, read_gpano
     from ..io.decode import decode_image, read_input_bytes
+    from ..io.gpano import place, read_gpano
 
     data = read_input_bytes(path)
     crop = read_gpano(data, str(path))

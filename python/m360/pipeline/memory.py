@@ -140,9 +140,9 @@ def taps_per_pixel(layout: Layout) -> float:
 
 @functools.lru_cache(maxsize=16)
 def _taps_per_pixel(layout: Layout) -> float:
-    from ..geometry import _sphere
+    from ..geometry import sphere
 
-    directions = _sphere.erp_directions(64, 128).reshape(-1, 3)
+    directions = sphere.erp_directions(64, 128).reshape(-1, 3)
     seen = np.zeros(len(directions), np.int32)
     for cam in layout.cameras:
         u, v, ahead = cam.project(directions)

@@ -66,7 +66,7 @@ def _values(packet: bytes) -> dict[str, str]:
 
 
 def read_gpano(data: bytes, name: str = "image") -> GPanoCrop | None:
-    """The crop of a partial panorama from its file bytes, or None when it has no GPano crop.
+    """Read the crop of a partial panorama from its file bytes; None when it has no GPano crop.
 
     Raises
     ------

@@ -57,7 +57,7 @@ def erp_longitudes(width: int) -> np.ndarray:
 
 
 def lonlat_to_directions(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
-    """Unit directions of (longitude, latitude) pairs.
+    """Return the unit directions of (longitude, latitude) pairs.
 
     Parameters
     ----------
@@ -77,7 +77,7 @@ def lonlat_to_directions(lon: np.ndarray, lat: np.ndarray) -> np.ndarray:
 
 
 def erp_directions(height: int, width: int) -> np.ndarray:
-    """Viewing directions of every ERP pixel centre.
+    """Return the viewing directions of every ERP pixel centre.
 
     Parameters
     ----------
