@@ -1,0 +1,131 @@
+"""Real networks on real photos: every shared panorama through every shared network.
+
+The tier runs where the real data sits beside the repository (``../shared/real``: three small
+trained depth networks and 16 panoramas from 1K to 12K; CI has it) and skips, saying why, where
+it does not (a user's clone). No ground truth comes with the photos, so the checks are the ones
+that hold for any correct result: every output finite where it says so, no negative disparity,
+the sidecar's ``valid_fraction`` the truth, no seam across 0/360° beyond what the map shows
+elsewhere, the 12K photo with every format within the memory estimate.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+from typing import Any
+
+import m360
+import numpy as np
+import pytest
+
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real"
+pytestmark = pytest.mark.skipif(
+    not (REAL / "models").is_dir() or not (REAL / "panos").is_dir(),
+    reason=f"no real data at {REAL} (a clone without ../shared/real: the tier runs in CI)",
+)
+
+#: How each shared network is described to m360 (docs/your-own-model.md walks through them).
+NETWORKS: dict[str, dict[str, Any]] = {
+    "fastdepth_224.onnx": {"output_kind": "metric_depth", "mean": (0, 0, 0), "std": (1, 1, 1)},
+    "fastdepth_dynamic.onnx": {
+        "output_kind": "metric_depth",
+        "mean": (0, 0, 0),
+        "std": (1, 1, 1),
+        "multiple_of": 32,
+        "input_size": (224, 224),
+    },
+    "mobile_pydnet_dynamic.onnx": {
+        "output_kind": "affine_depth",
+        "mean": (0, 0, 0),
+        "std": (1, 1, 1),
+        "multiple_of": 64,
+        "input_size": (256, 256),
+    },
+}
+
+
+def panoramas() -> list[Path]:
+    if not (REAL / "panos").is_dir():
+        return []
+    return sorted(p for p in (REAL / "panos").iterdir() if "11968" not in p.name)
+
+
+def seam_jump_is_ordinary(disparity: np.ndarray) -> tuple[float, float]:
+    """The 0/360° seam's jump, and the 99th percentile of the same jump at every other column.
+
+    The jump at a column boundary is the median over rows of |Δ log disparity| across it; a
+    seam the stitch left at 0/360° would stand out from the map's own column boundaries.
+    """
+    logd = np.log(np.where(disparity > 0, disparity, np.nan))
+    steps = np.abs(np.diff(np.concatenate([logd, logd[:, :1]], axis=1), axis=1))
+    per_column = np.nanmedian(steps, axis=0)  # boundary j is between columns j and j + 1
+    return float(per_column[-1]), float(np.nanpercentile(per_column[:-1], 99))
+
+
+def check_result(res: m360.EstimateResult, where: str) -> None:
+    disparity = res.disparity
+    finite = np.isfinite(disparity)
+    assert finite.mean() > 0.5, f"{where}: only {finite.mean():.1%} of the map has a value"
+    assert not (disparity[finite] < 0).any(), f"{where}: negative disparity"
+    valid = finite & (disparity > 0)
+    depth = res.depth
+    assert np.array_equal(np.isfinite(depth), valid), f"{where}: depth and disparity disagree"
+    lo, hi = np.percentile(disparity[valid], [1, 99])
+    assert hi / lo < 1e4, f"{where}: disparity range {lo:g}..{hi:g} is not a scene's"
+    seam, ordinary = seam_jump_is_ordinary(disparity)
+    assert seam <= max(ordinary, 1e-3) * 1.5, f"{where}: 0/360° seam {seam:.4f} vs {ordinary:.4f}"
+
+
+@pytest.mark.parametrize("network", sorted(NETWORKS))
+@pytest.mark.parametrize("energy", ["normalized", "paper"])
+def test_every_panorama_through_every_network(network: str, energy: str, tmp_path: Path) -> None:
+    model = m360.estimators.load_estimator(
+        REAL / "models" / network, model_options=m360.ModelOptions(**NETWORKS[network])
+    )
+    solver = "lbfgs" if energy == "paper" else None
+    for path in panoramas():
+        rgb = m360.io.load_image(path)
+        res = m360.estimate(rgb, model, energy=energy, solver=solver)
+        check_result(res, f"{network} {energy} {path.name}")
+        written = m360.save(res, tmp_path / path.stem, formats=("npy",))
+        meta = json.loads(written["sidecar"].read_text())
+        truth = float((np.isfinite(res.disparity) & (res.disparity > 0)).mean())
+        assert meta["valid_fraction"] == pytest.approx(truth, abs=1e-6), path.name
+        if NETWORKS[network]["output_kind"] == "metric_depth":
+            assert res.units == "metres", f"{network} is metric: the result must be in metres"
+
+
+def test_the_12k_photo_with_every_format_stays_within_the_memory_estimate(tmp_path: Path) -> None:
+    photo = REAL / "panos" / "street_11968.jpg"
+    model = REAL / "models" / "fastdepth_224.onnx"
+    code = textwrap.dedent(
+        f"""
+        import json, resource, sys
+        import m360
+        from m360.pipeline import memory
+        report = m360.batch.run(
+            [{str(photo)!r}], {str(tmp_path / "out")!r}, model={str(model)!r},
+            output_kind="metric_depth", mean=(0, 0, 0), std=(1, 1, 1),
+            formats=("npy", "png16", "ply", "glb"), progress=False,
+        )
+        peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+        print(json.dumps({{"exit": report.exit_code, "peak": peak,
+                           "failed": [o.message for o in report.failed]}}))
+        """
+    )
+    out = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=900, check=False
+    )
+    assert out.returncode == 0, out.stderr[-3000:]
+    result = json.loads(out.stdout.strip().splitlines()[-1])
+    assert result["exit"] == 0, result["failed"]
+    meta = json.loads((tmp_path / "out" / "street_11968.json").read_text())
+    assert meta["units"] == "metres"
+    estimate = m360.memory.estimate_memory(
+        11968, m360.memory.working_width_for(None, 11968), "consensus"
+    )
+    assert result["peak"] <= 4 * 2**30, f"peak {result['peak'] / 2**30:.2f} GB > 4 GB"
+    assert result["peak"] <= 1.2 * estimate, (result["peak"], estimate)
