@@ -547,9 +547,7 @@ def _check_report(info: dict[str, Any]) -> list[str]:
         sure = f", sure: {guess['confidence']}" if guess["kind"] else ""
         lines.append(f"kind guess:    {looks}{sure} ({guess['reason']})")
         if kind and guess["kind"] and guess["kind"] != kind and guess["confidence"] != "low":
-            lines.append(
-                f"               warning: declared {kind}, but the output looks like {looks}"
-            )
+            lines.append(f"               warning: declared {kind}, the output looks like {looks}")
     flags = info["flags"]
     if not info["usable"]:
         lines.append(f"usable:        no: {info['problem']}")

@@ -115,12 +115,24 @@ def rank_correlation(a: np.ndarray, b: np.ndarray) -> float:
     ok = np.isfinite(x) & np.isfinite(y)
     if ok.sum() < 3:
         return 0.0
-    rx = np.argsort(np.argsort(x[ok])).astype(np.float64)
-    ry = np.argsort(np.argsort(y[ok])).astype(np.float64)
+    rx, ry = _ranks(x[ok]), _ranks(y[ok])
     rx -= rx.mean()
     ry -= ry.mean()
     denom = float(np.sqrt((rx * rx).sum() * (ry * ry).sum()))
     return float((rx * ry).sum() / denom) if denom > 0 else 0.0
+
+
+def _ranks(values: np.ndarray) -> np.ndarray:
+    """Ranks from 0, ties sharing their mean rank (a flat output has no correlation)."""
+    order = np.argsort(values, kind="mergesort")
+    ordered = values[order]
+    first = np.r_[True, ordered[1:] != ordered[:-1]]
+    group = np.cumsum(first) - 1
+    starts = np.flatnonzero(first)
+    ends = np.r_[starts[1:], values.size]
+    ranks = np.empty(values.size, dtype=np.float64)
+    ranks[order] = ((starts + ends - 1) / 2.0)[group]
+    return ranks
 
 
 def depth_at(z: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
