@@ -1,8 +1,8 @@
 """Command line: ``m360 demo``, ``m360 run``, ``m360 eval``, ``m360 models``.
 
 ``m360 run`` is :func:`m360.batch.run` (folders, manifests, resume, workers, failures.jsonl);
-exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors,
-130 interrupted (Ctrl-C; rerun to finish).
+exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors (or
+the model failed on the first image: the run stops there), 130 interrupted (Ctrl-C; rerun to finish).
 """
 
 from __future__ import annotations
