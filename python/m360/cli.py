@@ -2,7 +2,8 @@
 
 ``m360 run`` is :func:`m360.batch.run` (folders, manifests, resume, workers, failures.jsonl);
 exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors (or
-the model failed on the first image: the run stops there), 130 interrupted (Ctrl-C; rerun to finish).
+the model failed on the first image: the run stops there), 130 interrupted (Ctrl-C; rerun to
+finish).
 """
 
 from __future__ import annotations
