@@ -493,3 +493,19 @@ def test_a_model_error_after_a_success_fails_only_that_image(tmp_path: Path) -> 
     )
     assert [o.status for o in report.outcomes] == ["done", "failed", "done"]
     assert report.exit_code == 1 and report.model_error is None
+
+
+def test_a_pool_of_workers_stops_on_its_model_too(tmp_path: Path) -> None:
+    import cv2
+    from check_graphs import unet
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(2), 128)
+    for k in range(6):
+        cv2.imwrite(str(folder / f"p{k}.png"), rgb[..., ::-1])
+    report = m360.batch.run(
+        folder, tmp_path / "out", model=str(unet(tmp_path / "u.onnx")), progress=False, workers=2
+    )
+    assert report.exit_code == 2 and len(report.outcomes) == 1
+    assert report.model_error is not None and "--multiple-of 32" in report.model_error

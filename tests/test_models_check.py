@@ -322,3 +322,19 @@ def test_the_shared_real_networks(
     code = main(["models", "check", str(path)])
     out = capsys.readouterr().out
     assert code == 0 and field(out, "usable") == "yes, with the flags below"
+
+
+def test_a_registered_model_keeps_its_own_normalisation(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = REAL / "fastdepth_224.onnx"
+    if not path.is_file():
+        pytest.skip(f"real networks not available ({REAL} is absent)")
+    entry = dataclasses.replace(
+        models.get(models.DEFAULT_MODEL),
+        name="fastdepth-imagenet",
+        sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+        output_kind="metric_depth",
+    )
+    monkeypatch.setitem(models.REGISTRY, entry.name, entry)
+    info = models.check(path, erp_width=WIDTH)
+    assert info["registry"] == entry.name and info["normalize_guess"] == "unit"  # the hint
+    assert info["flags"] == {} and info["usable"]  # but the registry's word stands

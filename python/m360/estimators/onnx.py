@@ -273,7 +273,7 @@ class OnnxEstimator:
             policies = ", ".join((*RESIZE_POLICIES, *RESIZE_MODES[:2]))
             raise InputError(f"resize={resize!r} is not supported; choose one of {policies}")
         self.resize = resize
-        self._size_rule: int | None = None
+        self._size_rules: dict[tuple[int, int], int | None] = {}
         self.batch_size = integer(batch_size, "batch_size", low=1, high=1 << 16)
         if name is not None and not isinstance(name, str):
             raise InputError(f"name must be a str, got {type(name).__name__}")
@@ -441,8 +441,8 @@ class OnnxEstimator:
         """
         if self._input.size is not None:
             return None
-        if self._size_rule is not None:
-            return self._size_rule
+        if near in self._size_rules:
+            return self._size_rules[near]
         runs = {m: self.runs_at(probe_size(near, m)) is None for m in SIZE_MULTIPLES}
         ladder = list(SIZE_MULTIPLES)
         rule = next(
@@ -450,7 +450,7 @@ class OnnxEstimator:
         )
         if rule is None and all(self.runs_at(probe_size(near, m)) is None for m in PATCH_MULTIPLES):
             rule = PATCH_MULTIPLES[0]
-        self._size_rule = rule
+        self._size_rules[near] = rule
         return rule
 
     def _run(self, batch: np.ndarray) -> np.ndarray:

@@ -724,7 +724,8 @@ def _probe_scene(
             guess = ranked[0]
     info["normalize_guess"] = guess
     chosen = "as given"
-    if guess is not None and not est.normalization.explicit:
+    # A registry entry knows its normalisation, and the user's explicit one wins: a hint only.
+    if guess is not None and not est.normalization.explicit and info["registry"] is None:
         if tuple(NORMALIZE_PRESETS[guess][0]) != current[0] or tuple(
             NORMALIZE_PRESETS[guess][1]
         ) != tuple(current[1]):
