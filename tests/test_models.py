@@ -344,3 +344,168 @@ def test_a_stat_cache_cannot_be_fooled_by_a_same_size_same_mtime_swap(
         np.full((1, 8, 8, 3), 51, np.uint8)
     )
     np.testing.assert_allclose(pred, 5.0 * 0.2, rtol=1e-6)  # the new graph ran, not a cached one
+
+
+# ------------------------------------------------------------------ a user's own model
+
+
+def test_a_run_time_size_failure_is_a_model_error_that_says_what_to_do(tmp_path: Path) -> None:
+    from check_graphs import unet
+
+    path = unet(tmp_path / "unet.onnx")
+    tangents = np.full((1, 346, 400, 3), 128, np.uint8)  # 332x384 at the default 384 px
+    est = load_estimator(path)
+    with pytest.raises(ModelError) as caught:
+        est.predict(tangents)
+    text = str(caught.value)
+    assert "ONNX Runtime failed on a 332x384 input (Add node: " in text
+    assert text.endswith(
+        "this model needs input sizes that are multiples of 32: pass --multiple-of 32 "
+        "(or multiple_of=32)"
+    )
+    assert "onnxruntime_src" not in text  # no source paths of ONNX Runtime's build
+    # With the option the message names, it runs.
+    fixed = load_estimator(path, multiple_of=32)
+    assert fixed.network_size((346, 400)) == (320, 384)
+    assert np.isfinite(fixed.predict(tangents)).all()
+
+
+def test_normalize_and_resize_reach_the_network_from_the_api_and_the_cli(
+    tmp_path: Path,
+) -> None:
+    from m360._keywords import from_args
+    from m360.cli import build_parser
+    from m360.estimators import ModelKeywords, ModelOptions
+    from m360.estimators.onnx_file import IMAGENET_MEAN, IMAGENET_STD
+
+    path = g.channel(tmp_path / "c0.onnx", 0)  # output = what the network gets in channel 0
+    grey = np.full((1, 8, 8, 3), 51, np.uint8)  # 0.2 in [0, 1]
+    expected = {
+        "imagenet": (0.2 - IMAGENET_MEAN[0]) / IMAGENET_STD[0],
+        "unit": 0.2,
+        "none": 51.0,
+    }
+    for name, value in expected.items():
+        est = load_estimator(path, normalize=name, input_size=(8, 8))
+        assert est.normalize == name and est.normalization.explicit
+        assert est.predict(grey)[0, 0, 0] == pytest.approx(value, rel=1e-5)
+    # exact: the input size as given; keep-aspect fits inside it; cover covers it.
+    sizes = {"exact": (224, 224), "keep-aspect": (193, 224), "cover": (224, 259)}
+    for policy, size in sizes.items():
+        est = load_estimator(path, input_size=(224, 224), resize=policy)
+        assert est.network_size((346, 400)) == size and est.resize_policy == policy
+    assert load_estimator(path, input_size=(224, 224), resize="exact", multiple_of=32).network_size(
+        (346, 400)
+    ) == (224, 224)
+    # The same from the flags of m360 run and m360 models check.
+    sub = next(a for a in build_parser()._actions if hasattr(a, "choices") and a.choices).choices
+    argv = ["--normalize", "unit", "--resize", "exact", "--multiple-of", "32"]
+    for command, head in (("run", ["x.jpg", "-o", "o"]), ("models", ["check", "m.onnx"])):
+        parser = sub[command]
+        args = parser.parse_args([*head, *argv])
+        got = from_args(args, ModelKeywords)
+        assert got == {"normalize": "unit", "resize": "exact", "multiple_of": 32}
+        assert ModelOptions(**got) == ModelOptions(normalize="unit", resize="exact", multiple_of=32)
+    with pytest.raises(m360.InputError, match="not both"):
+        ModelOptions(normalize="unit", std=(1, 1, 1))
+    with pytest.raises(m360.InputError, match="normalize='unitt'"):
+        ModelOptions(normalize="unitt")
+    with pytest.raises(m360.InputError, match="resize='fit'"):
+        ModelOptions(resize="fit")
+
+
+def test_normalize_and_resize_are_in_the_sidecar_and_the_fingerprint(tmp_path: Path) -> None:
+    from m360.batch.runner import fingerprint
+
+    path = g.affine_of_mean(tmp_path / "dyn.onnx", 2.0, 1.0)
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(1), 128)
+    options = m360.StitchOptions(align="none")
+    prints = {}
+    for name, keywords in {
+        "default": {},
+        "unit": {"normalize": "unit"},
+        "exact": {"resize": "exact", "input_size": (64, 64)},
+    }.items():
+        est = load_estimator(path, **keywords)  # type: ignore[arg-type]
+        prints[name] = fingerprint(est, options, ["npy"], preview=False, fix_aspect=False)
+        model = m360.estimate(rgb, est, options=options).model
+        assert model["normalize"] == keywords.get("normalize")
+        assert model["resize"] == keywords.get("resize", "keep-aspect")
+        assert model["multiple_of"] == 1
+    assert prints["default"] != prints["unit"] != prints["exact"] != prints["default"]
+    assert prints["unit"]["model"]["std"] == [1.0, 1.0, 1.0]
+    assert prints["exact"]["model"]["resize"] == "exact"
+
+
+def test_a_batch_whose_model_fails_on_the_first_image_stops_with_exit_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    import cv2
+    from check_graphs import unet
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(2), 256)
+    for k in range(4):
+        cv2.imwrite(str(folder / f"p{k}.png"), rgb[..., ::-1])
+    model = unet(tmp_path / "unet.onnx", levels=6)  # 64: fails at the default size here
+    seen: list[m360.batch.ImageOutcome] = []
+    report = m360.batch.run(
+        folder, tmp_path / "out", model=str(model), progress=False, on_outcome=seen.append
+    )
+    assert len(seen) == 1 and len(report.outcomes) == 1  # one image tried, then it stopped
+    assert report.exit_code == 2 and report.failed[0].error == "ModelError"
+    assert report.model_error is not None and "multiples of 64" in report.model_error
+    assert "stopped: the model failed on the first image" in report.summary()
+    assert (tmp_path / "out" / "failures.jsonl").read_text().count("\n") == 1
+    # The CLI says the same and exits 2; with the flag it asks for, every image is done.
+    from m360.cli import main
+
+    argv = ["run", str(folder), "-o", str(tmp_path / "cli"), "--model", str(model)]
+    capsys.readouterr()
+    assert main([*argv, "--no-progress"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("pass --multiple-of 64 (or multiple_of=64)") == 2  # the image, the summary
+    assert "0 done, 0 already done, 1 failed" in err
+    assert main([*argv, "--no-progress", "--multiple-of", "64", "--align", "none"]) == 0
+    assert len(list((tmp_path / "cli").glob("p*.json"))) == 4
+
+
+def test_a_model_error_after_a_success_fails_only_that_image(tmp_path: Path) -> None:
+    import cv2
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(2), 256)
+    for k in range(3):  # p1 is black: the estimator below fails on it only
+        cv2.imwrite(str(folder / f"p{k}.png"), rgb[..., ::-1] * (k != 1))
+
+    class FailsOnBlack:
+        output_kind = "affine_disparity"
+
+        def predict(self, tangents: np.ndarray) -> np.ndarray:
+            if tangents.max() == 0:
+                raise ModelError("black")
+            return tangents.astype(np.float32).mean(axis=-1) / 255 + 1
+
+    report = m360.batch.run(
+        folder, tmp_path / "out", model=FailsOnBlack(), progress=False, align="none"
+    )
+    assert [o.status for o in report.outcomes] == ["done", "failed", "done"]
+    assert report.exit_code == 1 and report.model_error is None
+
+
+def test_a_pool_of_workers_stops_on_its_model_too(tmp_path: Path) -> None:
+    import cv2
+    from check_graphs import unet
+
+    folder = tmp_path / "in"
+    folder.mkdir()
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(2), 128)
+    for k in range(6):
+        cv2.imwrite(str(folder / f"p{k}.png"), rgb[..., ::-1])
+    report = m360.batch.run(
+        folder, tmp_path / "out", model=str(unet(tmp_path / "u.onnx")), progress=False, workers=2
+    )
+    assert report.exit_code == 2 and len(report.outcomes) == 1
+    assert report.model_error is not None and "--multiple-of 32" in report.model_error

@@ -8,14 +8,17 @@ import re
 from pathlib import Path
 
 import m360
+import numpy as np
 import onnx_graphs as g
 import pytest
+from check_graphs import half_resolution, only_at, oracle, unet
 from m360 import models
 from m360.cli import main
-from m360.estimators import network_size
+from m360.estimators import _probe, network_size
 from norm_graphs import NCHW, VARIANTS, chain_then_channel
 
 WIDTH = 512  # a small ERP keeps the one-tangent run quick
+REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "models"
 
 
 @pytest.fixture(autouse=True)
@@ -76,7 +79,8 @@ def test_dynamic_model_without_normalisation(
     assert field(out, "normalisation").startswith("m360 feeds (rgb - mean) / std: mean (0.485")
     assert "no normalisation found" in out
     assert field(out, "output kind").startswith("unknown: pass --output-kind")
-    assert field(out, "output") == f"shape (1, {nh}, {nw}) for one tangent"
+    assert field(out, "output") == f"{nh}x{nw} for a {nh}x{nw} input (the input's size)"
+    assert field(out, "sizes") == f"runs at any size (probed near {nh}x{nw})"
 
 
 def test_nhwc_graph_wanting_0_255(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
@@ -127,3 +131,210 @@ def test_an_onnx_model_m360_cannot_feed_exits_2(
 def test_a_missing_file_exits_2(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     code, _, err = run(capsys, str(tmp_path / "nowhere.onnx"))
     assert code == 2 and "does not exist" in err
+
+
+# --------------------------------------------------------------------------------------------
+# Probing: sizes, output shape, the output kind guess, and the flags printed.
+
+
+def test_a_model_that_needs_multiples_of_32_gets_the_flag(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = unet(tmp_path / "unet.onnx")
+    tangent = m360.Layout.icosahedron(WIDTH).tangent_shape
+    nh, nw = network_size(tangent, (384, 384))
+    assert nh % 32 or nw % 32  # m360's default size is not a multiple of 32: it fails there
+    code, out, err = run(capsys, str(path))
+    assert code == 0 and err == ""
+    assert field(out, "network size").endswith(")") and ": FAILS (Add node: " in out
+    assert field(out, "sizes") == f"runs at sizes that are multiples of 32 (probed near {nh}x{nw})"
+    h32, w32 = network_size(tangent, (384, 384), multiple_of=32)
+    assert f"with --multiple-of 32: {h32}x{w32}" in out
+    assert field(out, "output").startswith(f"{h32}x{w32} for a {h32}x{w32} input")
+    assert field(out, "usable") == "yes, with the flags below"
+    assert "--multiple-of 32" in field(out, "use")
+    assert "multiple_of=32" in field(out, "python")
+    # With the flag it prints, the file runs as is: nothing more to add.
+    code, out, _ = run(capsys, str(path), "--multiple-of", "32", "--output-kind", "metric_depth")
+    assert code == 0 and "FAILS" not in out and field(out, "usable") == "yes"
+
+
+@pytest.mark.parametrize("levels", [3, 4, 6])
+def test_the_size_rule_is_found_for_each_depth_of_unet(tmp_path: Path, levels: int) -> None:
+    info = models.check(unet(tmp_path / "u.onnx", levels), erp_width=WIDTH)
+    assert info["size_rule"] == 2**levels
+    assert info["usable"]
+
+
+def test_a_model_that_runs_at_no_size_exits_2(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = only_at(tmp_path / "only.onnx", 101, 103)
+    code, out, err = run(capsys, str(path))
+    assert code == 2
+    assert field(out, "sizes").startswith("runs at none of the sizes tried")
+    assert field(out, "usable").startswith("no: ONNX Runtime fails at any size tried")
+    assert err.startswith("m360: error: ") and "m360 cannot run it" in err
+
+
+def test_a_half_resolution_output_is_reported(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    code, out, _ = run(capsys, str(half_resolution(tmp_path / "half.onnx")))
+    assert code == 0
+    tangent = m360.Layout.icosahedron(WIDTH).tangent_shape
+    nh, nw = network_size(tangent, (384, 384))
+    assert field(out, "output") == (
+        f"{nh // 2}x{nw // 2} for a {nh}x{nw} input (1/2 of the input's size: m360 resizes it "
+        "to the tangent)"
+    )
+
+
+@pytest.mark.parametrize(
+    ("transform", "kind"),
+    [
+        ("depth", "metric_depth"),
+        ("disparity", "affine_disparity"),
+        ("negative_depth", "affine_depth"),
+        ("negative_disparity", "affine_depth"),
+        ("scaled_depth", "affine_depth"),
+        ("flat", None),
+    ],
+)
+def test_the_output_kind_is_guessed_from_the_probe_scene(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str], transform: str, kind: str | None
+) -> None:
+    path = oracle(tmp_path / f"{transform}.onnx", transform)
+    code, out, _ = run(capsys, str(path))
+    assert code == 0
+    assert field(out, "input") == "'x' (1, 3, 64, 80), NCHW, static size 64x80"
+    guess = field(out, "kind guess")
+    if kind is None:
+        assert guess.startswith("cannot tell (the output does not follow the scene's depth")
+        assert "--output-kind" not in out.split("usable:")[1]
+    else:
+        assert guess.startswith(f"{kind}, sure: ")
+        assert f"--output-kind {kind}" in field(out, "use")
+    # The image is ignored, so no normalisation does better than another: none is named.
+    assert "no clear winner" in out and "--normalize" not in out.split("usable:")[1]
+    if transform.startswith("negative"):
+        lo, hi = re.search(r"values (\S+) … (\S+),", out).groups()  # type: ignore[union-attr]
+        assert float(lo) < float(hi) < 0
+
+
+def test_a_declared_kind_that_the_output_contradicts_is_warned_about(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = oracle(tmp_path / "disp.onnx", "disparity")
+    code, out, _ = run(capsys, str(path), "--output-kind", "metric_depth")
+    assert code == 0 and field(out, "output kind") == "metric_depth (--output-kind)"
+    assert "warning: declared metric_depth, the output looks like affine_disparity" in out
+
+
+def test_the_guess_against_an_independent_oracle() -> None:
+    # guess_kind on arrays: z from the probe views, outputs made from it here.
+    z = [v[1] for v in _probe.views((60, 70))]
+    assert _probe.guess_kind([1 / d for d in z], z).kind == "affine_disparity"
+    assert _probe.guess_kind([d.copy() for d in z], z).kind == "metric_depth"
+    assert _probe.guess_kind([d * 10 for d in z], z).kind == "affine_depth"
+    assert _probe.guess_kind([-d for d in z], z).kind == "affine_disparity"  # falls with depth
+    assert _probe.guess_kind([np.full_like(d, np.nan) for d in z], z).kind is None
+    assert _probe.guess_kind([np.full_like(d, 2.0) for d in z], z).kind is None  # ties
+    rng = np.random.default_rng(0)
+    noise = [rng.standard_normal(d.shape).astype(np.float32) for d in z]
+    assert _probe.guess_kind(noise, z).kind is None
+    # Spearman's rank correlation against scipy's.
+    scipy_stats = pytest.importorskip("scipy.stats")
+    a, b = rng.standard_normal(500), rng.standard_normal(500)
+    b += a
+    assert _probe.rank_correlation(a, b) == pytest.approx(scipy_stats.spearmanr(a, b)[0])
+    a, b = np.round(a), np.round(b)  # many ties: scipy's mean ranks
+    assert _probe.rank_correlation(a, b) == pytest.approx(scipy_stats.spearmanr(a, b)[0])
+
+
+def test_probe_size_gives_odd_multiples_nearest() -> None:
+    from m360.estimators.onnx import probe_size
+
+    assert probe_size((332, 384), 32) == (352, 416)  # 11·32, 13·32
+    assert probe_size((332, 384), 64) == (320, 448)  # 5·64, 7·64
+    assert probe_size((332, 384), 1) == (333, 385)
+    assert probe_size((10, 10), 16) == (16, 16)
+
+
+def test_a_json_report(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    code = main(["models", "check", str(unet(tmp_path / "u.onnx")), "--width", "512", "--json"])
+    info = json.loads(capsys.readouterr().out)
+    assert code == 0 and info["size_rule"] == 32 and info["flags"]["multiple_of"] == 32
+
+
+def test_check_options_as_in_m360_run(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    path = g.affine_of_mean(tmp_path / "dyn.onnx", 2.0, 1.0)
+    code, out, _ = run(
+        capsys, str(path), "--normalize", "unit", "--input-size", "224", "224", "--resize", "exact"
+    )
+    assert code == 0
+    assert field(out, "network size").startswith("224x224 for the default layout")
+    assert field(out, "normalisation").startswith("m360 feeds (rgb - mean) / std: mean (0.0, 0.0")
+    code, _, err = run(capsys, str(path), "--normalize", "unit", "--mean", "0", "0", "0")
+    assert code == 2 and "not both" in err
+
+
+# --------------------------------------------------------------------------------------------
+# The shared real networks (skipped when ../shared/real is absent).
+
+
+@pytest.mark.parametrize(
+    ("name", "rule", "kind", "scale"),
+    [
+        ("fastdepth_224.onnx", None, "metric_depth", 1.0),
+        ("fastdepth_dynamic.onnx", 32, "metric_depth", 1.0),
+        ("mobile_pydnet_dynamic.onnx", 64, "affine_depth", 0.5),
+    ],
+)
+def test_the_shared_real_networks(
+    name: str, rule: int | None, kind: str, scale: float, capsys: pytest.CaptureFixture[str]
+) -> None:
+    path = REAL / name
+    if not path.is_file():
+        pytest.skip(f"real networks not available ({REAL} is absent)")
+    info = models.check(path)
+    assert info["usable"] and info["size_rule"] == rule
+    assert info["input"]["static"] == (rule is None)
+    if rule is not None:  # m360's default 332x384 is no multiple of 32: it fails there
+        assert info["network_size_runs"] is not None
+        assert info["flags"]["multiple_of"] == rule
+    assert info["normalization"]["source"] == "m360"  # the graphs hold no normalisation
+    assert info["normalize_guess"] == "unit" and info["flags"]["normalize"] == "unit"
+    assert info["kind_guess"]["kind"] == kind and info["flags"]["output_kind"] == kind
+    assert info["output_scale"] == [scale, scale]
+    if kind == "affine_depth":  # PyDNet: negative, growing with depth
+        assert info["output_range"][2] < 0 and info["kind_guess"]["correlation_with_depth"] > 0
+    # The flags it prints make the file run at m360's size for the default layout.
+    options = dict(info["options"])
+    if options["output_kind"] not in m360.estimators.OUTPUT_KINDS:  # affine_depth: #23 too
+        del options["output_kind"]
+    est = m360.estimators.load_estimator(path, **options)
+    tangent = m360.Layout.icosahedron(models.CHECK_ERP_WIDTH).tangent_shape
+    grey = np.full((1, *tangent, 3), 128, np.uint8)
+    assert np.isfinite(est.predict(grey)).all()
+    code = main(["models", "check", str(path)])
+    out = capsys.readouterr().out
+    assert code == 0 and field(out, "usable") == "yes, with the flags below"
+
+
+def test_a_registered_model_keeps_its_own_normalisation(monkeypatch: pytest.MonkeyPatch) -> None:
+    path = REAL / "fastdepth_224.onnx"
+    if not path.is_file():
+        pytest.skip(f"real networks not available ({REAL} is absent)")
+    entry = dataclasses.replace(
+        models.get(models.DEFAULT_MODEL),
+        name="fastdepth-imagenet",
+        sha256=hashlib.sha256(path.read_bytes()).hexdigest(),
+        output_kind="metric_depth",
+    )
+    monkeypatch.setitem(models.REGISTRY, entry.name, entry)
+    info = models.check(path, erp_width=WIDTH)
+    assert info["registry"] == entry.name and info["normalize_guess"] == "unit"  # the hint
+    assert info["flags"] == {} and info["usable"]  # but the registry's word stands

@@ -1,8 +1,9 @@
 """Command line: ``m360 demo``, ``m360 run``, ``m360 eval``, ``m360 models``.
 
 ``m360 run`` is :func:`m360.batch.run` (folders, manifests, resume, workers, failures.jsonl);
-exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors,
-130 interrupted (Ctrl-C; rerun to finish).
+exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors (or
+the model failed on the first image: the run stops there), 130 interrupted (Ctrl-C; rerun to
+finish).
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import sys
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -21,7 +23,7 @@ from . import batch
 from ._core import __version__
 from ._keywords import add_flags, from_args, plain_text
 from .errors import InputError, M360Error, ModelError
-from .estimators import OUTPUT_KINDS, ModelKeywords, ModelOptions, SimulatedEstimator
+from .estimators import ModelKeywords, ModelOptions, SimulatedEstimator
 from .estimators import registry as models
 from .evaluation import synthetic
 from .evaluation.metrics import depth_metrics, format_metrics
@@ -211,15 +213,23 @@ def build_parser() -> argparse.ArgumentParser:
     where.add_argument("name", choices=models.names(), metavar="NAME")
     check = mod_commands.add_parser(
         "check",
-        help="say what m360 will do with an .onnx file (exit 2 if it cannot use it)",
+        help="say what m360 will do with an .onnx file and which flags it needs (exit 2 if it "
+        "cannot use it)",
+        description=(
+            "Load an .onnx file as `m360 run --model FILE` would (with the model flags given) "
+            "and probe it: the input sizes it runs at, the normalisation its graph holds and "
+            "the one its output suggests, its output's shape and values, and what the output "
+            "looks like (a disparity, a metric depth, a depth up to scale and shift) on a "
+            "synthetic corridor whose depth is known. Prints the flags `m360 run` needs. Exit "
+            "code 0 when m360 can use the file (perhaps with those flags), 2 when it cannot."
+        ),
     )
     check.add_argument("file", type=Path, help="the .onnx file")
     check.add_argument(
-        "--output-kind", choices=OUTPUT_KINDS, help="what the model outputs, if not registered"
-    )
-    check.add_argument(
         "--width", type=int, default=models.CHECK_ERP_WIDTH, help="ERP width of the layout"
     )
+    check.add_argument("--json", action="store_true", help="print the findings as JSON")
+    add_flags(check.add_argument_group("model (as for m360 run)"), ModelKeywords)
 
     plans = commands.add_parser(
         "plans", help="show where built plans are kept on disk and their size, or clear them"
@@ -427,40 +437,132 @@ def _read_map(path: Path, kind: str, *, allow_output: bool) -> np.ndarray:
 
 def _models_check(args: argparse.Namespace) -> int:
     try:
-        info = models.check(args.file, output_kind=args.output_kind, erp_width=args.width)
-    except ModelError as exc:  # corrupt, not ONNX, or not a model m360 can feed
+        info = models.check(args.file, erp_width=args.width, **from_args(args, ModelKeywords))
+    except (ModelError, InputError) as exc:  # corrupt, not ONNX, not feedable, bad options
         print(f"m360: error: {exc}", file=sys.stderr)
         return 2
+    except Exception as exc:  # never a traceback from the command that diagnoses a file
+        print(
+            f"m360: error: cannot check {args.file}: {type(exc).__name__}: {exc} (unexpected; "
+            "please report it)",
+            file=sys.stderr,
+        )
+        return 2
+    if args.json:
+        print(json.dumps(info, indent=2))
+    else:
+        print("\n".join(_check_report(info)))
+    if not info["usable"]:
+        print(f"m360: error: {args.file}: {info['problem']}", file=sys.stderr)
+        return 2
+    return 0
+
+
+def _flag_text(flags: dict[str, object]) -> str:
+    """``{"multiple_of": 32}`` → ``--multiple-of 32``."""
+    parts = []
+    for key, value in flags.items():
+        shown = " ".join(str(v) for v in value) if isinstance(value, list) else str(value)
+        parts.append(f"--{key.replace('_', '-')} {shown}")
+    return " ".join(parts)
+
+
+def _check_report(info: dict[str, Any]) -> list[str]:
+    """Write the lines `m360 models check` prints for :func:`m360.models.check`'s findings."""
     inp, norm = info["input"], info["normalization"]
     shape = ", ".join(str(d) for d in inp["shape"])
     size = "static size {}x{}".format(*inp["size"]) if inp["static"] else "dynamic size"
     registry = f"{info['registry']} (matched by sha256)" if info["registry"] else "not registered"
-    if norm["source"] == "graph":
-        how = f"graph (m360 feeds RGB in [0, {norm['input_range']:g}])"
-    else:
-        how = "m360 feeds (rgb - mean) / std"
-    kind = info["output_kind"]
-    kind_from = {"user": "--output-kind", "registry": f"registry: {info['registry']}"}
+    nh, nw = info["network_size"]
+    runs = info["network_size_runs"]
     lines = [
         f"file:          {info['path']} ({info['size_bytes']} bytes, sha256 {info['sha256']})",
         f"registry:      {registry}",
         f"input:         {inp['name']!r} ({shape}), {inp['layout']}, {size}",
-        "network size:  {}x{} for the default layout (icosahedron of a {}-px ERP, tangents "
-        "{}x{})".format(*info["network_size"], info["erp_width"], *info["tangent_shape"]),
+        f"network size:  {nh}x{nw} for the default layout (icosahedron of a "
+        f"{info['erp_width']}-px ERP, tangents {info['tangent_shape'][0]}x"
+        f"{info['tangent_shape'][1]})" + ("" if runs is None else f": FAILS ({runs})"),
+    ]
+    rule = info["size_rule"]
+    if inp["static"]:
+        lines.append("sizes:         fixed: m360 resizes each tangent to it")
+    elif rule is None:
+        lines.append(f"sizes:         runs at none of the sizes tried near {nh}x{nw}")
+    else:
+        need = "any size" if rule == 1 else f"sizes that are multiples of {rule}"
+        lines.append(f"sizes:         runs at {need} (probed near {nh}x{nw})")
+    if info["working_size"] is not None and info["working_size"] != info["network_size"]:
+        lines.append(
+            "               with {}: {}x{}".format(
+                _flag_text({"multiple_of": info["flags"].get("multiple_of")}), *info["working_size"]
+            )
+        )
+    if norm["source"] == "graph":
+        how = f"graph (m360 feeds RGB in [0, {norm['input_range']:g}])"
+    else:
+        how = "m360 feeds (rgb - mean) / std"
+    lines += [
         f"normalisation: {how}: mean {tuple(norm['mean'])}, std {tuple(norm['std'])}",
         f"               {norm['detail']}",
+    ]
+    scores = info["normalize_scores"]
+    if scores:
+        listed = ", ".join(f"{k} {v:+.2f}" for k, v in scores.items())
+        verdict = (
+            f"{info['normalize_guess']} fits best"
+            if info["normalize_guess"]
+            else "no clear winner (a model card wins over this hint)"
+        )
+        lines.append(f"               on the probe scene: {verdict} (follows depth: {listed})")
+    if info["output_shape"] is not None:
+        oh, ow = info["output_shape"][1:]
+        wh, ww = info["working_size"]
+        sh, sw = info["output_scale"]
+        if (sh, sw) == (1.0, 1.0):
+            scale = "the input's size"
+        elif sh == sw and (1 / sh).is_integer():
+            scale = f"1/{int(1 / sh)} of the input's size: m360 resizes it to the tangent"
+        else:
+            scale = "another size than the input: m360 resizes it to the tangent"
+        lines.append(f"output:        {oh}x{ow} for a {wh}x{ww} input ({scale})")
+    if info["output_range"] is not None:
+        lo, mid, hi = info["output_range"]
+        finite = "" if info["output_finite"] else " (some values NOT finite)"
+        lines.append(
+            f"               values {lo:.4g} … {hi:.4g}, median {mid:.4g} on the probe scene"
+            + finite
+        )
+    kind = info["output_kind"]
+    kind_from = {"user": "--output-kind", "registry": f"registry: {info['registry']}"}
+    lines.append(
         "output kind:   "
         + (
             f"{kind} ({kind_from[info['output_kind_source']]})"
             if kind
             else "unknown: pass --output-kind (m360 run assumes affine_disparity)"
-        ),
-        f"output:        shape {tuple(info['output_shape'])} for one tangent"
-        + ("" if info["output_finite"] else " (NOT all finite on a grey tangent)"),
-        "usable:        yes",
-    ]
-    print("\n".join(lines))
-    return 0
+        )
+    )
+    guess = info["kind_guess"]
+    if guess is not None:
+        looks = guess["kind"] or "cannot tell"
+        sure = f", sure: {guess['confidence']}" if guess["kind"] else ""
+        lines.append(f"kind guess:    {looks}{sure} ({guess['reason']})")
+        if kind and guess["kind"] and guess["kind"] != kind and guess["confidence"] != "low":
+            lines.append(f"               warning: declared {kind}, the output looks like {looks}")
+    flags = info["flags"]
+    if not info["usable"]:
+        lines.append(f"usable:        no: {info['problem']}")
+    elif not flags:
+        lines.append("usable:        yes")
+    else:
+        options = ", ".join(f"{k}={v!r}" for k, v in info["options"].items())
+        lines += [
+            "usable:        yes, with the flags below",
+            f"use:           m360 run IN -o OUT --model {info['path']} "
+            + _flag_text(info["options"]),
+            f"python:        m360.ModelOptions({options})",
+        ]
+    return lines
 
 
 def _plans_command(action: str, stale_only: bool) -> int:

@@ -104,12 +104,16 @@ class BatchReport:
         True if Ctrl-C stopped the run; rerunning finishes the rest.
     failures_file : Path
         ``OUT/failures.jsonl`` (appended only when something failed).
+    model_error : str or None
+        Why the run stopped early: the model failed (a ModelError) on the first image tried,
+        before any image succeeded, so it would fail every image; the rest were not tried.
     """
 
     outcomes: list[ImageOutcome]
     seconds: float
     interrupted: bool
     failures_file: Path
+    model_error: str | None = None
 
     def _with(self, status: str) -> list[ImageOutcome]:
         return [o for o in self.outcomes if o.status == status]
@@ -136,9 +140,14 @@ class BatchReport:
 
     @property
     def exit_code(self) -> int:
-        """0 if nothing failed and the run finished, 1 if some image failed, 130 if interrupted."""
+        """0 if nothing failed and the run finished, 1 if some image failed, 130 if interrupted.
+
+        2 if the model failed on the first image (``model_error``): the run stopped there.
+        """
         if self.interrupted:
             return 130
+        if self.model_error is not None:
+            return 2
         return 1 if self.failed else 0
 
     def stage_seconds(self) -> dict[str, float]:
@@ -167,6 +176,11 @@ class BatchReport:
             lines.append(f"  failures: {self.failures_file}")
         if self.interrupted:
             lines.append("  interrupted: rerun the same command to finish the rest")
+        if self.model_error is not None:
+            lines.append(
+                "  stopped: the model failed on the first image, so it would fail every image; "
+                f"no other image was tried: {self.model_error}"
+            )
         return "\n".join(lines)
 
 
@@ -457,8 +471,18 @@ def run(
         bar.update(1)
         if on_outcome is not None:
             on_outcome(outcome)
+        # A model that fails on the first image tried (and none succeeded) fails them all:
+        # stop here, whichever engine runs (each stops on an exception from record).
+        if (
+            outcome.status == "failed"
+            and outcome.error == "ModelError"
+            and index is not None
+            and counts["done"] == counts["skipped"] == 0
+        ):
+            raise _ModelUnusable(outcome.message or "the model failed")
 
     interrupted = False
+    model_error: str | None = None
     try:
         for problem in problems:
             record(problem, None)
@@ -478,6 +502,8 @@ def run(
             interrupted = _run_pool(jobs, settings, workers, lambda job, o: record(o, order[job]))
     except KeyboardInterrupt:
         interrupted = True
+    except _ModelUnusable as exc:
+        model_error = str(exc)
     finally:
         bar.close()
     # A worker that got Ctrl-C (and not this process) reports its image as interrupted.
@@ -487,8 +513,13 @@ def run(
         seconds=time.perf_counter() - started,
         interrupted=interrupted,
         failures_file=failures,
+        model_error=model_error,
     )
     return report
+
+
+class _ModelUnusable(Exception):
+    """Raised by a run's ``record`` to stop it: the model failed on the first image."""
 
 
 def _ray_resources(

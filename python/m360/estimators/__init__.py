@@ -95,8 +95,8 @@ def load_estimator(
     **keywords
         The model options (:class:`ModelKeywords`): ``providers``, ``threads``,
         ``input_size`` (a model whose file fixes its input size refuses any other, naming the
-        size it takes), ``output_kind`` (:data:`OUTPUT_KINDS`), ``multiple_of``, ``mean``,
-        ``std``.
+        size it takes), ``output_kind`` (:data:`OUTPUT_KINDS`), ``resize``, ``multiple_of``,
+        ``normalize``, ``mean``, ``std``.
 
     Returns
     -------
@@ -115,6 +115,7 @@ def load_estimator(
     input_size, output_kind = given.get("input_size"), given.get("output_kind")
     mean, std = given.get("mean"), given.get("std")
     multiple_of = given.get("multiple_of")
+    normalize, resize = given.get("normalize"), given.get("resize")
     if isinstance(model, (str, os.PathLike)):
         text = os.fspath(model)
         if text in _models.REGISTRY:
@@ -126,9 +127,10 @@ def load_estimator(
                 input_size=input_size,
                 mean=mean,
                 std=std,
+                normalize=normalize,
                 expected_normalization=(entry.mean, entry.std),
                 multiple_of=entry.multiple_of if multiple_of is None else multiple_of,
-                resize=entry.resize,
+                resize=entry.resize if resize is None else resize,
                 providers=providers,
                 threads=threads,
                 name=entry.name,
@@ -145,7 +147,9 @@ def load_estimator(
                 input_size=input_size,
                 mean=mean,
                 std=std,
+                normalize=normalize,
                 multiple_of=1 if multiple_of is None else multiple_of,
+                resize="upper_bound" if resize is None else resize,
                 providers=providers,
                 threads=threads,
             )

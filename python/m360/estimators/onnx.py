@@ -10,6 +10,7 @@ from __future__ import annotations
 import hashlib
 import math
 import os
+import re
 import threading
 from collections import OrderedDict
 from collections.abc import Sequence
@@ -30,6 +31,15 @@ from .kinds import check_output_kind
 __all__ = ["MAX_NETWORK_SIZE", "RESIZE_MODES", "OnnxEstimator", "is_file", "network_size"]
 
 RESIZE_MODES = ("upper_bound", "lower_bound", "exact")
+#: The resize policies by the names users give (``resize=``, ``--resize``) → :data:`RESIZE_MODES`:
+#: ``keep-aspect`` fits the tangent inside the input size keeping its aspect ratio, ``cover``
+#: covers the input size keeping the aspect ratio, ``exact`` uses the input size as given.
+RESIZE_POLICIES = {"keep-aspect": "upper_bound", "cover": "lower_bound", "exact": "exact"}
+#: Multiples a dynamic input size is probed at when ONNX Runtime refuses a size (a CNN with
+#: skip connections needs 2^downsamplings, a ViT its patch size), smallest first.
+SIZE_MULTIPLES = (1, 2, 4, 8, 16, 32, 64, 128)
+#: ViT patch sizes, tried when no power of two works.
+PATCH_MULTIPLES = (14, 28)
 #: Largest network input side (and rounding multiple) accepted: depth networks run at ≤ 1536 px,
 #: and one 4096² float32 RGB input is already 200 MB.
 MAX_NETWORK_SIZE = 4096
@@ -171,11 +181,15 @@ class OnnxEstimator:
         graph holds. Default: ``expected_normalization``, applied only if the graph does not
         normalise its input itself (:func:`m360.models.input_normalization`; the finding is
         in ``normalization`` and ``normalization_source``).
+    normalize : {"imagenet", "unit", "none"}, optional
+        A named explicit normalisation instead of ``mean``/``std`` (not with them):
+        ``imagenet``, ``unit`` (RGB in [0, 1] as is) or ``none`` (raw 0-255 values).
     multiple_of : int
         Round dynamic network sizes to a multiple of this (32 for CNN/DPT, 14 for ViT-14).
     resize : str
-        How a dynamic size follows the tangent's aspect: ``"upper_bound"``, ``"lower_bound"`` or
-        ``"exact"`` (see :func:`network_size`).
+        How a dynamic size follows the tangent's aspect: ``"upper_bound"`` (alias
+        ``"keep-aspect"``), ``"lower_bound"`` (``"cover"``) or ``"exact"`` (see
+        :func:`network_size`).
     providers : list of str, optional
         ONNX Runtime execution providers in order of preference (e.g. ``["CUDAExecutionProvider",
         "CPUExecutionProvider"]``); unavailable ones are skipped. Default CPU.
@@ -210,6 +224,7 @@ class OnnxEstimator:
         input_size: tuple[int, int] | None = None,
         mean: Sequence[float] | None = None,
         std: Sequence[float] | None = None,
+        normalize: str | None = None,
         multiple_of: int = 1,
         resize: str = "upper_bound",
         providers: Sequence[str] | None = None,
@@ -228,6 +243,16 @@ class OnnxEstimator:
         self.input_size = (
             None if input_size is None else size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
         )
+        if normalize is not None:
+            if not isinstance(normalize, str) or normalize not in onnx_file.NORMALIZE_PRESETS:
+                choices = ", ".join(onnx_file.NORMALIZE_PRESETS)
+                raise InputError(
+                    f"normalize={normalize!r} is not supported; choose one of {choices}"
+                )
+            if mean is not None or std is not None:
+                raise InputError("give normalize or mean/std, not both")
+            mean, std = onnx_file.NORMALIZE_PRESETS[normalize]
+        self.normalize = normalize
         expected = expected_normalization or (onnx_file.IMAGENET_MEAN, onnx_file.IMAGENET_STD)
         if not isinstance(expected, (tuple, list)) or len(expected) != 2:
             raise InputError(
@@ -242,9 +267,13 @@ class OnnxEstimator:
                 f"std must be > 0 per channel (within [1e-6, 1e6]), got {tuple(self.std)}"
             )
         self.multiple_of = integer(multiple_of, "multiple_of", low=1, high=MAX_NETWORK_SIZE)
+        if isinstance(resize, str):
+            resize = RESIZE_POLICIES.get(resize, resize)
         if not isinstance(resize, str) or resize not in RESIZE_MODES:
-            raise InputError(f"resize={resize!r} is not supported; choose one of {RESIZE_MODES}")
+            policies = ", ".join((*RESIZE_POLICIES, *RESIZE_MODES[:2]))
+            raise InputError(f"resize={resize!r} is not supported; choose one of {policies}")
         self.resize = resize
+        self._size_rules: dict[tuple[int, int], int | None] = {}
         self.batch_size = integer(batch_size, "batch_size", low=1, high=1 << 16)
         if name is not None and not isinstance(name, str):
             raise InputError(f"name must be a str, got {type(name).__name__}")
@@ -337,6 +366,16 @@ class OnnxEstimator:
         """sha256 of the model bytes that were loaded."""
         return self._sha256
 
+    @property
+    def resize_policy(self) -> str:
+        """``resize`` by its user-facing name (``keep-aspect``, ``cover``, ``exact``)."""
+        return next(k for k, v in RESIZE_POLICIES.items() if v == self.resize)
+
+    @property
+    def fixed_size(self) -> tuple[int, int] | None:
+        """The (height, width) the file fixes, or None when its input size is dynamic."""
+        return self._input.size
+
     @renamed(tile_shape="tangent_shape")
     def network_size(self, tangent_shape: tuple[int, int]) -> tuple[int, int]:
         """Network input (height, width) used for tangents of ``tangent_shape``."""
@@ -358,18 +397,67 @@ class OnnxEstimator:
             out[k] = (
                 image if (nh, nw) == (h, w) else cv2.resize(image, (nw, nh), interpolation=flag)
             )
+        return self.network_input(out)
+
+    def network_input(self, images: np.ndarray) -> np.ndarray:
+        """(B, H, W, 3) float32 RGB in [0, 1] at the network size → the network's input tensor.
+
+        Normalised as the model needs and in its layout; ``images`` is overwritten.
+        """
         # Float input far outside [0, 1] may overflow float32 here: it becomes inf, the network's
         # output there is not finite, and predict() marks it NaN (no estimate).
         with np.errstate(over="ignore", invalid="ignore"):
-            out -= self.mean.astype(np.float32)
-            out /= self.std.astype(np.float32)
+            images -= self.mean.astype(np.float32)
+            images /= self.std.astype(np.float32)
         if self._input.layout == "NCHW":
-            out = out.transpose(0, 3, 1, 2)
-        return np.ascontiguousarray(out)
+            images = images.transpose(0, 3, 1, 2)
+        return np.ascontiguousarray(images)
+
+    def run_network(self, batch: np.ndarray) -> np.ndarray:
+        """Run the session on one input tensor; ONNX Runtime's own exceptions pass through."""
+        import onnxruntime as ort
+
+        quiet = ort.RunOptions()
+        quiet.log_severity_level = 4  # a failure is raised (and reworded), not logged as well
+        feed = {self._input.name: batch}
+        return np.asarray(self.session.run([self._output_name], feed, quiet)[0])
+
+    def runs_at(self, size: tuple[int, int]) -> str | None:
+        """Run the network once on a grey image of ``size`` (H, W): None if it runs, else why."""
+        grey = np.full((1, *size, 3), 0.5, dtype=np.float32)
+        try:
+            self.run_network(self.network_input(grey))
+        except Exception as exc:  # ONNX Runtime raises its own types per failure
+            return _short(exc)
+        return None
+
+    def size_rule(self, near: tuple[int, int]) -> int | None:
+        """Find the multiple the dynamic input height and width must be, probing near ``near``.
+
+        For each candidate m (:data:`SIZE_MULTIPLES`, then :data:`PATCH_MULTIPLES`) the network
+        runs once at the odd multiples of m nearest ``near`` (a size that is a multiple of m and
+        of no larger candidate); the rule is the smallest m that runs and whose next two
+        candidates run too. None: no size tried runs (or the input size is fixed).
+        """
+        if self._input.size is not None:
+            return None
+        if near in self._size_rules:
+            return self._size_rules[near]
+        runs = {m: self.runs_at(probe_size(near, m)) is None for m in SIZE_MULTIPLES}
+        ladder = list(SIZE_MULTIPLES)
+        rule = next(
+            (m for k, m in enumerate(ladder) if all(runs[n] for n in ladder[k : k + 3])), None
+        )
+        if rule is None and all(self.runs_at(probe_size(near, m)) is None for m in PATCH_MULTIPLES):
+            rule = PATCH_MULTIPLES[0]
+        self._size_rules[near] = rule
+        return rule
 
     def _run(self, batch: np.ndarray) -> np.ndarray:
-        result = self.session.run([self._output_name], {self._input.name: batch})[0]
-        pred = np.asarray(result)
+        try:
+            pred = self.run_network(batch)
+        except Exception as exc:  # ONNX Runtime's own exception types: say what to do instead
+            raise ModelError(self._run_failure(batch, exc)) from exc
         b = batch.shape[0]
         if pred.ndim == 4 and pred.shape[0] == b and pred.shape[1] == 1:
             pred = pred[:, 0]
@@ -413,6 +501,24 @@ class OnnxEstimator:
         out[~np.isfinite(out)] = np.nan
         return out
 
+    def _run_failure(self, batch: np.ndarray, exc: Exception) -> str:
+        """Say what to do when the network failed on ``batch`` (probing the sizes it takes)."""
+        hw = batch.shape[2:4] if self._input.layout == "NCHW" else batch.shape[1:3]
+        h, w = int(hw[0]), int(hw[1])
+        head = f"{self.name}: ONNX Runtime failed on a {h}x{w} input ({_short(exc)})"
+        check = f"`m360 models check {self.path}` diagnoses the file"
+        if self._input.size is not None:
+            return f"{head}; {check}"
+        rule = self.size_rule((h, w))
+        if rule is None:
+            return f"{head}; it runs at none of the sizes tried near {h}x{w}; {check}"
+        if rule > 1 and (h % rule or w % rule):
+            return (
+                f"{head}: this model needs input sizes that are multiples of {rule}: pass "
+                f"--multiple-of {rule} (or multiple_of={rule})"
+            )
+        return f"{head}; other sizes near it run, so the size is not the cause; {check}"
+
     def __repr__(self) -> str:
         return (
             f"OnnxEstimator({self.name!r}, output_kind={self.output_kind!r}, "
@@ -426,6 +532,34 @@ def is_file(path: Path) -> bool:
         return path.is_file()
     except (OSError, ValueError):
         return False
+
+
+def probe_size(near: tuple[int, int], multiple: int) -> tuple[int, int]:
+    """Give the size nearest ``near`` whose sides are odd multiples of ``multiple``.
+
+    An odd multiple of m is a multiple of no larger power of two times m, so a network that
+    needs 2m fails there.
+    """
+
+    def side(n: int) -> int:
+        k = max(1, round(n / multiple))
+        if k % 2 == 0:  # k - 1 >= 1: the nearer odd neighbour, the larger on a tie
+            k = k - 1 if n - (k - 1) * multiple < (k + 1) * multiple - n else k + 1
+        return k * multiple
+
+    return side(near[0]), side(near[1])
+
+
+def _short(exc: BaseException) -> str:
+    """ONNX Runtime's message on one line without its source location, at most 200 chars."""
+    text = " ".join(str(exc).split())
+    node = re.search(r"while running (\w+) node", text)
+    text = text.split("Status Message: ", 1)[-1]
+    text = re.sub(r"^\[ONNXRuntimeError\] : \d+ : \w+ : ", "", text)
+    # "/onnxruntime_src/.../element_wise_ops.h:583 void onnxruntime::...(...) " → the rest
+    text = re.sub(r"^\S+\.(?:h|cc|cpp):\d+ (?:\w+ )?(?:[\w:]+\([^)]*\) )?", "", text)
+    where = f"{node.group(1)} node: " if node else ""
+    return (where + text)[:200] or type(exc).__name__
 
 
 def check_triple(value: Sequence[float], name: str) -> np.ndarray:

@@ -22,6 +22,7 @@ from . import _onnxgraph
 __all__ = [
     "IMAGENET_MEAN",
     "IMAGENET_STD",
+    "NORMALIZE_PRESETS",
     "NO_NORMALISATION",
     "Normalization",
     "input_normalization",
@@ -32,6 +33,14 @@ __all__ = [
 IMAGENET_MEAN = (0.485, 0.456, 0.406)
 IMAGENET_STD = (0.229, 0.224, 0.225)
 NO_NORMALISATION = ((0.0, 0.0, 0.0), (1.0, 1.0, 1.0))
+#: The named input normalisations (``normalize=``, ``--normalize``) as (mean, std) of RGB in
+#: [0, 1]: ``imagenet`` the ImageNet statistics, ``unit`` RGB in [0, 1] as is, ``none`` the raw
+#: 0-255 pixel values (no scaling at all: ``(rgb / 255 - 0) / (1 / 255)``).
+NORMALIZE_PRESETS: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = {
+    "imagenet": (IMAGENET_MEAN, IMAGENET_STD),
+    "unit": NO_NORMALISATION,
+    "none": ((0.0, 0.0, 0.0), (1.0 / 255.0, 1.0 / 255.0, 1.0 / 255.0)),
+}
 
 #: Bytes an ONNX file (a protobuf ModelProto) may start with: field 1 (ir_version, varint) or,
 #: for some exporters, field 8 (opset_import) / 2 (producer_name) / 7 (graph).

@@ -16,7 +16,8 @@ from .._validate import integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError
 from .kinds import OUTPUT_KINDS, OutputKind, check_output_kind
-from .onnx import MAX_NETWORK_SIZE, check_triple
+from .onnx import MAX_NETWORK_SIZE, RESIZE_POLICIES, check_triple
+from .onnx_file import NORMALIZE_PRESETS
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -37,6 +38,16 @@ def _comma_list(text: str) -> tuple[str, ...]:
     if not names:
         raise argparse.ArgumentTypeError("give at least one provider name")
     return names
+
+
+def _choice(choices: Sequence[str]) -> Any:
+    def check(value: Any, name: str) -> str:
+        if not isinstance(value, str) or value not in choices:
+            known = ", ".join(choices)
+            raise InputError(f"{name}={value!r} is not supported; choose one of {known}")
+        return value
+
+    return check
 
 
 def _triple(value: Any, name: str) -> tuple[float, float, float]:
@@ -85,6 +96,17 @@ class ModelKeywords(TypedDict, total=False):
             choices=OUTPUT_KINDS,
         ),
     ]
+    resize: Annotated[
+        str | None,
+        Option(
+            "how a tangent is resized to a dynamic model's input size: keep-aspect (fit inside "
+            "the input size, keeping the tangent's aspect ratio), cover (cover it, keeping the "
+            "aspect ratio) or exact (exactly the input size); then rounded to --multiple-of "
+            "(default: the registry's, or keep-aspect)",
+            check=_choice(tuple(RESIZE_POLICIES)),
+            choices=tuple(RESIZE_POLICIES),
+        ),
+    ]
     multiple_of: Annotated[
         int | None,
         Option(
@@ -93,6 +115,16 @@ class ModelKeywords(TypedDict, total=False):
             check=lambda v, n: integer(v, n, low=1, high=MAX_NETWORK_SIZE),
             parse=int,
             metavar="N",
+        ),
+    ]
+    normalize: Annotated[
+        str | None,
+        Option(
+            "input normalisation by name, instead of mean/std: imagenet (the ImageNet mean and "
+            "std), unit (RGB in [0, 1] as is) or none (the raw 0-255 pixel values); wins over "
+            "what the graph holds (default: the model's own)",
+            check=_choice(tuple(NORMALIZE_PRESETS)),
+            choices=tuple(NORMALIZE_PRESETS),
         ),
     ]
     mean: Annotated[
@@ -122,12 +154,13 @@ class ModelOptions:
     """Frozen, checked model options: how an ONNX model is run.
 
     Built from the keywords of :class:`ModelKeywords` (``providers``, ``threads``,
-    ``input_size``, ``output_kind``, ``mean``, ``std``); those not given are the model's
-    defaults. Equal options compare equal and have the same :meth:`as_dict`.
+    ``input_size``, ``output_kind``, ``resize``, ``multiple_of``, ``normalize``, ``mean``,
+    ``std``); those not given are the model's defaults. ``normalize`` and ``mean``/``std`` are
+    exclusive. Equal options compare equal and have the same :meth:`as_dict`.
 
     Examples
     --------
-    >>> opts = m360.ModelOptions(input_size=(224, 224), mean=(0, 0, 0), std=(1, 1, 1))
+    >>> opts = m360.ModelOptions(multiple_of=32, normalize="unit", output_kind="metric_depth")
     >>> m360.estimate(rgb, "fastdepth.onnx", model_options=opts)
 
     Raises
@@ -141,7 +174,13 @@ class ModelOptions:
 
     def __init__(self, **keywords: Unpack[ModelKeywords]) -> None:
         (given,) = split(keywords, ModelKeywords, where="ModelOptions")
-        object.__setattr__(self, "_values", checked(given, ModelKeywords))
+        values = checked(given, ModelKeywords)
+        if "normalize" in values and ("mean" in values or "std" in values):
+            raise InputError(
+                "give normalize (--normalize) or mean/std (--mean/--std), not both: "
+                f"normalize={values['normalize']!r} already sets both"
+            )
+        object.__setattr__(self, "_values", values)
 
     @classmethod
     def build(cls, options: ModelOptions | None, **keywords: Unpack[ModelKeywords]) -> ModelOptions:

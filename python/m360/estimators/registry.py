@@ -28,6 +28,7 @@ used with a warning that prints the file's actual hash).
 
 from __future__ import annotations
 
+import math
 import os
 import re
 import threading
@@ -35,24 +36,28 @@ import warnings
 from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._home import home_dir
 from ..errors import InputError, ModelError
 from ..geometry.layout import Layout
-from .kinds import check_output_kind
-from .onnx import OnnxEstimator
+from .onnx import OnnxEstimator, is_file
 from .onnx_file import (
     IMAGENET_MEAN,
     IMAGENET_STD,
     NO_NORMALISATION,
+    NORMALIZE_PRESETS,
     Normalization,
     input_normalization,
     sha256_of,
     sniff_onnx,
 )
+from .options import ModelKeywords, ModelOptions
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
 
 __all__ = [
     "DEFAULT_MODEL",
@@ -520,54 +525,84 @@ def _download(url: str, entry: ModelEntry, target: Path, progress: bool) -> str 
 
 #: ERP width whose default layout ``check`` reports the network size for.
 CHECK_ERP_WIDTH = 2048
+#: Smallest height of the probe views (tangents of a small ERP are enlarged to it).
+_PROBE_MIN_HEIGHT = 240
 
 
 def check(
     path: str | os.PathLike[str],
     *,
-    output_kind: str | None = None,
     erp_width: int = CHECK_ERP_WIDTH,
+    model_options: ModelOptions | None = None,
+    **keywords: Unpack[ModelKeywords],
 ) -> dict[str, Any]:
-    """Say what m360 will do with the ONNX file at ``path`` (``m360 models check``).
+    """Say what m360 does with the ONNX file at ``path`` and what it needs (``m360 models check``).
 
     The file is loaded as :func:`m360.estimators.load_estimator` would (with a registry entry's
-    settings when its sha256 matches one) and run once on one grey tangent.
+    settings when its sha256 matches one, then the options given), and probed:
+
+    - sizes: one run at the network size m360 uses for the tangents of
+      ``Layout.icosahedron(erp_width)``; for a dynamic input size, runs near it at odd multiples
+      of 1, 2, 4 … 128 (then 14, 28) give the multiple the size must be
+      (:meth:`OnnxEstimator.size_rule`);
+    - normalisation: what the graph holds (:func:`input_normalization`) and, when the graph does
+      not normalise, which named normalisation (``imagenet``, ``unit``, ``none``) makes the
+      output follow the depth of a synthetic corridor best;
+    - output: its shape for the network size, its value range on the corridor and a guess of its
+      kind (:func:`m360.estimators._probe.guess_kind`) with how sure it is.
+
+    Nothing here raises for a network that merely fails at run time: ``usable`` is False and
+    ``problem`` says why.
 
     Parameters
     ----------
     path : str or PathLike
         The .onnx file.
-    output_kind : str, optional
-        What the model outputs, if known (wins over the registry's).
     erp_width : int
         ERP width of the default layout (``Layout.icosahedron(erp_width)``) whose network size
-        is reported.
+        is probed.
+    model_options : ModelOptions, optional
+        The model options to check the file with (then give none as a keyword).
+    **keywords
+        The model options (:class:`ModelKeywords`), e.g. ``output_kind`` (what the model
+        outputs, if known: wins over the registry's), ``multiple_of``, ``normalize``.
 
     Returns
     -------
     dict
         ``path``, ``size_bytes``, ``sha256``, ``registry`` (matching entry name or None),
-        ``input`` (name, shape, layout, static, size), ``tangent_shape``, ``network_size``,
-        ``normalization`` (:meth:`Normalization.as_dict`), ``output_kind`` and
-        ``output_kind_source`` (``"user"``, ``"registry"`` or None: unknown), ``output_shape``.
+        ``input`` (name, shape, layout, static, size), ``erp_width``, ``tangent_shape``,
+        ``network_size`` (what m360 uses with the options given), ``network_size_runs`` (None
+        or ONNX Runtime's reason), ``size_rule`` (the multiple a dynamic size needs; None for a
+        fixed size or when no size runs), ``working_size`` (the size probed further),
+        ``normalization`` (:meth:`Normalization.as_dict`), ``normalize_scores`` (rank
+        correlation with depth per named normalisation), ``normalize_guess`` (a name or None),
+        ``output_shape``, ``output_scale`` (output / input size), ``output_range`` (min,
+        median, max on the corridor), ``output_finite``, ``output_kind`` and
+        ``output_kind_source`` (``"user"``, ``"registry"`` or None), ``kind_guess``
+        (:meth:`KindGuess.as_dict`), ``flags`` (the ``m360 run`` flags the file needs),
+        ``options`` (the same as :class:`m360.ModelOptions` keywords), ``usable`` and
+        ``problem``.
 
     Raises
     ------
     m360.ModelError
         When the file is missing, not ONNX, corrupt, or not a model m360 can feed.
+    m360.InputError
+        For unusable options.
     """
     if not isinstance(path, (str, os.PathLike)):
         raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
+    given = ModelOptions.build(model_options, **keywords).keywords()
     p = Path(path)
-    if not p.is_file():
+    if not is_file(p):
         raise ModelError(f"{p} does not exist (or is not a file)")
     problem = sniff_onnx(p)
     if problem:
         raise ModelError(f"{p} is not an ONNX model: {problem}")
     digest = sha256_of(p)
     entry = next((e for e in REGISTRY.values() if e.sha256 == digest), None)
-    kind = None if output_kind is None else check_output_kind(output_kind)
-    source = "user" if kind else "registry" if entry else None
+    kind = given.get("output_kind")
     settings: dict[str, Any] = {}
     if entry is not None:
         settings = {
@@ -576,42 +611,161 @@ def check(
             "resize": entry.resize,
             "name": entry.name,
         }
+    settings.update({k: v for k, v in given.items() if k != "output_kind"})
     est = OnnxEstimator(
         p,
         output_kind=kind or (entry.output_kind if entry else "affine_disparity"),
         sha256=digest,
         **settings,
     )
-    if entry is not None:
+    if entry is not None and "input_size" not in given:
         # The registry's size is a default (a file's fixed size wins), as in load_estimator:
         # not a request that a fixed-size file would have to refuse.
         est.input_size = entry.input_size
-    spec = est._input
     first = est.session.get_inputs()[0]
     tangent = Layout.icosahedron(erp_width).tangent_shape
-    # One run on a grey tangent: the output must be one map per image (ModelError otherwise).
-    out = est._run(est.preprocess(np.full((1, *tangent, 3), 128, np.uint8)))
-    return {
+    size = est.network_size(tangent)
+    info: dict[str, Any] = {
         "path": str(p),
         "size_bytes": p.stat().st_size,
         "sha256": digest,
         "registry": entry.name if entry else None,
         "input": {
-            "name": spec.name,
+            "name": first.name,
             "shape": [d if isinstance(d, int) else str(d) for d in first.shape],
-            "layout": spec.layout,
-            "static": spec.size is not None,
-            "size": None if spec.size is None else list(spec.size),
+            "layout": est._input.layout,
+            "static": est.fixed_size is not None,
+            "size": None if est.fixed_size is None else list(est.fixed_size),
         },
         "erp_width": erp_width,
         "tangent_shape": list(tangent),
-        "network_size": list(est.network_size(tangent)),
+        "network_size": list(size),
+        "network_size_runs": est.runs_at(size),
+        "size_rule": est.size_rule(size),
         "normalization": est.normalization.as_dict(),
         "output_kind": kind or (entry.output_kind if entry else None),
-        "output_kind_source": source,
-        "output_shape": list(out.shape),
-        "output_finite": bool(np.isfinite(out).all()),
+        "output_kind_source": "user" if kind else "registry" if entry else None,
+        "usable": True,
+        "problem": None,
     }
+    flags: dict[str, Any] = {}
+    rule = info["size_rule"]
+    if info["network_size_runs"] is not None:
+        if rule is None or rule == 1:
+            info["usable"] = False
+            near = f"any size tried near {size[0]}x{size[1]}"
+            where = "its fixed size" if est.fixed_size else near
+            info["problem"] = (
+                f"ONNX Runtime fails at {where} ({info['network_size_runs']}); m360 cannot run it"
+            )
+            return _finish(info, flags, given)
+        est.multiple_of = math.lcm(est.multiple_of, rule)
+        flags["multiple_of"] = est.multiple_of
+    working = est.network_size(tangent)
+    info["working_size"] = list(working)
+    try:
+        grey = est._run(est.network_input(np.full((1, *working, 3), 0.5, np.float32)))
+    except ModelError as exc:  # an output that is not one map per image
+        info.update(usable=False, problem=str(exc))
+        return _finish(info, flags, given)
+    info["output_shape"] = list(grey.shape)
+    info["output_scale"] = [grey.shape[1] / working[0], grey.shape[2] / working[1]]
+    _probe_scene(est, tangent, info, flags, given)
+    return _finish(info, flags, given)
+
+
+def _probe_scene(
+    est: OnnxEstimator,
+    tangent: tuple[int, int],
+    info: dict[str, Any],
+    flags: dict[str, Any],
+    given: dict[str, Any],
+) -> None:
+    """Run the corridor views: the normalisation and output kind guesses, the value range."""
+    from . import _probe
+
+    h, w = tangent
+    grow = max(1.0, _PROBE_MIN_HEIGHT / h)
+    views = _probe.views((round(h * grow), round(w * grow)))
+    rgb = np.stack([v[0] for v in views])
+    depths = [v[1] for v in views]
+    current = (tuple(float(v) for v in est.mean), tuple(float(v) for v in est.std))
+    candidates: dict[str, tuple[Any, Any]] = {"as given": current}
+    if est.normalization.source != "graph" or est.normalization.explicit:
+        candidates.update(NORMALIZE_PRESETS)
+        same = [k for k, (m, s) in NORMALIZE_PRESETS.items() if (tuple(m), tuple(s)) == current]
+        if same:  # no need to run twice
+            del candidates["as given"]
+    outputs: dict[str, list[np.ndarray] | str] = {}
+    for name, (mean, std) in candidates.items():
+        est.mean, est.std = np.asarray(mean, np.float64), np.asarray(std, np.float64)
+        try:  # one view per run: a file may fix its batch at 1
+            outputs[name] = [est._run(est.preprocess(view[None]))[0] for view in rgb]
+        except ModelError as exc:
+            outputs[name] = str(exc)
+    est.mean, est.std = (np.asarray(v, np.float64) for v in current)
+    if "as given" not in outputs:
+        preset = next(
+            k for k, (m, s) in NORMALIZE_PRESETS.items() if (tuple(m), tuple(s)) == current
+        )
+        outputs["as given"] = outputs[preset]
+    scores = {
+        name: _probe.guess_kind(out, depths).correlation
+        for name, out in outputs.items()
+        if not isinstance(out, str)
+    }
+    named = {k: v for k, v in scores.items() if k != "as given"}
+    info["normalize_scores"] = {k: round(v, 3) for k, v in named.items()}
+    ranked = sorted(named, key=lambda k: -abs(named[k]))
+    guess = None
+    if len(ranked) >= 2:
+        best, second = abs(named[ranked[0]]), abs(named[ranked[1]])
+        if best >= _probe.FOLLOWS_DEPTH and best - second >= _probe.NORMALIZE_MARGIN:
+            guess = ranked[0]
+    info["normalize_guess"] = guess
+    chosen = "as given"
+    # A registry entry knows its normalisation, and the user's explicit one wins: a hint only.
+    if guess is not None and not est.normalization.explicit and info["registry"] is None:
+        if tuple(NORMALIZE_PRESETS[guess][0]) != current[0] or tuple(
+            NORMALIZE_PRESETS[guess][1]
+        ) != tuple(current[1]):
+            flags["normalize"] = guess
+        chosen = guess
+    elif est.normalization.explicit and given.get("normalize") in named:
+        chosen = given["normalize"]
+    out = outputs.get(chosen)
+    if isinstance(out, str) or out is None:
+        info.update(usable=False, problem=out or "the network did not run on the probe views")
+        return
+    values = np.concatenate([o.ravel() for o in out])
+    finite = values[np.isfinite(values)]
+    info["output_finite"] = bool(finite.size == values.size)
+    info["output_range"] = (
+        None
+        if finite.size == 0
+        else [float(finite.min()), float(np.median(finite)), float(finite.max())]
+    )
+    if finite.size == 0:
+        info.update(usable=False, problem="the network's output is never finite")
+    kind_guess = _probe.guess_kind(out, depths)
+    info["kind_guess"] = kind_guess.as_dict()
+    if info["output_kind"] is None and kind_guess.kind is not None:
+        flags["output_kind"] = kind_guess.kind
+
+
+def _finish(info: dict[str, Any], flags: dict[str, Any], given: dict[str, Any]) -> dict[str, Any]:
+    """Add the flags (and the same as ModelOptions keywords) the user needs on top of ``given``."""
+    info.setdefault("working_size", None)
+    for key in ("output_shape", "output_scale", "output_range", "kind_guess", "normalize_guess"):
+        info.setdefault(key, None)
+    info.setdefault("normalize_scores", {})
+    info.setdefault("output_finite", None)
+    options = {**given, **flags}
+    options.pop("providers", None)
+    options.pop("threads", None)
+    info["options"] = {k: list(v) if isinstance(v, tuple) else v for k, v in options.items()}
+    info["flags"] = {k: info["options"][k] for k in flags}
+    return info
 
 
 def list_models() -> list[dict[str, Any]]:
