@@ -18,7 +18,7 @@ import cv2
 import numpy as np
 
 from ..evaluation import synthetic
-from ..geometry._sphere import camera_pixel_directions
+from ..geometry.sphere import camera_pixel_directions
 
 __all__ = ["KindGuess", "guess_kind", "rank_correlation", "views"]
 
