@@ -57,8 +57,8 @@ class ImageOutcome:
     """What happened to one image.
 
     ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
-    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
-    written).
+    ``failed`` (with ``error`` type name and ``message``), ``interrupted`` (Ctrl-C; nothing
+    written) or ``excluded`` (a file a folder scan left out; ``message`` says why).
     """
 
     input: str

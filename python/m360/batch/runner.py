@@ -109,7 +109,8 @@ class BatchReport:
     Attributes
     ----------
     outcomes : list of ImageOutcome
-        One per input image (and per unusable manifest line), in input order.
+        One per input image (and per unusable manifest line, and per file a folder scan left
+        out), the unusable and left-out ones first, then the images in input order.
     seconds : float
         Wall time of the run.
     interrupted : bool
