@@ -775,11 +775,12 @@ def test_a_garbage_manifest_is_a_usage_error_before_any_folder_is_made(
 
 
 def test_a_manifest_of_missing_files_fails_line_by_line_and_makes_no_folders(
-    model: Path, tmp_path: Path
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
 ) -> None:
     """2,000 text lines naming files that do not exist, into sub-folders: every line fails alone
     (ReadError), the run ends, and OUT holds only failures.jsonl (it used to keep a folder per
-    line)."""
+    line). A corrupt file that exists fails too and its new folders are removed again; a good
+    image next to it keeps its folder."""
     lines = [f"dir{k}/photo {k}.jpg,sub{k}/deeper/out{k}" for k in range(2000)]
     manifest = tmp_path / "list.csv"
     manifest.write_text("\n".join(lines) + "\n")
@@ -788,6 +789,15 @@ def test_a_manifest_of_missing_files_fails_line_by_line_and_makes_no_folders(
     assert report.exit_code == 1
     assert [p.name for p in (tmp_path / "out").iterdir()] == ["failures.jsonl"]
     assert len((tmp_path / "out" / "failures.jsonl").read_text().splitlines()) == 2000
+
+    (good,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    (tmp_path / "in" / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    manifest.write_text(f"in/corrupt.png,a/b/c/corrupt\nin/corrupt.png,keep/x\n{good},keep/ok\n")
+    report = m360.batch.run(manifest, tmp_path / "out2", **_fast(model))
+    assert [o.stem for o in report.failed] == ["a/b/c/corrupt", "keep/x"]
+    assert [o.stem for o in report.done] == ["keep/ok"]
+    assert sorted(p.name for p in (tmp_path / "out2").iterdir()) == ["failures.jsonl", "keep"]
+    assert len(list((tmp_path / "out2" / "keep").iterdir())) == 4  # ok's 4 files, nothing else
 
 
 def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
@@ -964,3 +974,29 @@ def test_a_disk_too_full_for_locks_or_failures_jsonl_still_reports_every_image(
     summary = report.summary()
     assert "failures.jsonl could not be written: No space left on device" in summary
     assert report.exit_code == 1
+
+
+_REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "panos"
+
+
+@pytest.mark.skipif(not _REAL.is_dir(), reason=f"real panoramas not found at {_REAL}")
+def test_a_scan_of_real_panoramas_takes_every_one_and_the_hdr_files_run(
+    model: Path, tmp_path: Path
+) -> None:
+    """The 16 real panoramas (PNG, Radiance HDR, JPEG) are all taken by a folder scan (the
+    .hdr ones used to be skipped silently) and none is mistaken for a depth map; the two HDR
+    files run through a batch from a folder of links to them."""
+    jobs, problems = m360.batch.collect(_REAL, tmp_path / "unused")
+    assert problems == [] and len(jobs) == 16
+    assert sorted(j.name for j in jobs if j.input.suffix == ".hdr") == [
+        "potsdamer_platz_1k", "st_fagans_interior_1k",
+    ]  # fmt: skip
+    folder = tmp_path / "links"
+    folder.mkdir()
+    for hdr in sorted(_REAL.glob("*.hdr")):
+        (folder / hdr.name).symlink_to(hdr)
+    report = m360.batch.run(folder, tmp_path / "out", **_fast(model))
+    assert [o.stem for o in report.done] == ["potsdamer_platz_1k", "st_fagans_interior_1k"]
+    for outcome in report.done:
+        saved = m360.load(tmp_path / "out" / outcome.stem)
+        assert saved.disparity.shape == (512, 1024) and np.isfinite(saved.disparity).all()

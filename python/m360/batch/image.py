@@ -114,6 +114,20 @@ class _Worker:
         )
 
     def process(self, job: Job) -> ImageOutcome:
+        """Claim, read, estimate and write one image; its outcome (never raises but Ctrl-C).
+
+        The output folders this image made are removed again if it fails (when empty).
+        """
+        created = _missing_folders(job)
+        outcome = None
+        try:
+            outcome = self._process(job)
+        finally:
+            if outcome is None or outcome.status == "failed":
+                _remove_empty_folders(created)
+        return outcome
+
+    def _process(self, job: Job) -> ImageOutcome:
         from ..pipeline.estimate import estimate
 
         s = self.settings
@@ -154,6 +168,24 @@ class _Worker:
 
 # The pieces of one image, shared by the local engine (_Worker.process) and the Ray engine
 # (m360.batch._ray_engine), which runs them in different processes: the same bytes either way.
+
+
+def _missing_folders(job: Job) -> list[Path]:
+    """List the folders of ``job``'s output inside OUT that do not exist yet, deepest first."""
+    depth = len(Path(job.name).parts) - 1
+    try:
+        return [job.stem.parents[k] for k in range(depth) if not job.stem.parents[k].is_dir()]
+    except (OSError, ValueError):  # a name the OS refuses: nothing can be made there
+        return []
+
+
+def _remove_empty_folders(folders: Sequence[Path]) -> None:
+    """Remove ``folders`` (deepest first) while they are empty."""
+    for folder in folders:
+        try:
+            os.rmdir(folder)
+        except OSError:  # not empty (another image's files or lock), or already gone
+            break
 
 
 def _make_job_folder(job: Job) -> ImageOutcome | None:
@@ -433,7 +465,14 @@ def _claim(stem: Path) -> Iterator[bool]:
     fd: int | None = None
     try:
         with deferred():  # a Ctrl-C held back here is raised inside the try
-            fd = _lock_current(path)
+            for attempt in range(3):
+                try:
+                    fd = _lock_current(path)
+                    break
+                except FileNotFoundError:  # a failed image of another run removed the folder
+                    if attempt == 2:
+                        raise
+                    stem.parent.mkdir(parents=True, exist_ok=True)
         yield fd is not None
     finally:
         if fd is not None:
