@@ -1000,3 +1000,34 @@ def test_a_scan_of_real_panoramas_takes_every_one_and_the_hdr_files_run(
     for outcome in report.done:
         saved = m360.load(tmp_path / "out" / outcome.stem)
         assert saved.disparity.shape == (512, 1024) and np.isfinite(saved.disparity).all()
+
+
+def test_the_depth_map_rules_read_the_channels_the_writers_wrote(tmp_path: Path) -> None:
+    """Each rule against files whose layout is known from how they were written: one channel
+    of 16 bits or float is a depth map; grey 8-bit, RGB of any depth, and a truncated header
+    are photos (a file that cannot be read is tried, and fails with the reason)."""
+    leave_out = m360.batch._inputs.leave_out
+    grey = np.arange(32 * 64, dtype=np.uint16).reshape(32, 64)
+    cases: dict[str, tuple[Any, bool]] = {
+        "grey16.png": (grey, True),
+        "grey8.png": (grey.astype(np.uint8), False),
+        "rgb16.png": (np.dstack([grey] * 3), False),
+        "grey16.tif": (grey, True),
+        "float.tif": (grey.astype(np.float32), True),
+        "rgb8.tif": (np.dstack([grey.astype(np.uint8)] * 3), False),
+        "rgbf.tif": (np.dstack([grey.astype(np.float32)] * 3), False),
+    }
+    for name, (image, is_depth) in cases.items():
+        assert cv2.imwrite(str(tmp_path / name), image)
+        assert (leave_out(tmp_path / name) is not None) == is_depth, name
+    for channels, is_depth in (({"Y": grey.astype(np.float32)}, True),
+                               ({"R": grey.astype(np.float16), "G": grey.astype(np.float16),
+                                 "B": grey.astype(np.float16)}, False)):  # fmt: skip
+        _write_exr(tmp_path / "x.exr", channels)
+        assert (leave_out(tmp_path / "x.exr") is not None) == is_depth, channels.keys()
+    data = (tmp_path / "grey16.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:20])  # cut inside the IHDR chunk
+    assert leave_out(tmp_path / "cut.png") is None
+    exr = (tmp_path / "x.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(exr[:30])  # cut inside the header
+    assert leave_out(tmp_path / "cut.exr") is None

@@ -34,7 +34,7 @@ OUTPUT_TAILS = (
     ),
     ".preview.png",
 )
-_HEADER_BYTES = 65536  # enough for a PNG's IHDR and any ordinary EXR header
+_HEADER_BYTES = 65536  # enough for any ordinary EXR header
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")  # tab and line breaks are text
 _PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
 _EXR_MAGIC = b"\x76\x2f\x31\x01"
@@ -75,10 +75,12 @@ def leave_out(path: Path) -> str | None:
         if name.endswith(tail) and len(name) > len(tail):
             return f"an m360 output (*{tail})"
     try:
-        with open(path, "rb") as f:
-            head = f.read(_HEADER_BYTES)
+        with open(path, "rb") as f:  # 32 bytes for most files: a scan of a big folder stays cheap
+            head = f.read(32)
             if head[:4] in (b"II*\x00", b"MM\x00*"):
                 return _tiff_depth_map(f, head[:2] == b"II")
+            if head[:4] == _EXR_MAGIC:
+                head += f.read(_HEADER_BYTES - len(head))
     except OSError:
         return None
     if head[:8] == _PNG_MAGIC and head[12:16] == b"IHDR" and len(head) >= 26:
