@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import contextlib
 import ctypes
+import errno
 import hashlib
 import json
 import os
@@ -623,3 +624,410 @@ def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndar
     assert m360.load(out / path.stem).metadata["options"]["working_width"] == 512
     assert main([*args, "--working-width", "63"]) == 2  # odd: InputError, a usage error
     assert main([*args, "--working-width", "wide"]) == 2
+
+
+# --------------------------------------------------------------------------------------------
+# Batch edges (issue 23): names at the OS limits, garbage manifests, what folder scans take,
+# busy images, full disks.
+
+_NAME_MAX = 255  # Linux, macOS, Windows: bytes per file name (UTF-8 here)
+
+
+def _fast(model: Path) -> dict[str, Any]:
+    return {"model": str(model), "align": "none", "blend": "mean", "input_size": (32, 48),
+            "progress": False}  # fmt: skip
+
+
+def _dotfiles(out: Path) -> list[str]:
+    return sorted(p.name for p in out.rglob(".*"))
+
+
+def test_names_at_the_os_limit_fail_alone_and_temporaries_and_locks_are_hashed(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A legal 255-byte file name (its outputs cannot be named) and a long .csv output column
+    fail alone, before any work, naming NAME_MAX; a 230-byte stem, whose outputs are legal but
+    whose temporaries and lock (``.NAME.XXXXXXXX.tmp``) would not be, is done. It used to be an
+    OSError traceback from the lock file that aborted the whole run."""
+    small = cv2.imencode(".png", base_rgb[::4, ::4, ::-1])[1].tobytes()
+    folder = tmp_path / "in"
+    folder.mkdir()
+    longest = "é" * 125 + "x.png"  # 255 bytes in UTF-8: the longest legal name
+    near = "n" * 230 + ".png"
+    for name in ("ok.png", longest, near):
+        assert len(name.encode()) <= _NAME_MAX
+        (folder / name).write_bytes(small)
+    # The name checks are the OS's: this temporary name is what used to be made, and it is refused.
+    with pytest.raises(OSError) as refused:
+        os.close(os.open(folder / f".{near[:-4]}.disparity.npy.abcdefgh.tmp", os.O_CREAT, 0o600))
+    assert refused.value.errno == errno.ENAMETOOLONG
+    out = tmp_path / "out"
+    code = main(["run", str(folder), "-o", str(out), "--model", str(model), *FAST, "--no-progress"])
+    err = capsys.readouterr().err
+    assert code == 1 and "Traceback" not in err, err
+    assert "2 done, 0 already done, 1 failed" in err
+    record = json.loads((out / "failures.jsonl").read_text())
+    assert record["input"] == str(folder / longest) and record["error"] == "InputError"
+    assert "NAME_MAX" in record["message"] and "is 265 bytes" in record["message"]  # 251 + 14
+    assert m360.load(out / near[:-4]).disparity.shape == (128, 256)
+    assert _dotfiles(out) == []  # the hashed temporaries and lock were removed
+
+    # A .csv output column too long for the file system, as a name or as a folder.
+    manifest = tmp_path / "list.csv"
+    manifest.write_text(f"in/ok.png,{'o' * 250}\nin/ok.png,{'d' * 256}/x\nin/ok.png,fine\n")
+    report = m360.batch.run(manifest, tmp_path / "out2", **_fast(model))
+    assert [o.stem for o in report.done] == ["fine"]
+    assert [(o.stem[:3], o.error) for o in report.failed] == [("ooo", "InputError")] * 1 + [
+        ("ddd", "InputError")
+    ]
+    assert all("NAME_MAX" in (o.message or "") for o in report.failed)
+    assert sorted(p.name for p in (tmp_path / "out2").iterdir()) == [
+        "failures.jsonl",
+        "fine.depth.npy",
+        "fine.disparity.npy",
+        "fine.json",
+        "fine.preview.png",
+    ]  # fmt: skip  (no folder for the refused output)
+
+
+def test_a_path_over_path_max_fails_alone(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    """An output path longer than PATH_MAX (here 17 folders of 250 bytes) fails alone, naming
+    the limit, and no folder of it is made."""
+    (image,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    deep = "/".join(f"{k:02d}" + "p" * 248 for k in range(17))
+    assert len(str(tmp_path / "out" / deep).encode()) > 4096
+    manifest = tmp_path / "list.csv"
+    manifest.write_text(f"{image},{deep}/x\n{image},shallow\n")
+    report = m360.batch.run(manifest, tmp_path / "out", **_fast(model))
+    assert [o.stem for o in report.done] == ["shallow"]
+    (failed,) = report.failed
+    assert failed.error == "InputError" and "PATH_MAX" in (failed.message or "")
+    assert not [p for p in (tmp_path / "out").iterdir() if p.is_dir()]
+
+
+def test_temporary_names_and_locks_of_long_names_are_hashed(tmp_path: Path) -> None:
+    """m360.io's atomic writes and the batch claim take any legal name: their own names are
+    hashed when ``.NAME.XXXXXXXX.tmp`` / ``.NAME.lock`` would pass 255 bytes."""
+    files = m360.io.files
+    for size in (1, 241, 242, 255):
+        name = "t" * size
+        prefix = files.temporary_prefix(name)
+        hashed = size + 14 > _NAME_MAX
+        expected = (
+            "." + hashlib.sha1(name.encode()).hexdigest()[:16] + "." if hashed else f".{name}."
+        )
+        assert prefix == expected, size
+        target = tmp_path / name
+        files.save_npy(target, np.arange(3.0))
+        np.testing.assert_array_equal(np.load(target), np.arange(3.0))
+        target.unlink()
+    # A stale temporary of a hashed name is found and removed by its set's clean-up.
+    stem = tmp_path / ("s" * 241)
+    stale = tmp_path / (files.temporary_prefix(stem.name + ".disparity.npy") + "abcdefgh.tmp")
+    stale.write_bytes(b"half")
+    other = tmp_path / (files.temporary_prefix("other.disparity.npy") + "abcdefgh.tmp")
+    other.write_bytes(b"another set's")
+    assert files.remove_stale_temporaries(stem) == [stale]
+    assert other.exists()
+    other.unlink()
+    # The claim of a 250-byte stem: its lock is hashed, exclusive, and removed afterwards.
+    stem = tmp_path / ("c" * 250)
+    with m360.batch.image._claim(stem) as first:
+        with m360.batch.image._claim(stem) as second:
+            assert first and not second
+        (lock,) = tmp_path.iterdir()
+        assert lock.name == "." + hashlib.sha1(stem.name.encode()).hexdigest()[:16] + ".lock"
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize(
+    ("suffix", "content", "line", "says"),
+    [
+        (".txt", b"pano.png\n\xff\xfe\x00garbage\n", 2, "not UTF-8"),
+        (".csv", b"input,output\npano.png,a\x00b\n", 2, "U+0000 (NUL)"),
+        (".txt", b"pano.png\n\x1b[31mred\n", 2, "U+001B"),
+        (".csv", b"pano.png,a\n" + b"x" * 9000 + b"\n", 2, "longer than two paths"),
+        (".txt", b"a/pano.png\n# b\nb/pano.png\n", 3, "lines 1 and 3 both write the output pano"),
+        (".csv", b"x.png,same\ny.png,other\nz.png,same\n", 3, "lines 1 and 3 both write"),
+    ],
+)
+def test_a_garbage_manifest_is_a_usage_error_before_any_folder_is_made(
+    model: Path, tmp_path: Path, suffix: str, content: bytes, line: int, says: str,
+    capsys: pytest.CaptureFixture[str],
+) -> None:  # fmt: skip
+    """Random bytes, binary, absurd lines and two lines writing one output refuse the whole
+    manifest (exit 2, naming the line), before OUT or any folder exists. Duplicate outputs are
+    refused rather than renamed: a rerun must find each image's outputs under the same name."""
+    manifest = tmp_path / f"list{suffix}"
+    manifest.write_bytes(content)
+    out = tmp_path / "out"
+    assert main(["run", str(manifest), "-o", str(out), "--model", str(model)]) == 2
+    err = capsys.readouterr().err
+    assert f"line{'s' * ('lines' in says)} " in err and says in err, err
+    if "lines" not in says:
+        assert f"line {line}:" in err, err
+    assert "Traceback" not in err and not out.exists()
+    with pytest.raises(m360.InputError, match="manifest"):
+        m360.batch.run(manifest, out, **_fast(model))
+    assert not out.exists()
+
+
+def test_a_manifest_of_missing_files_fails_line_by_line_and_makes_no_folders(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    """2,000 text lines naming files that do not exist, into sub-folders: every line fails alone
+    (ReadError), the run ends, and OUT holds only failures.jsonl (it used to keep a folder per
+    line). A corrupt file that exists fails too and its new folders are removed again; a good
+    image next to it keeps its folder."""
+    lines = [f"dir{k}/photo {k}.jpg,sub{k}/deeper/out{k}" for k in range(2000)]
+    manifest = tmp_path / "list.csv"
+    manifest.write_text("\n".join(lines) + "\n")
+    report = m360.batch.run(manifest, tmp_path / "out", **_fast(model))
+    assert len(report.failed) == 2000 and {o.error for o in report.failed} == {"ReadError"}
+    assert report.exit_code == 1
+    assert [p.name for p in (tmp_path / "out").iterdir()] == ["failures.jsonl"]
+    assert len((tmp_path / "out" / "failures.jsonl").read_text().splitlines()) == 2000
+
+    (good,) = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 1)
+    (tmp_path / "in" / "corrupt.png").write_bytes(b"\x89PNG\r\n\x1a\n not really")
+    manifest.write_text(f"in/corrupt.png,a/b/c/corrupt\nin/corrupt.png,keep/x\n{good},keep/ok\n")
+    report = m360.batch.run(manifest, tmp_path / "out2", **_fast(model))
+    assert [o.stem for o in report.failed] == ["a/b/c/corrupt", "keep/x"]
+    assert [o.stem for o in report.done] == ["keep/ok"]
+    assert sorted(p.name for p in (tmp_path / "out2").iterdir()) == ["failures.jsonl", "keep"]
+    assert len(list((tmp_path / "out2" / "keep").iterdir())) == 4  # ok's 4 files, nothing else
+
+
+def _write_exr(path: Path, channels: dict[str, np.ndarray]) -> None:
+    import OpenEXR
+
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, channels).write(str(path))
+
+
+def test_folder_scans_take_hdr_and_leave_out_depth_maps_and_m360_outputs(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """A folder scan takes every format the CLI takes when named (Radiance .hdr included) and
+    leaves out, each with its reason in the summary, m360's outputs (a previous run into the
+    same folder) and depth maps: a single-channel 16-bit PNG, a single-channel float EXR or
+    TIFF. A depth map named explicitly is tried."""
+    folder = tmp_path / "photos"
+    small = base_rgb[::4, ::4]
+    _panoramas(folder, small.copy(), 1)  # pano_00.png
+    assert cv2.imwrite(str(folder / "radiance.hdr"), small[:, :, ::-1].astype(np.float32) / 255)
+    _write_exr(folder / "linear.exr", {"RGB": small.astype(np.float32) / 255})  # a photo
+    depth = np.linspace(1.0, 9.0, small.shape[0] * small.shape[1], dtype=np.float32)
+    depth = depth.reshape(small.shape[:2])
+    assert cv2.imwrite(str(folder / "kinect.png"), (depth * 1000).astype(np.uint16))
+    _write_exr(folder / "depth_half.exr", {"Z": depth.astype(np.float16)})
+    _write_exr(folder / "depth_float.exr", {"depth": depth})
+    assert cv2.imwrite(str(folder / "depth.tif"), depth)
+    args = ["run", str(folder), "-o", str(folder), "--model", str(model), "--formats",
+            "npy,png16,exr", "--confidence", "--align", "none", "--blend", "mean",
+            "--input-size", "32", "48", "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    err = capsys.readouterr().err
+    assert "3 done, 0 already done, 0 failed" in err, err
+    assert sorted(p.stem for p in folder.glob("*.json")) == ["linear", "pano_00", "radiance"]
+    assert "left out of folder scans: 4 file(s)" in err
+    assert "depth.tif: a single-channel float TIFF: a depth map" in err
+    # The rerun into the same folder sees its own outputs (png16, exr, previews) and leaves them
+    # out: nothing new is taken as a photo.
+    report = m360.batch.run(
+        folder, folder, formats=("npy", "png16", "exr"), confidence=True, **_fast(model)
+    )
+    assert report.exit_code == 0 and len(report.skipped) == 3 and not report.done
+    reasons = {Path(o.input).name: o.message for o in report.excluded}
+    assert reasons["kinect.png"] == "a single-channel 16-bit PNG: a depth map, not a photo"
+    assert reasons["depth_half.exr"] == "a single-channel float EXR (Z): a depth map, not a photo"
+    assert reasons["depth_float.exr"].startswith("a single-channel float EXR (depth)")
+    assert reasons["pano_00.depth.png"] == "an m360 output (*.depth.png)"
+    assert reasons["radiance.confidence.exr"] == "an m360 output (*.confidence.exr)"
+    assert reasons["linear.preview.png"] == "an m360 output (*.preview.png)"
+    kinds = (".depth.", ".disparity.", ".confidence.", ".preview.")
+    outputs = {  # every image file the first run wrote (.npy is not an image suffix)
+        p.name for p in folder.iterdir() if p.suffix != ".npy" and any(k in p.name for k in kinds)
+    }
+    assert len(outputs) == 3 * (3 * 2 + 1)  # 3 images: 3 quantities in png16 and exr, preview
+    assert set(reasons) == outputs | {
+        "kinect.png",
+        "depth_half.exr",
+        "depth_float.exr",
+        "depth.tif",
+    }
+    # Named explicitly, a depth map is tried (here as a grey photo).
+    named = m360.batch.run(folder / "kinect.png", tmp_path / "named", **_fast(model))
+    assert [o.stem for o in named.done] == ["kinect"]
+    # A folder holding only left-out files: a usage error that says what was left out.
+    only = tmp_path / "only"
+    only.mkdir()
+    (only / "kinect.png").write_bytes((folder / "kinect.png").read_bytes())
+    with pytest.raises(m360.InputError, match=r"no images found.*kinect\.png: a single-channel"):
+        m360.batch.run(only, tmp_path / "x", **_fast(model))
+
+
+def test_nan_only_inputs_fail_in_a_batch_as_in_the_api(model: Path, tmp_path: Path) -> None:
+    """A panorama of NaN only: whatever m360's reader makes of it, the batch does the same,
+    and an error there is a failure of that image (never a success)."""
+    nan = np.full((64, 128, 3), np.nan, np.float32)
+    _write_exr(tmp_path / "nan.exr", {"RGB": nan})
+    try:
+        rgb = m360.io.read_image(tmp_path / "nan.exr")
+        api_error = None
+    except m360.M360Error as exc:
+        api_error = type(exc).__name__
+    report = m360.batch.run(tmp_path / "nan.exr", tmp_path / "out", **_fast(model))
+    (outcome,) = report.outcomes
+    if api_error is not None:
+        assert (outcome.status, outcome.error, report.exit_code) == ("failed", api_error, 1)
+    else:
+        direct = m360.estimate(rgb, str(model), align="none", blend="mean", input_size=(32, 48))
+        assert outcome.status == "done"
+        np.testing.assert_array_equal(
+            m360.load(tmp_path / "out" / "nan").disparity, direct.disparity
+        )
+
+
+def test_images_busy_in_another_run_give_exit_3_unless_done_by_the_end(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An image claimed by another run (its lock held here) is not a success: exit 3 and the
+    summary says to rerun. If the other run finishes it before this run ends (its files copied
+    in from a finished run when this run reports it busy), it counts as already done: exit 0."""
+    inputs = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 2)
+    out = tmp_path / "out"
+    args = ["run", str(tmp_path / "in"), "-o", str(out), "--model", str(model), *FAST,
+            "--input-size", "32", "48", "--no-progress"]  # fmt: skip
+    with m360.batch.image._claim(out / "pano_01"):
+        assert main(args) == 3
+    err = capsys.readouterr().err
+    assert "1 done, 0 already done, 0 failed, 1 busy in another run" in err
+    assert "1 image was being written by another run: rerun to finish it" in err
+    assert main(args) == 0  # the rerun finishes it
+    assert "1 done, 1 already done, 0 failed" in capsys.readouterr().err
+
+    finished = tmp_path / "finished"
+    options = {**_fast(model), "input_size": (32, 48)}
+    assert m360.batch.run(inputs[1], finished, **options).exit_code == 0
+    again = tmp_path / "again"
+
+    def other_run_finishes(outcome: m360.batch.ImageOutcome) -> None:
+        if outcome.status == "busy":
+            for path in finished.glob("pano_01.*"):
+                (again / path.name).write_bytes(path.read_bytes())
+
+    with m360.batch.image._claim(again / "pano_01"):
+        report = m360.batch.run(inputs, again, on_outcome=other_run_finishes, **options)
+    assert [o.status for o in report.outcomes] == ["done", "skipped"] and report.exit_code == 0
+
+
+@pytest.mark.parametrize(
+    ("code", "says"),
+    [
+        (errno.ENOSPC, "no space left on device (ENOSPC) while writing"),
+        (errno.EDQUOT, "disk quota exceeded (EDQUOT) while writing"),
+        (errno.EROFS, "read-only file system (EROFS) while writing"),
+    ],
+)
+def test_a_full_disk_is_named_and_leaves_no_file(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, monkeypatch: pytest.MonkeyPatch,
+    code: int, says: str,
+) -> None:  # fmt: skip
+    """The disk fills while the preview is written (after the arrays): the image fails with a
+    message naming the disk, not "unexpected; please report it", and its temporary and partial
+    files are gone; the run goes on to the next image."""
+    inputs = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 2)
+    out = tmp_path / "out"
+
+    def disk_full(path: Path, image: np.ndarray) -> Path:
+        with m360.io.files.atomic_path(path) as tmp:
+            tmp.write_bytes(b"half a preview")
+            raise OSError(code, os.strerror(code))
+
+    monkeypatch.setattr(m360.io.writing, "save_png", disk_full)
+    report = m360.batch.run(inputs, out, **_fast(model))
+    assert [o.error for o in report.failed] == ["OSError", "OSError"]
+    for outcome, path in zip(report.failed, inputs, strict=True):
+        assert outcome.message == f"{says} {out / path.stem}.*: " + (
+            "write to a writable OUT and rerun" if code == errno.EROFS else "free space and rerun"
+        )
+    assert sorted(p.name for p in out.iterdir()) == ["failures.jsonl"]  # no temporary, no lock
+
+
+def test_a_disk_too_full_for_locks_or_failures_jsonl_still_reports_every_image(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Neither a lock file nor a failures.jsonl line that cannot be written stops the run."""
+    inputs = _panoramas(tmp_path / "in", base_rgb[::4, ::4].copy(), 2)
+
+    def no_space(*args: Any) -> Any:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+
+    monkeypatch.setattr(m360.batch.image, "_lock_current", no_space)
+    monkeypatch.setattr(m360.batch.runner, "_append_failure", no_space)
+    report = m360.batch.run(inputs, tmp_path / "out", **_fast(model))
+    assert [o.stem for o in report.failed] == ["pano_00", "pano_01"]
+    assert all("no space left on device" in (o.message or "") for o in report.failed)
+    summary = report.summary()
+    assert "failures.jsonl could not be written: No space left on device" in summary
+    assert report.exit_code == 1
+
+
+_REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "panos"
+
+
+@pytest.mark.skipif(not _REAL.is_dir(), reason=f"real panoramas not found at {_REAL}")
+def test_a_scan_of_real_panoramas_takes_every_one_and_the_hdr_files_run(
+    model: Path, tmp_path: Path
+) -> None:
+    """The 16 real panoramas (PNG, Radiance HDR, JPEG) are all taken by a folder scan (the
+    .hdr ones used to be skipped silently) and none is mistaken for a depth map; the two HDR
+    files run through a batch from a folder of links to them."""
+    jobs, problems = m360.batch.collect(_REAL, tmp_path / "unused")
+    assert problems == [] and len(jobs) == 16
+    assert sorted(j.name for j in jobs if j.input.suffix == ".hdr") == [
+        "potsdamer_platz_1k", "st_fagans_interior_1k",
+    ]  # fmt: skip
+    folder = tmp_path / "links"
+    folder.mkdir()
+    for hdr in sorted(_REAL.glob("*.hdr")):
+        (folder / hdr.name).symlink_to(hdr)
+    report = m360.batch.run(folder, tmp_path / "out", **_fast(model))
+    assert [o.stem for o in report.done] == ["potsdamer_platz_1k", "st_fagans_interior_1k"]
+    for outcome in report.done:
+        saved = m360.load(tmp_path / "out" / outcome.stem)
+        assert saved.disparity.shape == (512, 1024) and np.isfinite(saved.disparity).all()
+
+
+def test_the_depth_map_rules_read_the_channels_the_writers_wrote(tmp_path: Path) -> None:
+    """Each rule against files whose layout is known from how they were written: one channel
+    of 16 bits or float is a depth map; grey 8-bit, RGB of any depth, and a truncated header
+    are photos (a file that cannot be read is tried, and fails with the reason)."""
+    leave_out = m360.batch._inputs.leave_out
+    grey = np.arange(32 * 64, dtype=np.uint16).reshape(32, 64)
+    cases: dict[str, tuple[Any, bool]] = {
+        "grey16.png": (grey, True),
+        "grey8.png": (grey.astype(np.uint8), False),
+        "rgb16.png": (np.dstack([grey] * 3), False),
+        "grey16.tif": (grey, True),
+        "float.tif": (grey.astype(np.float32), True),
+        "rgb8.tif": (np.dstack([grey.astype(np.uint8)] * 3), False),
+        "rgbf.tif": (np.dstack([grey.astype(np.float32)] * 3), False),
+    }
+    for name, (image, is_depth) in cases.items():
+        assert cv2.imwrite(str(tmp_path / name), image)
+        assert (leave_out(tmp_path / name) is not None) == is_depth, name
+    for channels, is_depth in (({"Y": grey.astype(np.float32)}, True),
+                               ({"R": grey.astype(np.float16), "G": grey.astype(np.float16),
+                                 "B": grey.astype(np.float16)}, False)):  # fmt: skip
+        _write_exr(tmp_path / "x.exr", channels)
+        assert (leave_out(tmp_path / "x.exr") is not None) == is_depth, channels.keys()
+    data = (tmp_path / "grey16.png").read_bytes()
+    (tmp_path / "cut.png").write_bytes(data[:20])  # cut inside the IHDR chunk
+    assert leave_out(tmp_path / "cut.png") is None
+    exr = (tmp_path / "x.exr").read_bytes()
+    (tmp_path / "cut.exr").write_bytes(exr[:30])  # cut inside the header
+    assert leave_out(tmp_path / "cut.exr") is None

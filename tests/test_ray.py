@@ -234,7 +234,8 @@ def test_a_local_run_and_a_ray_run_share_a_folder(
         assert driver.proc.wait(WATCHDOG_S) == 0
     out = driver.out
     counts = lines[-1]["report"]
-    assert local.exit_code == 0 and counts["exit_code"] == 0
+    # The local run ended while the Ray run was still writing its images: exit 3, rerun.
+    assert local.exit_code == m360.batch.runner.EXIT_BUSY == 3 and counts["exit_code"] == 0
     assert len(local.busy) >= 1 and len(local.done) >= 1
     assert counts["done"] == len(local.busy) and counts["skipped"] == len(local.done)
     assert len(list(out.glob("*.json"))) == 10

@@ -2,8 +2,9 @@
 
 ``m360 run`` is :func:`m360.batch.run` (folders, manifests, resume, workers, failures.jsonl);
 exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors (or
-the model failed on the first image: the run stops there), 130 interrupted (Ctrl-C; rerun to
-finish).
+the model failed on the first image: the run stops there), 3 none failed but some were still
+being written by another run into OUT (rerun to finish them), 130 interrupted (Ctrl-C; rerun
+to finish).
 """
 
 from __future__ import annotations
@@ -49,7 +50,7 @@ ENGINES = batch.ENGINES
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """Entry point of the ``m360`` command; returns the exit code (0 ok, 1 failed, 2 usage)."""
+    """Run the ``m360`` command; return its exit code (the module docstring lists them)."""
     parser = build_parser()
     try:
         args = parser.parse_args(argv)
@@ -91,7 +92,11 @@ def build_parser() -> argparse.ArgumentParser:
             "and last the sidecar OUT/STEM.json. INPUTS are image files, folders, or manifests "
             "(.txt: a path per line; .csv: input[,output]). A rerun skips images already done "
             "with the same input and options; failures go to OUT/failures.jsonl and the run "
-            "goes on. The model is downloaded and verified on first use (see `m360 models`)."
+            "goes on. Folder scans leave out m360's own outputs and depth maps (a single-"
+            "channel 16-bit PNG or TIFF, a single-channel float EXR or TIFF); a file named "
+            "here is always tried. The model is downloaded and verified on first use (see "
+            "`m360 models`). Exit codes: 0 all done, 1 some failed, 2 usage error, 3 some "
+            "images were still being written by another run (rerun), 130 interrupted."
         ),
     )
     run.add_argument("inputs", nargs="+", type=Path, help="images, folders or manifests")

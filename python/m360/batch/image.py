@@ -8,9 +8,11 @@ same either way. Also the resume check (:func:`is_done`) and the per-image OS lo
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
+import stat
 import time
 from collections.abc import Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -19,17 +21,21 @@ from typing import Any
 
 import numpy as np
 
-from ..errors import InputError, M360Error
+from ..errors import InputError, M360Error, ReadError
 from ..estimators.options import ModelOptions
 from ..io import (
+    FORMAT_SUFFIXES,
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
+    QUANTITIES,
+    SAVE_FORMATS,
     listed_files,
     read_sidecar,
     remove_stale_temporaries,
     save,
 )
 from ..io.decode import decode_image, fix_aspect_ratio, read_input_bytes
+from ..io.files import NAME_MAX, temporary_prefix
 from ..io.gpano import place as place_crop
 from ..io.gpano import read_gpano
 from ..stitching.options import StitchOptions
@@ -51,8 +57,8 @@ class ImageOutcome:
     """What happened to one image.
 
     ``status`` is ``done``, ``skipped`` (already done), ``busy`` (claimed by another run),
-    ``failed`` (with ``error`` type name and ``message``) or ``interrupted`` (Ctrl-C; nothing
-    written).
+    ``failed`` (with ``error`` type name and ``message``), ``interrupted`` (Ctrl-C; nothing
+    written) or ``excluded`` (a file a folder scan left out; ``message`` says why).
     """
 
     input: str
@@ -108,13 +114,31 @@ class _Worker:
         )
 
     def process(self, job: Job) -> ImageOutcome:
+        """Claim, read, estimate and write one image; its outcome (never raises but Ctrl-C).
+
+        The output folders this image made are removed again if it fails (when empty).
+        """
+        created = _missing_folders(job)
+        outcome = None
+        try:
+            outcome = self._process(job)
+        finally:
+            if outcome is None or outcome.status == "failed":
+                _remove_empty_folders(created)
+        return outcome
+
+    def _process(self, job: Job) -> ImageOutcome:
         from ..pipeline.estimate import estimate
 
         s = self.settings
         unusable = _make_job_folder(job)
         if unusable is not None:
             return unusable
-        with _claim(job.stem) as claimed:
+        with contextlib.ExitStack() as claim:
+            try:
+                claimed = claim.enter_context(_claim(job.stem))
+            except OSError as exc:  # the lock file cannot be made: a full or read-only disk
+                return _error_outcome(job, exc)
             if not claimed:
                 return ImageOutcome(str(job.input), job.name, "busy")
             if s.resume and is_done(job, s.fingerprint):
@@ -146,8 +170,39 @@ class _Worker:
 # (m360.batch._ray_engine), which runs them in different processes: the same bytes either way.
 
 
+def _missing_folders(job: Job) -> list[Path]:
+    """List the folders of ``job``'s output inside OUT that do not exist yet, deepest first."""
+    depth = len(Path(job.name).parts) - 1
+    try:
+        return [job.stem.parents[k] for k in range(depth) if not job.stem.parents[k].is_dir()]
+    except (OSError, ValueError):  # a name the OS refuses: nothing can be made there
+        return []
+
+
+def _remove_empty_folders(folders: Sequence[Path]) -> None:
+    """Remove ``folders`` (deepest first) while they are empty."""
+    for folder in folders:
+        try:
+            os.rmdir(folder)
+        except OSError:  # not empty (another image's files or lock), or already gone
+            break
+
+
 def _make_job_folder(job: Job) -> ImageOutcome | None:
-    """Create the folder of ``job``'s outputs; a failed outcome if that is impossible."""
+    """Create the folder of ``job``'s outputs; a failed outcome if that is impossible.
+
+    An input that is not a file fails first, before any folder is made: a manifest listing
+    missing files leaves no empty folders behind.
+    """
+    problem = "does not exist (or is not a file)"
+    try:
+        is_file = stat.S_ISREG(os.stat(job.input).st_mode)
+    except (FileNotFoundError, NotADirectoryError):
+        is_file = False
+    except (OSError, ValueError) as exc:  # a name too long, a NUL, no permission
+        is_file, problem = False, f"cannot be read: {getattr(exc, 'strerror', None) or exc}"
+    if not is_file:
+        return _failure(job.input, job.name, ReadError(f"input image {job.input} {problem}"))
     try:
         job.stem.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
@@ -255,12 +310,109 @@ def _write_job(
     )
 
 
+#: Write errors that are the disk's, not m360's: what happened and what to do.
+_DISK_ERRORS = {
+    errno.ENOSPC: ("no space left on device", "free space and rerun"),
+    errno.EROFS: ("read-only file system", "write to a writable OUT and rerun"),
+}
+if hasattr(errno, "EDQUOT"):  # not on Windows
+    _DISK_ERRORS[errno.EDQUOT] = ("disk quota exceeded", "free space and rerun")
+
+
 def _error_outcome(job: Job, exc: Exception) -> ImageOutcome:
-    """Make the failed outcome of ``job`` for an exception raised while processing it."""
+    """Make the failed outcome of ``job`` for an exception raised while processing it.
+
+    A full disk (ENOSPC, EDQUOT) or a read-only one (EROFS) is named as such; the image's
+    temporary and partial files are already gone (:func:`m360.io.files.atomic_path`,
+    :func:`m360.save`).
+    """
     outcome = _failure(job.input, job.name, exc)
-    if not isinstance(exc, M360Error):  # a bug or a library error: still only this image fails
+    if isinstance(exc, OSError) and exc.errno in _DISK_ERRORS:
+        what, todo = _DISK_ERRORS[exc.errno]
+        code = errno.errorcode.get(exc.errno, str(exc.errno))
+        outcome.message = f"{what} ({code}) while writing {job.stem}.*: {todo}"
+    elif not isinstance(exc, M360Error):  # a bug or a library error: still only this image fails
         outcome.message = f"{exc} (unexpected; please report it)"
     return outcome
+
+
+# --------------------------------------------------------------------------------------------
+# Names the file system can take.
+
+#: PATH_MAX of most systems: the longest path (bytes, with the final NUL) the OS takes.
+PATH_MAX = 4096
+
+
+def name_limits(folder: Path) -> tuple[int, int]:
+    """Give NAME_MAX and PATH_MAX (bytes) of the file system ``folder`` is (or will be) on.
+
+    Asked of its nearest existing folder (``os.pathconf``); 255 and 4096 where the OS does not
+    say (Windows).
+    """
+    probe = folder.absolute()
+    with contextlib.suppress(OSError, ValueError):
+        while not probe.is_dir() and probe != probe.parent:
+            probe = probe.parent
+    try:
+        limits = os.pathconf(probe, "PC_NAME_MAX"), os.pathconf(probe, "PC_PATH_MAX")
+    except (AttributeError, OSError, ValueError):
+        return NAME_MAX, PATH_MAX
+    name_max, path_max = limits
+    return (name_max if name_max > 0 else NAME_MAX), (path_max if path_max > 0 else PATH_MAX)
+
+
+def output_names(
+    stem: str, formats: Sequence[str], *, preview: bool, confidence: bool
+) -> list[str]:
+    """Give the names of the files :func:`m360.save` writes for ``stem`` (a file name)."""
+    quantities = (*QUANTITIES, *(["confidence"] if confidence else []))
+    names = [
+        f"{stem}.{quantity}{FORMAT_SUFFIXES[fmt]}"
+        for fmt in formats
+        if fmt in SAVE_FORMATS
+        for quantity in quantities
+    ]
+    names += [f"{stem}.preview.png"] * bool(preview)
+    names += [stem + GEOMETRY_FILES[fmt][1] for fmt in formats if fmt in GEOMETRY_FILES]
+    return [*names, f"{stem}.json"]
+
+
+def _abbreviated(name: str) -> str:
+    return name if len(name) <= 64 else f"{name[:32]}…{name[-24:]}"
+
+
+def check_output_names(
+    job: Job, formats: Sequence[str], *, preview: bool, confidence: bool, limits: tuple[int, int]
+) -> InputError | None:
+    """Tell why the OS cannot take ``job``'s output names; None if it can.
+
+    Every folder of the output and every file :func:`m360.save` would write must be a name of
+    at most NAME_MAX bytes, and every path m360 opens (the files, their temporaries, the lock)
+    shorter than PATH_MAX, with ``limits`` = (NAME_MAX, PATH_MAX) from :func:`name_limits`.
+    Checked before any work, so such an image fails alone with this message instead of an
+    ``OSError`` half-way.
+    """
+    name_max, path_max = limits
+    relative = Path(job.name)
+    names = output_names(job.stem.name, formats, preview=preview, confidence=confidence)
+    for name in [*relative.parts[:-1], *names]:
+        size = len(os.fsencode(name))
+        if size > name_max:
+            return InputError(
+                f"output name {_abbreviated(name)} is {size} bytes, over the file system's "
+                f"limit of {name_max} bytes per name (NAME_MAX): give this image a shorter "
+                "output name (a .csv manifest: input,output)"
+            )
+    temporaries = [temporary_prefix(n) + "XXXXXXXX.tmp" for n in names]
+    longest = max([*names, *temporaries, _lock_path(job.stem).name], key=lambda n: len(n))
+    size = len(os.fsencode(str(job.stem.parent / longest)))
+    if size >= path_max:
+        return InputError(
+            f"output path {_abbreviated(str(job.stem.parent / longest))} is {size} bytes, over "
+            f"the OS limit of {path_max - 1} bytes per path (PATH_MAX): use a shorter OUT or "
+            "output name"
+        )
+    return None
 
 
 def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
@@ -299,7 +451,7 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
 
 @contextlib.contextmanager
 def _claim(stem: Path) -> Iterator[bool]:
-    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem``.
+    """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (hashed if long).
 
     Yields False if another process holds it. The OS releases the lock when its process dies,
     so a killed run blocks nothing. The lock file is removed while still held, after the work;
@@ -309,11 +461,18 @@ def _claim(stem: Path) -> Iterator[bool]:
     that removes it, it used to leave the file behind.
     """
     stem.parent.mkdir(parents=True, exist_ok=True)
-    path = stem.with_name(f".{stem.name}.lock")
+    path = _lock_path(stem)
     fd: int | None = None
     try:
         with deferred():  # a Ctrl-C held back here is raised inside the try
-            fd = _lock_current(path)
+            for attempt in range(3):
+                try:
+                    fd = _lock_current(path)
+                    break
+                except FileNotFoundError:  # a failed image of another run removed the folder
+                    if attempt == 2:
+                        raise
+                    stem.parent.mkdir(parents=True, exist_ok=True)
         yield fd is not None
     finally:
         if fd is not None:
@@ -321,6 +480,14 @@ def _claim(stem: Path) -> Iterator[bool]:
                 with contextlib.suppress(FileNotFoundError):
                     os.unlink(path)
                 os.close(fd)
+
+
+def _lock_path(stem: Path) -> Path:
+    """Give the lock file of ``stem``: ``.NAME.lock``, or ``.SHA1[:16].lock`` when too long."""
+    name = f".{stem.name}.lock"
+    if len(os.fsencode(name)) > NAME_MAX:
+        name = f".{hashlib.sha1(os.fsencode(stem.name)).hexdigest()[:16]}.lock"
+    return stem.with_name(name)
 
 
 def _lock_current(path: Path) -> int | None:

@@ -1,7 +1,7 @@
 """Batch runs over many panoramas that lose nothing: the engine behind ``m360 run``.
 
 >>> report = m360.batch.run(["photos/"], "out/", model="midas-v21-small", workers=2)
->>> report.exit_code          # 0 if every image succeeded (or was already done), else 1
+>>> report.exit_code          # 0: all done; 1: some failed; 3: some busy in another run
 
 What it guarantees (docs/architecture.md, batch guarantees):
 
@@ -17,11 +17,18 @@ What it guarantees (docs/architecture.md, batch guarantees):
   ``WorkerCrashed``.
 - **Concurrent runs share a folder.** Each image is claimed with an OS lock (``flock``) on
   ``.STEM.lock`` in its folder before any work; a run finding an image claimed skips it (it is
-  reported as ``busy``) and the lock dies with its process, so a killed run blocks nothing.
+  reported as ``busy``, exit code 3 unless it is done by the end of the run) and the lock dies
+  with its process, so a killed run blocks nothing.
+- **Names the OS takes.** Lock and temporary names are hashed when long; an image whose output
+  names are too long for the file system (NAME_MAX, PATH_MAX) fails alone, before any work.
 - **Ctrl-C stops cleanly**: the image in progress leaves no file behind; rerunning finishes the
   rest.
 - **Nothing outside OUT is written**; inputs are opened read-only; manifest output names that
   escape OUT (absolute, ``..``, a symlink out) are an :class:`m360.InputError` for that line.
+  A manifest that is not one (binary, not UTF-8, absurd lines, two lines writing one output) is
+  refused whole before anything is made.
+- **Folder scans take photos only**: m360's own outputs and depth maps lying in a scanned
+  folder are left out, each reported with the reason (``excluded``).
 
 With ``workers > 1`` images run in separate processes (``spawn``), each loading the model and
 building the per-resolution plan once; as with any spawned process, a script that calls
@@ -34,21 +41,21 @@ the same guarantees (docs/architecture.md, "The Ray engine").
 from __future__ import annotations
 
 import contextlib
-import csv
 import datetime
 import json
 import multiprocessing
 import os
 import pickle
 import signal
+import stat
 import threading
 import time
 import uuid
 from collections import deque
-from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any
 
@@ -65,6 +72,7 @@ from ..io import (
 from ..io.decode import IMAGE_SUFFIXES
 from ..pipeline.options import EstimateKeywords, JobKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
+from ._inputs import read_manifest, scan
 from ._interrupt import MainThreadInterrupts, install_for_process
 from .image import (
     ImageOutcome,
@@ -74,7 +82,9 @@ from .image import (
     _failure,
     _Settings,
     _Worker,
+    check_output_names,
     is_done,
+    name_limits,
 )
 
 if TYPE_CHECKING:
@@ -88,6 +98,8 @@ FAILURES_FILE = "failures.jsonl"
 ENGINES = ("local", "ray")
 #: Stages reported per image: reading the file, m360.estimate's stages, writing the outputs.
 STAGES = ("read", "load", "project", "network", "convert", "align", "blend", "write")
+#: Exit code of a run that left images to another run still writing them (none failed).
+EXIT_BUSY = 3
 
 
 @dataclass
@@ -97,7 +109,8 @@ class BatchReport:
     Attributes
     ----------
     outcomes : list of ImageOutcome
-        One per input image (and per unusable manifest line), in input order.
+        One per input image (and per unusable manifest line, and per file a folder scan left
+        out), the unusable and left-out ones first, then the images in input order.
     seconds : float
         Wall time of the run.
     interrupted : bool
@@ -107,6 +120,8 @@ class BatchReport:
     model_error : str or None
         Why the run stopped early: the model failed (a ModelError) on the first image tried,
         before any image succeeded, so it would fail every image; the rest were not tried.
+    notes : list of str
+        What else the run has to say (e.g. ``failures.jsonl`` could not be written).
     """
 
     outcomes: list[ImageOutcome]
@@ -114,6 +129,7 @@ class BatchReport:
     interrupted: bool
     failures_file: Path
     model_error: str | None = None
+    notes: list[str] = field(default_factory=list)
 
     def _with(self, status: str) -> list[ImageOutcome]:
         return [o for o in self.outcomes if o.status == status]
@@ -130,8 +146,13 @@ class BatchReport:
 
     @property
     def busy(self) -> list[ImageOutcome]:
-        """Images another run was processing at the time."""
+        """Images another run was still processing at the end of this run (rerun to finish)."""
         return self._with("busy")
+
+    @property
+    def excluded(self) -> list[ImageOutcome]:
+        """Files a folder scan left out: m360 outputs and depth maps (``message``: why)."""
+        return self._with("excluded")
 
     @property
     def failed(self) -> list[ImageOutcome]:
@@ -140,15 +161,19 @@ class BatchReport:
 
     @property
     def exit_code(self) -> int:
-        """0 if nothing failed and the run finished, 1 if some image failed, 130 if interrupted.
+        """Give the exit code of ``m360 run``.
 
-        2 if the model failed on the first image (``model_error``): the run stopped there.
+        0: every image done (or already done); 1: some failed; 2: the model failed on the first
+        image (``model_error``): the run stopped there; 3 (:data:`EXIT_BUSY`): none failed but
+        some were still being written by another run (rerun to finish them); 130: interrupted.
         """
         if self.interrupted:
             return 130
         if self.model_error is not None:
             return 2
-        return 1 if self.failed else 0
+        if self.failed:
+            return 1
+        return EXIT_BUSY if self.busy else 0
 
     def stage_seconds(self) -> dict[str, float]:
         """Total seconds per stage over the images done in this run."""
@@ -174,6 +199,21 @@ class BatchReport:
             lines.append(f"  {rate:.0f} images/hour; mean seconds per image: {stages}")
         if self.failed:
             lines.append(f"  failures: {self.failures_file}")
+        if self.busy:
+            n = len(self.busy)
+            lines.append(
+                f"  {n} image{'s' * (n > 1)} {'were' if n > 1 else 'was'} being written by "
+                f"another run: rerun to finish {'them' if n > 1 else 'it'}"
+            )
+        if self.excluded:
+            shown = "; ".join(f"{o.input}: {o.message}" for o in self.excluded[:3])
+            more = len(self.excluded) - 3
+            lines.append(
+                f"  left out of folder scans: {len(self.excluded)} file(s) ({shown}"
+                + (f"; and {more} more" if more > 0 else "")
+                + ")"
+            )
+        lines += [f"  {note}" for note in self.notes]
         if self.interrupted:
             lines.append("  interrupted: rerun the same command to finish the rest")
         if self.model_error is not None:
@@ -197,19 +237,25 @@ def collect(
     """Expand ``inputs`` (image files, folders, ``.txt``/``.csv`` manifests) into jobs.
 
     Folders give their images (``IMAGE_SUFFIXES``, case-insensitive) in sorted order, with
-    ``recursive`` their sub-folders too (the sub-path is kept under OUT). A ``.txt`` manifest
-    lists one input per line (blank lines and ``#`` comments skipped); a ``.csv`` manifest has
-    ``input[,output]`` rows (an optional header row starting with ``input``); relative paths
-    are relative to the manifest's folder and ``output`` is a stem inside OUT. Returns the jobs
-    and, as failed outcomes, the inputs that cannot become jobs (an output that escapes OUT,
-    two inputs with the same output stem).
+    ``recursive`` their sub-folders too (the sub-path is kept under OUT); a folder scan leaves
+    out m360's own outputs (``STEM.depth.*``, ``STEM.disparity.*``, ``STEM.confidence.*``,
+    ``STEM.preview.png``) and depth maps (a single-channel 16-bit PNG or TIFF, a single-channel
+    float EXR or TIFF), each returned as an ``excluded`` outcome saying why. A file named in
+    ``inputs`` or in a manifest is always tried. A ``.txt`` manifest lists one input per line
+    (blank lines and ``#`` comments skipped); a ``.csv`` manifest has ``input[,output]`` rows
+    (an optional header row starting with ``input``); relative paths are relative to the
+    manifest's folder and ``output`` is a stem inside OUT. Every manifest is checked whole
+    first (see :mod:`m360.batch._inputs`). Returns the jobs and, as outcomes, the inputs that
+    cannot become jobs (failed: an output that escapes OUT, two inputs with the same output
+    stem) and the files folder scans left out (excluded).
 
     Raises
     ------
     m360.ReadError
         If a path in ``inputs`` itself does not exist, or a manifest cannot be read.
     m360.InputError
-        If ``inputs`` is not a path or paths.
+        If ``inputs`` is not a path or paths, or a manifest is not one: not UTF-8 text, control
+        characters (binary), a line longer than two paths, two lines with the same output.
     """
     out = Path(out_dir)
     if isinstance(inputs, (str, os.PathLike)):
@@ -242,17 +288,18 @@ def collect(
         if not isinstance(item, (str, os.PathLike)):
             raise InputError(f"inputs must be paths, got {type(item).__name__}")
         path = Path(item)
-        if path.is_dir():
-            pattern = path.rglob("*") if recursive else path.glob("*")
-            images = sorted(
-                p for p in pattern if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()
-            )
+        kind = _kind(path)
+        if kind == "folder":
+            images, left_out = scan(path, recursive=recursive)
             for image in images:
                 add(image, image.relative_to(path).with_suffix(""), str(path))
-        elif path.suffix.lower() in MANIFEST_SUFFIXES and path.is_file():
-            for number, source, rel in _manifest(path):
+            for file, reason in left_out:
+                name = file.relative_to(path).as_posix()
+                problems.append(ImageOutcome(str(file), name, "excluded", None, reason))
+        elif kind == "file" and path.suffix.lower() in MANIFEST_SUFFIXES:
+            for number, source, rel in read_manifest(path):
                 add(source, rel, f"{path}:{number}")
-        elif path.is_file():
+        elif kind == "file":
             add(path, PurePath(path.stem), str(path))
         else:
             # A path the user named that is not there is a usage error, found before any
@@ -261,28 +308,31 @@ def collect(
     return jobs, problems
 
 
-def _manifest(path: Path) -> Iterator[tuple[int, Path, PurePath]]:
+def _kind(path: Path) -> str | None:
+    """Tell whether ``path`` is a "folder", a "file" or neither (None); ReadError if unusable."""
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except (OSError, UnicodeDecodeError) as exc:
-        raise ReadError(f"cannot read the manifest {path}: {exc}") from exc
-    base = path.parent
-    if path.suffix.lower() == ".txt":
-        for number, line in enumerate(text.splitlines(), 1):
-            entry = line.strip()
-            if entry and not entry.startswith("#"):
-                source = base / entry
-                yield number, source, PurePath(source.stem)
-        return
-    for number, row in enumerate(csv.reader(text.splitlines()), 1):
-        cells = [c.strip() for c in row]
-        if not cells or not cells[0] or cells[0].startswith("#"):
-            continue
-        if number == 1 and cells[0].lower() == "input":
-            continue  # header
-        source = base / cells[0]
-        output = cells[1] if len(cells) > 1 and cells[1] else source.stem
-        yield number, source, PurePath(output)
+        mode = os.stat(path).st_mode
+    except (FileNotFoundError, NotADirectoryError):
+        return None
+    except (OSError, ValueError) as exc:  # a name too long, a NUL, no permission
+        reason = getattr(exc, "strerror", None) or exc
+        raise ReadError(f"input {path} cannot be used: {reason}") from exc
+    return "folder" if stat.S_ISDIR(mode) else "file" if stat.S_ISREG(mode) else None
+
+
+def _check_names(
+    jobs: list[Job], problems: list[ImageOutcome], out: Path, **outputs: Any
+) -> list[Job]:
+    """Keep the jobs whose output names the OS takes; the others become failed outcomes."""
+    limits = name_limits(out)
+    kept = []
+    for job in jobs:
+        problem = check_output_names(job, limits=limits, **outputs)
+        if problem is None:
+            kept.append(job)
+        else:
+            problems.append(_failure(job.input, job.name, problem))
+    return kept
 
 
 def _inside(out: Path, rel: PurePath, where: str) -> Path:
@@ -409,8 +459,14 @@ def run(
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)
-    if not jobs and not problems:
-        raise InputError(f"no images found in {inputs} (looked for {', '.join(IMAGE_SUFFIXES)})")
+    if not jobs and not any(p.status == "failed" for p in problems):
+        left_out = "".join(f"; left out {p.input}: {p.message}" for p in problems[:3])
+        raise InputError(
+            f"no images found in {inputs} (looked for {', '.join(IMAGE_SUFFIXES)}){left_out}"
+        )
+    jobs = _check_names(
+        jobs, problems, out, formats=chosen, preview=bool(preview), confidence=confidence
+    )
 
     # Resolve (download, verify) the model once, here: a bad model fails the run, not each image.
     estimator = load_estimator(model, model_options=model_opts)
@@ -460,9 +516,15 @@ def run(
     bar = _progress_bar(len(jobs) + len(problems), progress)
     counts = {"done": 0, "skipped": 0, "failed": 0}
 
+    notes: list[str] = []
+
     def record(outcome: ImageOutcome, index: int | None) -> None:
         if outcome.status == "failed":
-            _append_failure(failures, outcome, settings.run_id)
+            try:
+                _append_failure(failures, outcome, settings.run_id)
+            except OSError as exc:  # a full disk: the failure is still reported here
+                if not notes:
+                    notes.append(f"{failures} could not be written: {exc.strerror or exc}")
         if index is not None:
             outcomes[index] = outcome
         if outcome.status in counts:
@@ -508,18 +570,32 @@ def run(
         bar.close()
     # A worker that got Ctrl-C (and not this process) reports its image as interrupted.
     interrupted = interrupted or any(o.status == "interrupted" for o in outcomes.values())
+    _recheck_busy(outcomes, jobs, settings)
     report = BatchReport(
         outcomes=[*problems, *(outcomes[k] for k in sorted(outcomes))],
         seconds=time.perf_counter() - started,
         interrupted=interrupted,
         failures_file=failures,
         model_error=model_error,
+        notes=notes,
     )
     return report
 
 
 class _ModelUnusable(Exception):
     """Raised by a run's ``record`` to stop it: the model failed on the first image."""
+
+
+def _recheck_busy(outcomes: dict[int, ImageOutcome], jobs: list[Job], settings: _Settings) -> None:
+    """Count an image another run had claimed as already done if it is done by now.
+
+    Only those still unfinished stay ``busy`` (exit code 3: rerun to finish them).
+    """
+    if not settings.resume:
+        return
+    for index, outcome in outcomes.items():
+        if outcome.status == "busy" and is_done(jobs[index], settings.fingerprint):
+            outcomes[index] = ImageOutcome(outcome.input, outcome.stem, "skipped")
 
 
 def _ray_resources(

@@ -29,8 +29,9 @@ __all__ = [
     "tonemap",
 ]
 
-#: Input images :func:`read_image` decodes (and batch folders collect).
-IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
+#: Input images :func:`read_image` decodes (and batch folders collect): JPEG, PNG, TIFF, OpenEXR,
+#: Radiance HDR, WebP, BMP.
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".hdr", ".webp", ".bmp")
 
 
 def read_exr(path: Path) -> np.ndarray:

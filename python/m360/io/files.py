@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import contextlib
 import glob
+import hashlib
 import io as _bytes_io
 import json
 import os
@@ -33,6 +34,8 @@ GEOMETRY_FILES = {"ply": ("points", ".points.ply"), "glb": ("mesh", ".mesh.glb")
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
 FORMAT_SUFFIXES = {"npy": ".npy", "pfm": ".pfm", "exr": ".exr", "png16": ".png"}
+#: The longest file name (bytes) of most file systems (NAME_MAX): longer temporary names are hashed.
+NAME_MAX = 255
 #: PNG16 codes: 0 = invalid, 1..65535 = the finite range, linearly.
 _PNG16_STEPS = 65534
 
@@ -58,11 +61,12 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
 
     The temporary file lives in the target folder so the final rename is atomic (same file
     system); on any exception (KeyboardInterrupt included) it is removed and ``path`` is left as
-    it was. Temporary names are ``.NAME.XXXXXXXX.tmp``.
+    it was. Temporary names are ``.NAME.XXXXXXXX.tmp`` (see :func:`temporary_prefix`).
     """
     target = Path(path)
     target.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{target.name}.", suffix=".tmp", dir=target.parent)
+    prefix = temporary_prefix(target.name)
+    fd, tmp = tempfile.mkstemp(prefix=prefix, suffix=".tmp", dir=target.parent)
     os.close(fd)
     try:
         yield Path(tmp)
@@ -73,6 +77,18 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         with contextlib.suppress(FileNotFoundError):
             os.unlink(tmp)
         raise
+
+
+def temporary_prefix(name: str) -> str:
+    """Give the prefix of the temporary files of ``name``: ``.NAME.``, or ``.HASH.`` when long.
+
+    A temporary name is the prefix, 8 random characters and ``.tmp``. When ``.NAME.XXXXXXXX.tmp``
+    would exceed :data:`NAME_MAX` bytes (a name of 242 bytes or more), HASH is the first
+    16 hex digits of the name's sha1, so the temporary of any legal name is a legal name.
+    """
+    if len(os.fsencode(name)) + 14 <= NAME_MAX:  # 14: two dots, 8 random characters, ".tmp"
+        return f".{name}."
+    return f".{hashlib.sha1(os.fsencode(name)).hexdigest()[:16]}."
 
 
 def _umask() -> int:
@@ -293,9 +309,9 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     """Delete temporary files a killed writer left for the set ``stem``; returns them.
 
     Only the temporaries of this set's own file names (``.NAME.<8 random>.tmp`` for each name
-    :func:`save` writes), so another set with a longer stem is never touched. Call this only
-    while holding the set's claim (see :mod:`m360.batch`): a live writer's temporary file looks
-    the same.
+    :func:`save` writes, hashed when long: :func:`temporary_prefix`), so another set with a
+    longer stem is never touched. Call this only while holding the set's claim (see
+    :mod:`m360.batch`): a live writer's temporary file looks the same.
     """
     base = Path(stem)
     if not base.parent.is_dir():
@@ -306,7 +322,7 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
     removed = []
     for name in names:
-        for tmp in base.parent.glob(f".{glob.escape(name)}.{'?' * 8}.tmp"):
+        for tmp in base.parent.glob(f"{glob.escape(temporary_prefix(name))}{'?' * 8}.tmp"):
             with contextlib.suppress(FileNotFoundError):
                 tmp.unlink()
                 removed.append(tmp)
