@@ -58,9 +58,9 @@ DEFAULT_MAX_DEPTH_RATIO = 1.1
 
 #: Default most vertices of a 3D output (:func:`to_points`, :func:`to_mesh`, the files
 #: :func:`m360.save` writes): larger maps are strided to fit (4K stays whole, 8K takes every
-#: 2nd pixel, the 12K street photo every 3rd). A 2**23-vertex mesh is a 400 MB GLB that
-#: browsers still open; the writers stream it in about 200 MB (docs/architecture.md, memory).
-DEFAULT_MAX_VERTICES = 2**23
+#: 2nd pixel, the 12K street photo every 3rd). A 4K mesh is a 300 MB GLB that browsers still
+#: open; the writers stream it in about 100 MB (docs/architecture.md, memory).
+DEFAULT_MAX_VERTICES = 9_000_000
 
 #: The frame each writer stores its coordinates in (also recorded in the sidecar's ``frame``).
 FRAMES = {
