@@ -36,9 +36,9 @@ __all__ = [
 
 #: Input images :func:`read_image` decodes (and batch folders collect).
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr")
-#: Rows converted at once by :func:`to_rgb8` (16-bit and float images): the wide temporaries
-#: stay a band, not the whole image.
-_BAND_ROWS = 512
+#: Pixels converted at once by :func:`to_rgb8` (16-bit and float images): the wide temporaries
+#: stay a band of rows (about a million pixels, 16 MB), not the whole image.
+_BAND_PIXELS = 1 << 20
 
 
 @dataclass(frozen=True)
@@ -322,8 +322,9 @@ def to_rgb8(image: np.ndarray, path: Path, *, order: str) -> np.ndarray:
         image = image[:, :, :3] if order == "RGB" else image[:, :, 2::-1]
     height, width = image.shape[:2]
     out = np.empty((height, width, 3), np.uint8)
-    for top in range(0, height, _BAND_ROWS):
-        band = image[top : top + _BAND_ROWS]
+    rows = max(1, _BAND_PIXELS // width)
+    for top in range(0, height, rows):
+        band = image[top : top + rows]
         if band.dtype == np.uint16:
             wide = band.astype(np.uint32)
             wide += 128
@@ -331,7 +332,7 @@ def to_rgb8(image: np.ndarray, path: Path, *, order: str) -> np.ndarray:
             band = wide.astype(np.uint8)
         elif band.dtype.kind == "f":
             band = _encode(band, white)
-        out[top : top + _BAND_ROWS] = band[:, :, None] if band.ndim == 2 else band
+        out[top : top + rows] = band[:, :, None] if band.ndim == 2 else band
     return out
 
 
