@@ -8,6 +8,9 @@ writers. Compared in the same run with
 - trimesh's exporters writing the same mesh/points (``trimesh_glb`` times the export of the
   mesh built by to_mesh, ``trimesh_ply`` of the points; m360 streams numpy arrays instead);
 
+- the streaming writers :func:`m360.mesh.write_mesh_glb` / :func:`m360.mesh.write_points_ply`
+  (what ``m360.save`` uses: byte-identical files, a band of rows in memory), at every pixel and,
+  ``stream_glb_budget``, with the default vertex budget (8K: every 2nd pixel);
 - the numpy floor: the same points written out as plain numpy (directions from a lon/lat
   meshgrid, times depth, NaN dropped) — what any implementation must at least do;
 - Open3D (with ``--open3d-python`` naming an interpreter that has open3d; it need not have
@@ -41,6 +44,9 @@ OPS = (
     "to_mesh",
     "to_mesh+glb",
     "to_points+ply",
+    "stream_glb",
+    "stream_ply",
+    "stream_glb_budget",
     "trimesh_glb",
     "trimesh_ply",
     "o3d_from_depth",
@@ -87,24 +93,40 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
         if op == "numpy_floor":
             numpy_floor(depth)
         elif op == "to_points":
-            m360.to_points(depth)
+            m360.to_points(depth, max_vertices=None)
         elif op == "to_mesh":
-            m360.to_mesh(depth)
+            m360.to_mesh(depth, max_vertices=None)
         elif op == "to_mesh+glb":
             target = Path(out_dir) / f"m{k}.glb"
-            mesh.write_glb(target, m360.to_mesh(depth))
+            mesh.write_glb(target, m360.to_mesh(depth, max_vertices=None))
             size = target.stat().st_size
             target.unlink()
         elif op == "to_points+ply":
             target = Path(out_dir) / f"p{k}.ply"
-            mesh.write_ply(target, m360.to_points(depth))
+            mesh.write_ply(target, m360.to_points(depth, max_vertices=None))
+            size = target.stat().st_size
+            target.unlink()
+        elif op.startswith("stream_"):
+            # the streaming writers m360.save uses: the same bytes, a band of rows at a time
+            # (stream_glb_budget: with the default vertex budget, as m360.save writes it)
+            target = Path(out_dir) / f"s{k}.{op[7:10]}"
+            budget = {} if op == "stream_glb_budget" else {"max_vertices": None}
+            if op == "stream_ply":
+                mesh.write_points_ply(target, depth, **budget)
+            else:
+                mesh.write_mesh_glb(target, depth, **budget)
             size = target.stat().st_size
             target.unlink()
         elif op in ("trimesh_glb", "trimesh_ply"):
             # the same files through trimesh's exporters (what m360 used first)
             import trimesh
 
-            geometry = m360.to_mesh(depth) if op == "trimesh_glb" else m360.to_points(depth)
+            whole = {"max_vertices": None}
+            geometry = (
+                m360.to_mesh(depth, **whole)
+                if op == "trimesh_glb"
+                else m360.to_points(depth, **whole)
+            )
             t0 = time.perf_counter()
             if op == "trimesh_glb":
                 data = trimesh.Trimesh(

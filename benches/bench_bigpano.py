@@ -27,11 +27,20 @@ Tables:
    ``Layout.prepare()`` alone the same three ways (build, build + write, load) and the files'
    sizes.
 
+4. with ``--outputs IMAGE`` (alone: tables 1-3 are skipped): one real image through the whole
+   run with a real network (``--model``, default the shared fastdepth_224.onnx; metric depth,
+   RGB in [0, 1]) and the outputs ``--formats`` (default npy,png16,ply,glb): the peak above the
+   stage's start of reading, the estimate, and ``m360.save`` of each format alone and of npy with
+   the preview, in one fresh interpreter; then ``m360.batch.run`` of all of it in another, its
+   peak against the whole-run estimate (:func:`m360.memory.estimate_memory` with the formats and
+   the file's header). Works on older m360 trees (the whole-run estimate then shows "-").
+
 Every child has its own ``M360_HOME`` (a temporary folder), so tables 1-2 measure cold plans
 whatever the user's cache holds.
 
 Run: ``.venv/bin/python benches/bench_bigpano.py [--sizes 2048 4096 8192] [--repeats 3]
-[--mp72] [--plan-cache 3]``. Sizes above 8K need ``free -g`` headroom: run them alone.
+[--mp72] [--plan-cache 3]``, or ``... --outputs ../shared/real/panos/street_11968.jpg``.
+Sizes above 8K need ``free -g`` headroom: run them alone.
 """
 
 from __future__ import annotations
@@ -230,7 +239,107 @@ def fmt_gb(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
+_REAL_MODEL = Path(__file__).resolve().parents[2] / "shared/real/models/fastdepth_224.onnx"
+_REAL_OPTIONS = {"output_kind": "metric_depth", "mean": (0, 0, 0), "std": (1, 1, 1)}
+
+
+def outputs_child(image: Path, model: str, formats: list[str], whole: bool) -> dict[str, Any]:
+    """Table 4 in this (fresh) process: peaks per stage, or (``whole``) of one batch run."""
+    out = Path(tempfile.mkdtemp())
+    figures: dict[str, Any] = {}
+
+    def start() -> tuple[int, float]:
+        with open("/proc/self/clear_refs", "w") as fh:
+            fh.write("5")  # reset the high-water mark
+        return _status("VmRSS"), time.perf_counter()
+
+    def stop(name: str, began: tuple[int, float]) -> None:
+        figures[name] = {
+            "gb": (_status("VmHWM") - began[0]) / 2**30,
+            "s": time.perf_counter() - began[1],
+        }
+
+    try:
+        if whole:
+            from m360.estimators import load_estimator
+
+            estimator = load_estimator(model, **_REAL_OPTIONS)  # type: ignore[arg-type]
+            began = start()
+            report = m360.batch.run(image, out / "run", model=estimator, formats=formats,
+                                    progress=False)  # fmt: skip
+            assert report.exit_code == 0, report.failed
+            stop("run", began)
+            figures["base_gb"] = began[0] / 2**30
+            try:
+                from m360.io.decode import image_header
+                from m360.memory import estimate_memory, working_width_for
+
+                data = image.read_bytes()
+                header = image_header(data)
+                work = working_width_for(None, header.width)
+                figures["estimate_gb"] = estimate_memory(
+                    header.width, work, DEFAULT_BLEND, _default_layout(work), formats=formats,
+                    preview=True, header=header, file_bytes=len(data),
+                ) / 2**30  # fmt: skip
+            except (ImportError, TypeError, AttributeError):  # an older m360
+                figures["estimate_gb"] = None
+            return figures
+        from m360.io.decode import load_image
+
+        began = start()
+        rgb = load_image(image)
+        stop("read", began)
+        began = start()
+        result = m360.estimate(rgb, model, **_REAL_OPTIONS)  # type: ignore[arg-type]
+        stop("estimate", began)
+        for fmt in formats:
+            began = start()
+            m360.save(result, out / "x", formats=[fmt], preview=False, rgb=rgb)
+            stop(fmt, began)
+        began = start()
+        m360.save(result, out / "x", formats=["npy"], preview=True, rgb=rgb)
+        stop("npy+preview", began)
+        return figures
+    finally:
+        shutil.rmtree(out, ignore_errors=True)
+
+
+def outputs_table(image: Path, model: str, formats: list[str]) -> None:
+    """Table 4: per-stage peaks and the whole run against its estimate."""
+    rows = {}
+    for whole in (False, True):
+        cmd = [sys.executable, __file__, "--outputs-child", str(image), model, ",".join(formats),
+               "whole" if whole else "stages"]  # fmt: skip
+        with tempfile.TemporaryDirectory() as home:
+            proc = subprocess.run(cmd, capture_output=True, text=True, timeout=3600,
+                                  env={**os.environ, "M360_HOME": home})  # fmt: skip
+        if proc.returncode != 0:
+            raise RuntimeError(proc.stderr[-3000:])
+        rows.update(json.loads(proc.stdout.strip().splitlines()[-1]))
+    print(f"m360 {m360.__file__}: {image.name}, formats {','.join(formats)}")
+    print(f"{'stage':>12} {'peak above start GiB':>21} {'seconds':>8}")
+    for name, fig in rows.items():
+        if isinstance(fig, dict):
+            print(f"{name:>12} {fig['gb']:21.2f} {fig['s']:8.1f}")
+    print(f"whole run above {rows['base_gb']:.2f} GiB: measured {rows['run']['gb']:.2f} GiB, "
+          f"estimated {fmt_gb(rows['estimate_gb'])} GiB")  # fmt: skip
+
+
 def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--outputs-child":
+        image, model, formats, mode = sys.argv[2:6]
+        print(json.dumps(outputs_child(Path(image), model, formats.split(","), mode == "whole")))
+        return
+    if "--outputs" in sys.argv:
+        import argparse
+
+        parser = argparse.ArgumentParser(description="table 4 of " + __doc__.splitlines()[0])
+        parser.add_argument("--outputs", type=Path, required=True, metavar="IMAGE")
+        parser.add_argument("--model", default=str(_REAL_MODEL))
+        parser.add_argument("--formats", default="npy,png16,ply,glb")
+        args = parser.parse_args()
+        outputs_table(args.outputs, args.model, args.formats.split(","))
+        return
     if len(sys.argv) > 1 and sys.argv[1] == "--child":
         data, width, blend, working, repeats = sys.argv[2:7]
         if sys.argv[7:] == ["prepare"]:

@@ -224,3 +224,160 @@ def test_stale_temporaries_of_one_set_only_are_removed(tmp_path: Path) -> None:
         path.write_bytes(b"partial")
     assert sorted(io.remove_stale_temporaries(tmp_path / "pano")) == sorted(mine)
     assert all(p.exists() for p in other)
+
+
+# --------------------------------------------------------------------------------------------
+# Sizes from headers, refusals before decoding, NaN-only inputs (issue 23).
+
+
+def _png_header_only(path: Path, width: int, height: int) -> Path:
+    """A PNG that declares ``width`` x ``height`` (8-bit RGB) with one empty IDAT: its header
+    is valid, its pixels are not there (nothing may decode it)."""
+    import struct
+    import zlib
+
+    def chunk(kind: bytes, data: bytes) -> bytes:
+        return (
+            struct.pack(">I", len(data)) + kind + data + struct.pack(">I", zlib.crc32(kind + data))
+        )
+
+    ihdr = struct.pack(">IIBBBBB", width, height, 8, 2, 0, 0, 0)
+    data = b"\x89PNG\r\n\x1a\n" + chunk(b"IHDR", ihdr) + chunk(b"IDAT", zlib.compress(b""))
+    path.write_bytes(data + chunk(b"IEND", b""))
+    return path
+
+
+@pytest.fixture
+def no_decoding(monkeypatch: pytest.MonkeyPatch) -> None:
+    def refuse(*_: object, **__: object) -> None:
+        raise AssertionError("the image was decoded")
+
+    monkeypatch.setattr(cv2, "imdecode", refuse)
+
+
+def test_headers_give_the_decoded_size_and_samples(tmp_path: Path, rgb: np.ndarray) -> None:
+    from m360.io.decode import image_header
+
+    bgr = np.ascontiguousarray(rgb[:, :, ::-1])
+    wide = rgb.astype(np.uint16) * 257
+    cases = {
+        "a.png": (bgr, 3, 1),
+        "g.png": (bgr[:, :, 0], 1, 1),
+        "w.png": (wide, 3, 2),
+        "a4.png": (np.dstack([bgr, bgr[:, :, :1]]), 4, 1),
+        "a.jpg": (bgr, 3, 1),
+        "g.jpg": (bgr[:, :, 0], 1, 1),
+        "a.tif": (bgr, 3, 1),
+        "w.tif": (wide, 3, 2),
+        "a.hdr": (bgr.astype(np.float32) / 255, 3, 4),
+    }
+    for name, (image, channels, sample_bytes) in cases.items():
+        _write(tmp_path / name, image)
+        data = (tmp_path / name).read_bytes()
+        header = image_header(data)
+        decoded = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+        assert header is not None, name
+        assert (header.height, header.width) == decoded.shape[:2] == (16, 32), name
+        assert header.channels == (1 if decoded.ndim == 2 else decoded.shape[2]) == channels, name
+        assert header.sample_bytes == decoded.dtype.itemsize == sample_bytes, name
+    for channels in (
+        {"RGB": np.ones((16, 32, 3), np.float32)},
+        {"Y": np.ones((16, 32), np.float16)},
+    ):
+        exr = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+        OpenEXR.File(exr, channels).write(str(tmp_path / "a.exr"))
+        header = image_header((tmp_path / "a.exr").read_bytes())
+        assert header is not None and (header.height, header.width) == (16, 32)
+        assert header.channels == (3 if "RGB" in channels else 1)
+    assert image_header(b"not an image at all") is None
+    assert image_header(b"\x89PNG\r\n\x1a\n\x00\x00") is None  # cut inside the header
+
+
+def test_a_huge_image_of_the_wrong_aspect_is_refused_by_its_header(
+    tmp_path: Path, no_decoding: None
+) -> None:
+    path = _png_header_only(tmp_path / "square.png", 30000, 30000)
+    with pytest.raises(m360.AspectRatioError, match=r"is 30000x30000 \(HxW\)"):
+        io.load_image(path)
+
+
+def _tiny_model(tmp_path: Path) -> Path:
+    import onnx_graphs as g
+
+    return g.affine_of_mean(tmp_path / "m.onnx", 1.0, 0.1)  # type: ignore[no-any-return]
+
+
+def _failures(out: Path) -> list[dict[str, str]]:
+    return [json.loads(line) for line in (out / "failures.jsonl").read_text().splitlines()]
+
+
+def test_a_run_refuses_by_header_a_wrong_aspect_and_an_image_too_large_for_the_memory(
+    tmp_path: Path, no_decoding: None, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    from m360.cli import main
+
+    inputs = tmp_path / "in"
+    inputs.mkdir()
+    _png_header_only(inputs / "square.png", 30000, 30000)
+    _png_header_only(inputs / "huge.png", 60000, 30000)
+    monkeypatch.setenv("M360_MEMORY_LIMIT", "8G")
+    out = tmp_path / "out"
+    args = ["run", str(inputs), "-o", str(out), "--model", str(_tiny_model(tmp_path))]
+    assert main([*args, "--formats", "npy,glb", "--no-progress"]) == 1
+    failures = {Path(f["input"]).name: f for f in _failures(out)}
+    assert failures["square.png"]["error"] == "AspectRatioError"
+    huge = failures["huge.png"]
+    assert huge["error"] == "InputError", huge
+    assert re.search(
+        r"60000x30000.* needs about \d+\.\d GiB .* 8\.0 GiB is available", huge["message"]
+    )
+    assert "npy,glb" in huge["message"] and "--working-width" in huge["message"]
+
+
+def test_the_run_estimate_grows_with_the_outputs_and_the_input_samples() -> None:
+    from m360.io.decode import ImageHeader
+    from m360.memory import estimate_memory
+
+    width, work = 16384, 4096
+    alone = estimate_memory(width, work, "consensus")
+    run = estimate_memory(width, work, "consensus", formats=["npy"])
+    assert run > alone  # the decoded panorama is held through the estimate
+    more = estimate_memory(width, work, "consensus", formats=["npy", "pfm", "png16"], preview=True)
+    assert more > run
+    eight = ImageHeader(width, width // 2, 3, 1, "png")
+    sixteen = ImageHeader(width, width // 2, 3, 2, "png")
+    small = dict(formats=["npy"], file_bytes=0)
+    low = estimate_memory(64, 64, "consensus", header=eight, **small)
+    high = estimate_memory(64, 64, "consensus", header=sixteen, **small)
+    # OpenCV's decoder holds two of its arrays at its peak: twice the wider samples
+    assert high - low == pytest.approx(2 * (sixteen.decoded_bytes - eight.decoded_bytes), rel=0.01)
+    # the mesh's vertex budget bounds the GLB's part: every pixel costs more than the default
+    args = (width, work, "consensus")
+    assert estimate_memory(*args, formats=["glb"], max_vertices=None) > estimate_memory(
+        *args, formats=["glb"]
+    )
+
+
+def _nan_exr(path: Path) -> Path:
+    values = np.full((16, 32, 3), np.nan, np.float32)
+    values[3, 4] = np.inf
+    header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    OpenEXR.File(header, {"RGB": values}).write(str(path))
+    return path
+
+
+def test_a_nan_only_exr_is_refused_through_the_api_and_the_cli(tmp_path: Path) -> None:
+    from m360.cli import main
+
+    path = _nan_exr(tmp_path / "nan.exr")
+    with pytest.raises(m360.ReadError, match=r"nan\.exr has no finite pixel value"):
+        io.load_image(path)
+    # as m360.estimate refuses such an array
+    with pytest.raises(m360.InputError, match="without NaN"):
+        m360.estimate(np.full((16, 32, 3), np.nan, np.float32), "simulated")
+    out = tmp_path / "out"
+    args = ["run", str(path), "-o", str(out), "--model", str(_tiny_model(tmp_path))]
+    assert main([*args, "--no-progress"]) == 1
+    (failure,) = _failures(out)
+    assert failure["error"] == "ReadError" and "no finite pixel value" in failure["message"]
+    assert not list(out.glob("nan.*"))

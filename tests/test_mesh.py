@@ -254,3 +254,238 @@ def test_bad_inputs_are_input_errors():
         m360.to_points(np.ones((32, 64), np.int32))
     with pytest.raises(m360.InputError, match="Mesh or PointCloud"):
         mesh_mod.write_ply("/nonexistent/x.ply", depth)
+
+
+# --------------------------------------------------------------------------------------------
+# Streaming writers and the vertex budget (issue 23). The oracle is the writers as they were
+# before they streamed (whole-array records), kept here verbatim in substance.
+
+
+def _old_write_ply(path, item):
+    vertices, faces, rgb = mesh_mod._geometry(item)
+    fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
+    if rgb is not None:
+        fields += [("red", "u1"), ("green", "u1"), ("blue", "u1")]
+    records = np.empty(vertices.shape[0], np.dtype(fields))
+    for k, name in enumerate("xyz"):
+        records[name] = vertices[:, k]
+    if rgb is not None:
+        for k, name in enumerate(("red", "green", "blue")):
+            records[name] = rgb[:, k]
+    with open(path, "wb") as f:
+        n_faces = None if faces is None else faces.shape[0]
+        f.write(mesh_mod._ply_header(vertices.shape[0], n_faces, rgb is not None))
+        records.tofile(f)
+        if faces is not None:
+            face_records = np.empty(faces.shape[0], np.dtype([("n", "u1"), ("v", "<i4", (3,))]))
+            face_records["n"] = 3
+            face_records["v"] = faces
+            face_records.tofile(f)
+
+
+def _old_write_glb(path, item):
+    vertices, faces, rgb = mesh_mod._geometry(item)
+    positions = np.ascontiguousarray(vertices * np.array([1.0, -1.0, -1.0], np.float32))
+    n = positions.shape[0]
+    chunks = [positions]
+    views = [{"buffer": 0, "byteOffset": 0, "byteLength": positions.nbytes, "target": 34962}]
+    accessors = [
+        {
+            "bufferView": 0,
+            "componentType": 5126,
+            "count": n,
+            "type": "VEC3",
+            "min": positions.min(axis=0).tolist() if n else [0, 0, 0],
+            "max": positions.max(axis=0).tolist() if n else [0, 0, 0],
+        }
+    ]
+    attributes = {"POSITION": 0}
+    offset = positions.nbytes
+    if rgb is not None:
+        rgba = np.empty((n, 4), np.uint8)
+        rgba[:, :3] = rgb
+        rgba[:, 3] = 255
+        chunks.append(rgba)
+        views.append(
+            {"buffer": 0, "byteOffset": offset, "byteLength": rgba.nbytes, "target": 34962}
+        )
+        accessors.append(
+            {"bufferView": 1, "componentType": 5121, "normalized": True, "count": n, "type": "VEC4"}
+        )
+        attributes["COLOR_0"] = 1
+        offset += rgba.nbytes
+    primitive = {"attributes": attributes, "mode": 0}
+    if faces is not None:
+        indices = np.ascontiguousarray(faces, np.uint32).reshape(-1)
+        chunks.append(indices)
+        views.append(
+            {"buffer": 0, "byteOffset": offset, "byteLength": indices.nbytes, "target": 34963}
+        )
+        accessors.append(
+            {
+                "bufferView": len(views) - 1,
+                "componentType": 5125,
+                "count": indices.size,
+                "type": "SCALAR",
+            }
+        )
+        primitive.update(indices=len(accessors) - 1, mode=4)
+        offset += indices.nbytes
+    gltf = {
+        "asset": {"version": "2.0", "generator": "m360"},
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0}],
+        "meshes": [{"primitives": [primitive]}],
+        "buffers": [{"byteLength": offset}],
+        "bufferViews": views,
+        "accessors": accessors,
+    }
+    text = json.dumps(gltf, separators=(",", ":")).encode()
+    text += b" " * (-len(text) % 4)
+    pad = -offset % 4
+    total = 12 + 8 + len(text) + 8 + offset + pad
+    with open(path, "wb") as f:
+        f.write(b"glTF" + np.array([2, total, len(text), 0x4E4F534A], "<u4").tobytes())
+        f.write(text)
+        f.write(np.array([offset + pad, 0x004E4942], "<u4").tobytes())
+        for chunk in chunks:
+            chunk.tofile(f)
+        f.write(b"\0" * pad)
+
+
+def _holey(width: int, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    _, rgb, depth = furnished(1, width)
+    depth = depth.astype(np.float32)
+    rng = np.random.default_rng(seed)
+    depth[rng.random(depth.shape) < 0.03] = np.nan
+    depth[0, : width // 3] = np.nan  # part of the top ring missing
+    return rgb, depth
+
+
+@pytest.mark.parametrize("stride", [1, 3])
+@pytest.mark.parametrize("coloured", [True, False])
+def test_streaming_writers_write_the_bytes_of_the_whole_array_writers(
+    tmp_path, monkeypatch, stride, coloured
+):
+    rgb, depth = _holey(128)
+    colours = rgb if coloured else None
+    # Small bands and chunks, so every writer goes through many of them (and uneven ends).
+    monkeypatch.setattr(mesh_mod, "_BAND_VERTICES", 300)
+    monkeypatch.setattr(mesh_mod, "_CHUNK", 257)
+    for poles in (True, False):
+        mesh = m360.to_mesh(depth, rgb=colours, stride=stride, poles=poles, max_vertices=None)
+        _old_write_glb(tmp_path / "old.glb", mesh)
+        info = mesh_mod.write_mesh_glb(
+            tmp_path / "new.glb", depth, rgb=colours, stride=stride, poles=poles
+        )
+        assert (tmp_path / "new.glb").read_bytes() == (tmp_path / "old.glb").read_bytes()
+        assert info == {"stride": stride, "vertices": len(mesh.vertices), "faces": len(mesh.faces)}
+        mesh_mod.write_glb(tmp_path / "chunked.glb", mesh)
+        assert (tmp_path / "chunked.glb").read_bytes() == (tmp_path / "old.glb").read_bytes()
+        _old_write_ply(tmp_path / "old_m.ply", mesh)
+        mesh_mod.write_ply(tmp_path / "new_m.ply", mesh)
+        assert (tmp_path / "new_m.ply").read_bytes() == (tmp_path / "old_m.ply").read_bytes()
+    points = m360.to_points(depth, rgb=colours, stride=stride)
+    _old_write_ply(tmp_path / "old.ply", points)
+    info = mesh_mod.write_points_ply(tmp_path / "new.ply", depth, rgb=colours, stride=stride)
+    assert (tmp_path / "new.ply").read_bytes() == (tmp_path / "old.ply").read_bytes()
+    assert info == {"stride": stride, "vertices": len(points)}
+    _old_write_glb(tmp_path / "old_p.glb", points)
+    mesh_mod.write_glb(tmp_path / "new_p.glb", points)
+    assert (tmp_path / "new_p.glb").read_bytes() == (tmp_path / "old_p.glb").read_bytes()
+    # A disparity map, converted a band at a time.
+    with np.errstate(divide="ignore"):
+        disparity = 1.0 / depth
+    mesh = m360.to_mesh(disparity, rgb=colours, stride=stride, quantity="disparity")
+    _old_write_glb(tmp_path / "old_d.glb", mesh)
+    mesh_mod.write_mesh_glb(
+        tmp_path / "d.glb", disparity, rgb=colours, stride=stride, quantity="disparity"
+    )
+    assert (tmp_path / "d.glb").read_bytes() == (tmp_path / "old_d.glb").read_bytes()
+
+
+def test_stride_for_is_the_least_stride_within_the_budget():
+    for height, width, stride, budget, extra in [
+        (512, 1024, 1, 2**19, 2),
+        (512, 1024, 1, 2**19 + 2, 2),
+        (5984, 11968, 1, 2**23, 2),
+        (4096, 8192, 1, 2**23, 0),
+        (100, 200, 3, 64, 0),
+        (2048, 4096, 1, None, 2),
+    ]:
+        step = mesh_mod.stride_for(height, width, stride, budget, extra)
+        count = [-(-height // s) * -(-width // s) + extra for s in range(1, 1000)]
+        want = (
+            stride
+            if budget is None
+            else next(s for s in range(stride, 1000) if count[s - 1] <= budget)
+        )
+        assert step == want, (height, width, budget)
+    # the defaults: 4K whole, 8K every 2nd pixel, the 12K street photo every 3rd
+    assert mesh_mod.stride_for(2048, 4096) == 1
+    assert mesh_mod.stride_for(4096, 8192, extra=0) == 2
+    assert mesh_mod.stride_for(5984, 11968, extra=2) == 3
+    with pytest.raises(m360.InputError, match="max_vertices"):
+        mesh_mod.stride_for(64, 128, 1, 10)
+
+
+def test_vertex_budget_strides_the_3d_files_and_the_sidecar_says_so(tmp_path):
+    rgb, depth = _holey(256)
+    budget = 4000  # 128x256 = 32768 grid vertices: stride 3 (43x86 = 3698 + 2 poles)
+    mesh = m360.to_mesh(depth, rgb=rgb, max_vertices=budget)
+    assert len(mesh.vertices) <= budget
+    np.testing.assert_array_equal(mesh.vertices, m360.to_mesh(depth, rgb=rgb, stride=3).vertices)
+    points = m360.to_points(depth, rgb=rgb, max_vertices=budget)
+    assert len(points) <= budget
+    np.testing.assert_array_equal(points.pixels, m360.to_points(depth, stride=3).pixels)
+
+    result = type("R", (), {"disparity": 1.0 / depth, "depth": depth})()
+    written = m360.save(
+        result, tmp_path / "s", formats=["ply", "glb"], rgb=rgb, max_vertices=budget
+    )
+    sidecar = json.loads(written["sidecar"].read_text())
+    glb = sidecar["geometry"]["s.mesh.glb"]
+    ply = sidecar["geometry"]["s.points.ply"]
+    assert glb["stride"] == ply["stride"] == 3
+    assert glb["max_vertices"] == budget
+    assert glb["vertices"] == len(mesh.vertices) and glb["faces"] == len(mesh.faces)
+    assert ply["vertices"] == len(points)
+    pos, faces, _ = read_glb(written["mesh.glb"])
+    assert len(pos) == glb["vertices"] <= budget and len(faces) == glb["faces"]
+    assert plyfile.PlyData.read(str(written["points.ply"]))["vertex"].count == ply["vertices"]
+    # None: every pixel
+    again = m360.save(result, tmp_path / "all", formats=["glb"], max_vertices=None)
+    assert json.loads(again["sidecar"].read_text())["geometry"]["all.mesh.glb"]["stride"] == 1
+    with pytest.raises(m360.InputError, match="max_vertices"):
+        m360.save(result, tmp_path / "bad", formats=["glb"], max_vertices=0)
+
+
+def test_cli_max_vertices_strides_the_files_and_a_new_budget_redoes_the_image(tmp_path, capsys):
+    import cv2
+    import onnx_graphs as g
+    from m360.cli import main
+
+    _, rgb, _ = furnished(2, 256)
+    panorama = tmp_path / "room.png"
+    cv2.imwrite(str(panorama), rgb[:, :, ::-1])
+    model = g.affine_of_mean(tmp_path / "m.onnx", 1.0, 0.1)
+    out = tmp_path / "out"
+    args = ["run", str(panorama), "-o", str(out), "--model", str(model), "--align", "none"]
+    args += ["--blend", "mean", "--input-size", "64", "96", "--formats", "glb", "--no-progress"]
+
+    def geometry():
+        return json.loads((out / "room.json").read_text())["geometry"]["room.mesh.glb"]
+
+    assert main([*args, "--max-vertices", "5000"]) == 0, capsys.readouterr().err
+    first = geometry()
+    assert first["stride"] == 3 and first["max_vertices"] == 5000 and first["vertices"] <= 5000
+    assert len(read_glb(out / "room.mesh.glb")[0]) == first["vertices"]
+    assert main([*args, "--max-vertices", "5000"]) == 0
+    assert "1 already done" in capsys.readouterr().err
+    assert main([*args, "--max-vertices", "none"]) == 0
+    assert "1 done" in capsys.readouterr().err and geometry()["stride"] == 1
+    assert main([*args]) == 0  # the default (the whole 256 grid fits): redone, absent key
+    assert "1 done" in capsys.readouterr().err and geometry()["stride"] == 1
+    assert main([*args, "--max-vertices", "12"]) == 2
+    assert "--max-vertices must be an integer >= 64" in capsys.readouterr().err

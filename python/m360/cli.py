@@ -39,6 +39,7 @@ from .io import (
     save_npy,
     save_png,
 )
+from .io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
 from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
@@ -118,6 +119,14 @@ def build_parser() -> argparse.ArgumentParser:
         "--confidence",
         action="store_true",
         help="also write OUT/STEM.confidence.EXT (overlap disagreement left, lower = better)",
+    )
+    run.add_argument(
+        "--max-vertices",
+        type=_max_vertices,
+        default=DEFAULT_MAX_VERTICES,
+        metavar="N",
+        help=f"most vertices of each 3D file (ply, glb): larger images are strided to fit "
+        f"(default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar records the stride",
     )
     run.add_argument(
         "--workers",
@@ -288,6 +297,17 @@ def _dispatch(args: argparse.Namespace) -> int:
         return 1
 
 
+def _max_vertices(text: str) -> int | None:
+    if text.strip().lower() == "none":
+        return None
+    try:
+        return check_max_vertices(int(text))
+    except (ValueError, InputError) as exc:
+        raise argparse.ArgumentTypeError(
+            f"--max-vertices must be an integer >= 64 or 'none', got {text!r}"
+        ) from exc
+
+
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
     known = SAVE_FORMATS + GEOMETRY_FORMATS
@@ -381,6 +401,7 @@ def _run(args: argparse.Namespace) -> int:
         formats=args.formats,
         preview=not args.no_preview,
         confidence=args.confidence,
+        max_vertices=args.max_vertices,
         workers=args.workers,
         resume=args.resume,
         recursive=args.recursive,

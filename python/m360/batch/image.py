@@ -34,10 +34,16 @@ from ..io import (
     remove_stale_temporaries,
     save,
 )
-from ..io.decode import decode_image, fix_aspect_ratio, read_input_bytes
+from ..io.decode import (
+    check_aspect_before_decoding,
+    decode_image,
+    fix_aspect_ratio,
+    read_input_bytes,
+)
 from ..io.files import NAME_MAX, temporary_prefix
 from ..io.gpano import place as place_crop
 from ..io.gpano import read_gpano
+from ..io.mesh import DEFAULT_MAX_VERTICES
 from ..stitching.options import StitchOptions
 from ._interrupt import deferred
 
@@ -94,6 +100,7 @@ class _Settings:
     scale: Any = None
     masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
     confidence: bool = False
+    max_vertices: int | None = DEFAULT_MAX_VERTICES  # the 3D files' vertex budget
 
     @property
     def threads(self) -> int | None:
@@ -228,9 +235,16 @@ def _read_job(job: Job, s: _Settings) -> _Read:
     """
     data = read_input_bytes(job.input)
     stat = job.input.stat()
+    crop = read_gpano(data, str(job.input))
+    # Refused by its header where it has one, before decoding: a wrong aspect, or an image
+    # too large for the memory (the whole run's: decoding, estimate, every output).
+    header = check_aspect_before_decoding(data, job.input, fix=s.fix_aspect or crop is not None)
+    if header is not None:
+        _check_run_memory(job, s, header, len(data), header.width, header.height, crop)
     rgb = decode_image(data, job.input)
     original = rgb.shape[:2]
-    crop = read_gpano(data, str(job.input))
+    if header is None:  # no readable header: checked on the decoded size instead
+        _check_run_memory(job, s, None, len(data), original[1], original[0], crop)
     captured = None
     if crop is not None:
         rgb, captured = place_crop(rgb, crop, str(job.input))
@@ -247,6 +261,49 @@ def _read_job(job: Job, s: _Settings) -> _Read:
     }
     records = {"input": source} | ({} if crop is None else {"crop": crop.as_dict()})
     return _Read(rgb, captured, records)
+
+
+def _check_run_memory(
+    job: Job,
+    s: _Settings,
+    header: Any,
+    file_bytes: int,
+    width: int,
+    height: int,
+    crop: Any,
+) -> None:
+    """Refuse ``job`` if its whole run cannot fit in memory (:func:`m360.memory.check_memory`).
+
+    ``width`` x ``height`` is the file's image; the panorama is its canvas (a partial
+    panorama's full width) or its aspect-fixed size.
+    """
+    from ..geometry.layout import default_layout
+    from ..pipeline.memory import check_memory, estimate_memory, working_width_for
+
+    pano = int(getattr(crop, "full_width", 0) or 0) or width + width % 2
+    work = working_width_for(s.job["working_width"], pano)
+    try:
+        layout = default_layout(work, s.job["padding"])
+    except M360Error:  # a width no layout takes: the estimate says why, after decoding
+        layout = None
+    needed = estimate_memory(
+        pano,
+        work,
+        s.options.method,
+        layout,
+        formats=s.formats,
+        preview=s.preview,
+        confidence=s.confidence,
+        max_vertices=s.max_vertices,
+        header=header,
+        file_bytes=file_bytes,
+    )
+    check_memory(
+        needed,
+        f"{job.input} ({width}x{height}, working width {work}, formats {','.join(s.formats)})",
+        hint="use a smaller working_width (e.g. --working-width 4096), a row blend "
+        "(--blend frustum), fewer formats or a smaller --max-vertices",
+    )
 
 
 def _image_mask(read: _Read, s: _Settings) -> list[Any] | None:
@@ -307,6 +364,7 @@ def _write_job(
         extra={**records, "batch": {"fingerprint": s.fingerprint, "run": s.run_id}},
         rgb=rgb,
         confidence=s.confidence,
+        max_vertices=s.max_vertices,
     )
 
 

@@ -67,9 +67,11 @@ from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
 from ..io import (
+    GEOMETRY_FORMATS,
     check_formats,
 )
 from ..io.decode import IMAGE_SUFFIXES
+from ..io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
 from ..pipeline.options import EstimateKeywords, JobKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ._inputs import read_manifest, scan
@@ -361,6 +363,7 @@ def run(
     formats: Sequence[str] | str = ("npy",),
     preview: bool = True,
     confidence: bool = False,
+    max_vertices: int | None = DEFAULT_MAX_VERTICES,
     workers: int = 1,
     resume: bool = True,
     recursive: bool = False,
@@ -393,6 +396,10 @@ def run(
         Array formats, see :func:`m360.save`; ``preview`` adds the colour preview.
     confidence : bool
         Also write each image's confidence map (``STEM.confidence.EXT``, see :func:`m360.save`).
+    max_vertices : int or None
+        The most vertices of each 3D file (``ply``, ``glb``): larger images are strided to fit
+        (see :func:`m360.save`; default :data:`m360.mesh.DEFAULT_MAX_VERTICES`, None = every
+        pixel).
     workers : int
         Processes working on images at once (1 = in this process); with ``engine="ray"`` the
         number of model actors (one network session each).
@@ -455,6 +462,7 @@ def run(
     chosen = check_formats(formats)
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
+    max_vertices = check_max_vertices(max_vertices)
     opts = build(options, **stitch_keywords)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
@@ -491,7 +499,11 @@ def run(
         scale=scale,
         masks=masks,
         confidence=confidence,
+        max_vertices=max_vertices,
     )
+    # A rerun with another vertex budget must not be skipped (absent when default, as below).
+    if max_vertices != DEFAULT_MAX_VERTICES and any(f in GEOMETRY_FORMATS for f in chosen):
+        settings.fingerprint["max_vertices"] = max_vertices
     # A rerun with another scale, mask or sky must not be skipped (absent when unused, so the
     # fingerprints of earlier runs stay valid).
     if scale is not None:

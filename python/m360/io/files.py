@@ -105,15 +105,20 @@ def _write_bytes(path: str | os.PathLike[str], data: bytes) -> Path:
 
 
 def save_npy(path: str | os.PathLike[str], array: np.ndarray) -> Path:
-    """Write ``array`` as .npy atomically; returns the path."""
-    buffer = _bytes_io.BytesIO()
-    np.save(buffer, array, allow_pickle=False)
-    return _write_bytes(path, buffer.getvalue())
+    """Write ``array`` as .npy atomically; returns the path (straight into the file: no copy)."""
+    target = Path(path)
+    with atomic_path(target) as tmp, open(tmp, "wb") as f:
+        np.save(f, array, allow_pickle=False)
+    return target
 
 
 def save_png(path: str | os.PathLike[str], image: np.ndarray) -> Path:
     """Write a uint8/uint16 image (H,W) or (H,W,3) BGR as PNG atomically; returns the path."""
-    return _write_bytes(path, _encode(".png", image))
+    encoded = _encoded(".png", image)
+    target = Path(path)
+    with atomic_path(target) as tmp:
+        encoded.tofile(tmp)  # the encoder's buffer itself, not a bytes copy of it
+    return target
 
 
 def save_json(path: str | os.PathLike[str], data: Mapping[str, Any]) -> Path:
@@ -133,6 +138,10 @@ def _json_default(obj: Any) -> Any:
 
 
 def _encode(extension: str, image: np.ndarray) -> bytes:
+    return bytes(_encoded(extension, image))
+
+
+def _encoded(extension: str, image: np.ndarray) -> np.ndarray:
     problem = (
         f"cannot encode an array of shape {image.shape} and dtype {image.dtype} as "
         f"{extension[1:].upper()}"
@@ -143,7 +152,7 @@ def _encode(extension: str, image: np.ndarray) -> bytes:
         raise InputError(f"{problem}: {exc}") from exc
     if not ok:
         raise InputError(problem)
-    return bytes(encoded)
+    return encoded
 
 
 # --------------------------------------------------------------------------------------------
@@ -214,15 +223,33 @@ def read_array(
 
 
 def _png16_codes(values: np.ndarray) -> tuple[np.ndarray, float, float]:
-    finite = np.isfinite(values)
+    # In bands of rows: the float64 temporaries of the whole map were 24 bytes a pixel.
     codes = np.zeros(values.shape, np.uint16)
-    if not finite.any():
+    low, top = np.inf, -np.inf
+    for band in _bands(values):
+        valid = band[np.isfinite(band)]
+        if valid.size:
+            low, top = min(low, float(valid.min())), max(top, float(valid.max()))
+    if low > top:  # no finite value
         return codes, 0.0, 1.0
-    valid = values[finite].astype(np.float64)
-    offset, top = float(valid.min()), float(valid.max())
+    offset = low
     scale = (top - offset) / _PNG16_STEPS if top > offset else 1.0
-    codes[finite] = np.rint((valid - offset) / scale).astype(np.uint16) + 1
+    for start, band in zip(range(0, values.shape[0], _BAND_ROWS), _bands(values), strict=True):
+        finite = np.isfinite(band)
+        valid = band[finite].astype(np.float64)
+        codes[start : start + band.shape[0]][finite] = (
+            np.rint((valid - offset) / scale).astype(np.uint16) + 1
+        )
     return codes, offset, scale
+
+
+#: Rows per band of the banded writers (a few MB of temporaries at 12K).
+_BAND_ROWS = 256
+
+
+def _bands(values: np.ndarray) -> Iterator[np.ndarray]:
+    for start in range(0, values.shape[0], _BAND_ROWS):
+        yield values[start : start + _BAND_ROWS]
 
 
 def _png16_values(codes: np.ndarray, png16: Mapping[str, float] | None) -> np.ndarray:
@@ -250,16 +277,22 @@ def colorize(disparity: np.ndarray, percentiles: tuple[float, float] = (2.0, 98.
     """Colour a disparity map as a (H, W, 3) uint8 BGR preview: near warm, far cool, NaN black.
 
     Values are scaled between the given percentiles of the finite values (robust to outliers).
+    Coloured in bands of rows: the float temporaries stay a band's.
     """
     values = np.asarray(disparity, dtype=np.float32)
-    finite = np.isfinite(values)
-    if not finite.any():
+    finite_values = values[np.isfinite(values)]
+    if not finite_values.size:
         return np.zeros((*values.shape, 3), np.uint8)
-    lo, hi = np.percentile(values[finite], percentiles)
-    scaled = np.clip((values - lo) / max(float(hi - lo), 1e-12), 0.0, 1.0)
-    grey = np.where(finite, scaled * 255.0 + 0.5, 0.0).astype(np.uint8)
-    preview = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
-    preview[~finite] = 0
+    lo, hi = np.percentile(finite_values, percentiles, overwrite_input=True)
+    del finite_values
+    preview = np.empty((*values.shape, 3), np.uint8)
+    for start, band in zip(range(0, values.shape[0], _BAND_ROWS), _bands(values), strict=True):
+        finite = np.isfinite(band)
+        scaled = np.clip((band - lo) / max(float(hi - lo), 1e-12), 0.0, 1.0)
+        grey = np.where(finite, scaled * 255.0 + 0.5, 0.0).astype(np.uint8)
+        out = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
+        out[~finite] = 0
+        preview[start : start + band.shape[0]] = out
     return preview
 
 

@@ -44,6 +44,7 @@ def save(
     extra: Mapping[str, Any] | None = None,
     rgb: np.ndarray | None = None,
     confidence: bool = False,
+    max_vertices: int | None = mesh.DEFAULT_MAX_VERTICES,
 ) -> dict[str, Path]:
     """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
 
@@ -77,6 +78,12 @@ def save(
         Also write ``result.confidence`` (the overlap disagreement left, in disparity units,
         lower = more consistent; NaN = unseen) as ``STEM.confidence.EXT`` in every format, and
         describe it in the sidecar.
+    max_vertices : int or None
+        The most vertices of each 3D file: a larger map is strided to fit
+        (:func:`m360.mesh.stride_for`; default :data:`m360.mesh.DEFAULT_MAX_VERTICES`, None =
+        every pixel). The sidecar's ``geometry`` records the stride and counts of each file.
+        The 3D files are written a band of rows at a time (:func:`m360.mesh.write_points_ply`,
+        :func:`m360.mesh.write_mesh_glb`).
 
     Returns
     -------
@@ -86,6 +93,7 @@ def save(
     from .._core import __version__
 
     chosen = check_formats(formats)
+    mesh.check_max_vertices(max_vertices)
     with np.errstate(over="ignore"):  # float64 beyond float32's range is ±inf, as in m360's maps
         arrays = {
             q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
@@ -128,10 +136,11 @@ def save(
                 base.with_name(base.name + ".preview.png"), colorize(arrays["disparity"])
             )
             files["preview"] = written["preview"].name
-        frames = _save_geometry(result, base, chosen, rgb, written, files)
+        frames, geometry = _save_geometry(result, base, chosen, rgb, written, files, max_vertices)
         sidecar = _sidecar(result, arrays["disparity"], files, png16, __version__)
         if frames:
             sidecar["frame"] = frames
+            sidecar["geometry"] = geometry  # stride used and counts, per 3D file
         if extra:
             sidecar.update(extra)
         written["sidecar"] = save_json(sidecar_path, sidecar)
@@ -150,22 +159,28 @@ def _save_geometry(
     rgb: np.ndarray | None,
     written: dict[str, Path],
     files: dict[str, Any],
-) -> dict[str, str]:
-    """Write the 3D formats among ``chosen``; returns file name → frame for the sidecar."""
+    max_vertices: int | None,
+) -> tuple[dict[str, str], dict[str, Any]]:
+    """Write the 3D formats among ``chosen``, streamed.
+
+    Returns file name → frame and file name → stride, budget and counts, for the sidecar.
+    """
     frames: dict[str, str] = {}
+    geometry: dict[str, Any] = {}
     for fmt in [f for f in chosen if f in GEOMETRY_FORMATS]:
         kind, tail = GEOMETRY_FILES[fmt]
         path = base.with_name(base.name + tail)
         if fmt == "ply":
-            geometry: Any = mesh.to_points(result, rgb=rgb)
-            mesh.write_ply(path, geometry)
+            info: dict[str, Any] = mesh.write_points_ply(
+                path, result, rgb=rgb, max_vertices=max_vertices
+            )
         else:
-            geometry = mesh.to_mesh(result, rgb=rgb)
-            mesh.write_glb(path, geometry)
+            info = mesh.write_mesh_glb(path, result, rgb=rgb, max_vertices=max_vertices)
         written[f"{kind}.{fmt}"] = path
         files[kind] = {fmt: path.name}
         frames[path.name] = mesh.FRAMES[fmt]
-    return frames
+        geometry[path.name] = {**info, "max_vertices": max_vertices}
+    return frames, geometry
 
 
 def _sidecar(

@@ -10,6 +10,14 @@ the default 0.7), so the per-pixel part is a fixed part plus a part per tap. The
 were fitted to the peaks measured by ``benches/bench_bigpano.py`` at 2K, 4K and 8K, paddings 0.3
 and 0.7 (within 20 % there; see docs/architecture.md, memory).
 
+With the outputs (``formats``, ``preview``, ``confidence``) or the input's header given,
+:func:`estimate_memory` estimates a whole image's run instead: decoding (the file's bytes, the
+decoder's array and, for 16-bit and float inputs, their wider intermediate), then the estimate
+with the decoded panorama held, and writing each requested output on top of what the estimate
+reached (its result and plan stay, and the allocator keeps what it freed); the formats are
+written one after another, so the largest counts. The per-pixel costs of
+decoding and writing were measured at 12K (benches/bench_bigpano.py ``--outputs``).
+
 ``M360_MEMORY_LIMIT`` (bytes, or with a K/M/G suffix) replaces the available memory the check
 compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
 """
@@ -19,6 +27,7 @@ from __future__ import annotations
 import functools
 import os
 import re
+from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -27,6 +36,7 @@ from ..errors import InputError
 
 if TYPE_CHECKING:
     from ..geometry.layout import Layout
+    from ..io.decode import ImageHeader
 
 __all__ = [
     "available_memory",
@@ -56,6 +66,19 @@ _REFERENCE_TAPS = 3.76
 _BYTES_PER_FULL_PIXEL = 14.0
 #: Fixed part (interpreter-independent buffers, thread stacks, small maps).
 _FIXED_BYTES = 16 * 2**20
+
+#: The decoded panorama, (H, W, 3) uint8.
+_RGB_BYTES_PER_PIXEL = 3.0
+#: Peak bytes per full-resolution pixel of writing each output (beyond the result and the
+#: panorama held), measured at 12K: npy streams into the file; pfm's and exr's encoders hold
+#: the encoded map (and a copy); png16 holds its uint16 codes and the encoded PNG; the preview
+#: the finite values (for the percentiles), then the colour image and its PNG.
+_OUTPUT_BYTES_PER_PIXEL = {"npy": 1.0, "pfm": 8.5, "exr": 8.5, "png16": 4.2, "preview": 5.0}
+#: The streamed 3D writers: a band's temporaries (about a million vertices) ...
+_GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
+#: ... and, for the mesh, per strided grid vertex: the per-quad flags, the used mask and the
+#: renumbering (int32).
+_MESH_BYTES_PER_VERTEX = 9.0
 
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -95,8 +118,15 @@ def estimate_memory(
     working_width: int | None = None,
     blend: str = "poisson",
     layout: Layout | None = None,
+    *,
+    formats: Sequence[str] | None = None,
+    preview: bool = False,
+    confidence: bool = False,
+    max_vertices: int | str | None = "default",
+    header: ImageHeader | None = None,
+    file_bytes: int = 0,
 ) -> int:
-    """Peak bytes :func:`m360.estimate` adds for an input ``width`` pixels wide.
+    """Peak bytes :func:`m360.estimate` (or, with outputs or a header, a whole run) adds.
 
     Parameters
     ----------
@@ -109,11 +139,24 @@ def estimate_memory(
     layout : Layout, optional
         The tangent layout (default: :func:`m360.geometry.default_layout`); the more tangents
         see each pixel, the larger the plan.
+    formats : sequence of str, optional
+        The formats written (as for :func:`m360.save`): estimate a whole run, writing included.
+    preview, confidence : bool
+        Whether the preview and the confidence maps are written too.
+    max_vertices : int or None
+        The 3D files' vertex budget (:func:`m360.save`; default its default).
+    header : ImageHeader, optional
+        The input file's header (:func:`m360.io.decode.image_header`): estimate a whole run,
+        decoding included (its width is the decoded width; ``width`` is the panorama's, after
+        any aspect fix).
+    file_bytes : int
+        The input file's size (held while it is decoded).
 
     Returns
     -------
     int
-        Bytes beyond what the process holds before the call (its input image included there).
+        Bytes beyond what the process holds before the call: for :func:`m360.estimate` alone
+        its input image is held before it; for a whole run nothing of the image is.
     """
     work = width if working_width is None else working_width
     if layout is None:  # taps per pixel hardly depend on the width: counted at 2048
@@ -123,10 +166,63 @@ def estimate_memory(
     taps = taps_per_pixel(layout)
     per_pixel = _BYTES_PER_PIXEL["poisson" if blend == "poisson" else "other"]
     per_pixel += _BYTES_PER_TAP * (taps - _REFERENCE_TAPS)
-    total = _FIXED_BYTES + per_pixel * work * (work // 2)
+    working_pixels = work * (work // 2)
+    total = _FIXED_BYTES + per_pixel * working_pixels
     if work != width:
         total += _BYTES_PER_FULL_PIXEL * width * (width // 2)
-    return int(total)
+    if formats is None and header is None:
+        return int(total)
+    pixels = width * (width // 2)
+    rgb = _RGB_BYTES_PER_PIXEL * pixels
+    decoding = float(file_bytes) + (rgb if header is None else _decoding_bytes(header))
+    # What the estimate reached stays resident while writing (measured at 4K and 12K: its
+    # result, its plan kept for the next image, and freed memory the allocator keeps).
+    writing = _writing_bytes(width, formats or (), preview, confidence, max_vertices)
+    return int(max(decoding, rgb + total + writing))
+
+
+def _decoding_bytes(header: ImageHeader) -> float:
+    """Peak bytes of decoding a file with ``header`` into 8-bit RGB (file bytes apart)."""
+    pixels = header.width * header.height
+    decoded = float(header.decoded_bytes)
+    out = _RGB_BYTES_PER_PIXEL * pixels
+    if header.sample_bytes == 4:
+        # Float: the decoder's two arrays (EXR: the channels as read and stacked; OpenCV: its
+        # own and the result), then a float32 working copy for the white point. Measured at 8K
+        # (HDR, float and half EXR): within 0 to +17 %.
+        return 2 * decoded + 4.0 * min(header.channels, 3) * pixels + out
+    # 8 and 16 bits: OpenCV's decoders peak at twice their array (measured at 8K and 12K: JPEG,
+    # 16-bit PNG); the 8-bit RGB copy comes after (16 bits, grey) or is the array itself.
+    return max(2 * decoded, decoded + out)
+
+
+def _writing_bytes(
+    width: int,
+    formats: Sequence[str],
+    preview: bool,
+    confidence: bool,
+    max_vertices: int | str | None,
+) -> float:
+    """Peak bytes of :func:`m360.save` beyond the result and panorama it is given."""
+    from ..io import mesh
+
+    budget = mesh.DEFAULT_MAX_VERTICES if max_vertices == "default" else max_vertices
+    height = width // 2
+    pixels = width * height
+    peaks = [0.0]
+    for fmt in formats:
+        if fmt in _OUTPUT_BYTES_PER_PIXEL:
+            peaks.append(_OUTPUT_BYTES_PER_PIXEL[fmt] * pixels)
+        elif fmt == "ply":
+            peaks.append(_GEOMETRY_BAND_BYTES["ply"])
+        elif fmt == "glb":
+            step = mesh.stride_for(height, width, 1, budget if budget is None else int(budget), 2)
+            grid = -(-height // step) * -(-width // step)
+            peaks.append(_GEOMETRY_BAND_BYTES["glb"] + _MESH_BYTES_PER_VERTEX * grid)
+    if preview:
+        peaks.append(_OUTPUT_BYTES_PER_PIXEL["preview"] * pixels)
+    del confidence  # written one quantity at a time: one more file, not a larger peak
+    return max(peaks)
 
 
 def taps_per_pixel(layout: Layout) -> float:
@@ -180,13 +276,19 @@ def available_memory() -> int | None:
     return None
 
 
-def check_memory(needed: int, what: str) -> None:
-    """Raise :class:`InputError` if ``needed`` bytes exceed :func:`available_memory`."""
+def check_memory(needed: int, what: str, *, hint: str | None = None) -> None:
+    """Raise :class:`InputError` if ``needed`` bytes exceed :func:`available_memory`.
+
+    ``hint`` replaces the advice the message ends with (default: a smaller working width or
+    a row blend).
+    """
     available = available_memory()
     if available is not None and needed > available:
+        advice = hint or (
+            "use a smaller working_width (e.g. working_width=4096, upsampled along the "
+            "photo's edges) or a row blend (blend='frustum')"
+        )
         raise InputError(
             f"{what} needs about {needed / 2**30:.1f} GiB of memory but only "
-            f"{available / 2**30:.1f} GiB is available; use a smaller working_width "
-            "(e.g. working_width=4096, upsampled along the photo's edges) or a row blend "
-            "(blend='frustum')"
+            f"{available / 2**30:.1f} GiB is available; {advice}"
         )
