@@ -842,8 +842,8 @@ def test_folder_scans_take_hdr_and_leave_out_depth_maps_and_m360_outputs(
     assert report.exit_code == 0 and len(report.skipped) == 3 and not report.done
     reasons = {Path(o.input).name: o.message for o in report.excluded}
     assert reasons["kinect.png"] == "a single-channel 16-bit PNG: a depth map, not a photo"
-    assert reasons["depth_half.exr"] == "a single-channel float EXR (Z): a depth map, not a photo"
-    assert reasons["depth_float.exr"].startswith("a single-channel float EXR (depth)")
+    assert reasons["depth_half.exr"] == "a single-channel float EXR: a depth map, not a photo"
+    assert reasons["depth_float.exr"] == "a single-channel float EXR: a depth map, not a photo"
     assert reasons["pano_00.depth.png"] == "an m360 output (*.depth.png)"
     assert reasons["radiance.confidence.exr"] == "an m360 output (*.confidence.exr)"
     assert reasons["linear.preview.png"] == "an m360 output (*.preview.png)"

@@ -1,9 +1,10 @@
 """What a batch takes from its inputs: folder scans and manifests (used by ``batch.collect``).
 
 A folder scan takes the files with an image suffix (:data:`m360.io.decode.IMAGE_SUFFIXES`) and
-leaves out, with the reason, m360's own outputs (by name) and depth maps (by a header check:
-a single-channel 16-bit PNG or TIFF, a single-channel float EXR or TIFF; a panorama photo has
-three channels). A file named on the command line or in a manifest is always tried.
+leaves out, with the reason, m360's own outputs (by name) and depth maps (by their header,
+:func:`m360.io.decode.image_header`: a single-channel PNG or TIFF of 16 bits or more, a
+single-channel EXR; a panorama photo has three channels).
+A file named on the command line or in a manifest is always tried.
 
 A manifest is checked whole before anything is made: text that is not UTF-8, control characters
 (a NUL, binary bytes), a line longer than two paths can be, or two lines writing the same
@@ -14,13 +15,11 @@ from __future__ import annotations
 
 import csv
 import re
-import struct
 from pathlib import Path, PurePath
-from typing import BinaryIO
 
 from ..errors import InputError, ReadError
 from ..io import FORMAT_SUFFIXES, QUANTITIES
-from ..io.decode import IMAGE_SUFFIXES
+from ..io.decode import IMAGE_SUFFIXES, image_header
 from .image import PATH_MAX
 
 #: The longest manifest line (bytes): an input and an output path of PATH_MAX each.
@@ -34,10 +33,9 @@ OUTPUT_TAILS = (
     ),
     ".preview.png",
 )
-_HEADER_BYTES = 65536  # enough for any ordinary EXR header
 _CONTROL = re.compile(r"[\x00-\x08\x0b-\x1f\x7f]")  # tab and line breaks are text
-_PNG_MAGIC = b"\x89PNG\r\n\x1a\n"
-_EXR_MAGIC = b"\x76\x2f\x31\x01"
+#: Formats a depth map comes in (PNG, OpenEXR, TIFF): only their headers are read.
+_DEPTH_MAP_MAGIC = (b"\x89PNG\r\n\x1a\n", b"\x76\x2f\x31\x01", b"II*\x00", b"MM\x00*")
 
 
 # --------------------------------------------------------------------------------------------
@@ -75,74 +73,17 @@ def leave_out(path: Path) -> str | None:
         if name.endswith(tail) and len(name) > len(tail):
             return f"an m360 output (*{tail})"
     try:
-        with open(path, "rb") as f:  # 32 bytes for most files: a scan of a big folder stays cheap
-            head = f.read(32)
-            if head[:4] in (b"II*\x00", b"MM\x00*"):
-                return _tiff_depth_map(f, head[:2] == b"II")
-            if head[:4] == _EXR_MAGIC:
-                head += f.read(_HEADER_BYTES - len(head))
+        with open(path, "rb") as f:
+            magic = f.read(8)
+            if not magic.startswith(_DEPTH_MAP_MAGIC):  # JPEG, HDR …: photos, read no further
+                return None
+            header = image_header(f)
     except OSError:
         return None
-    if head[:8] == _PNG_MAGIC and head[12:16] == b"IHDR" and len(head) >= 26:
-        if head[24] == 16 and head[25] == 0:  # bit depth 16, colour type 0 (grey)
-            return "a single-channel 16-bit PNG: a depth map, not a photo"
-    if head[:4] == _EXR_MAGIC:
-        channels = _exr_channels(head)
-        if channels is not None and len(channels) == 1 and channels[0][1] in (1, 2):
-            return f"a single-channel float EXR ({channels[0][0]}): a depth map, not a photo"
-    return None
-
-
-def _exr_channels(head: bytes) -> list[tuple[str, int]] | None:
-    """The (name, pixel type) of each channel in an EXR header; None if it cannot be read.
-
-    Pixel types: 0 uint, 1 half, 2 float. A multi-part file (version bit 12) gives None.
-    """
-    if len(head) < 8 or head[5] & 0x10:
-        return None
-    pos = 8
-    try:
-        while head[pos] != 0:
-            name_end = head.index(b"\x00", pos)
-            type_end = head.index(b"\x00", name_end + 1)
-            (size,) = struct.unpack_from("<i", head, type_end + 1)
-            value = type_end + 5
-            if head[pos:name_end] == b"channels" and head[name_end + 1 : type_end] == b"chlist":
-                channels = []
-                at = value
-                while head[at] != 0:
-                    end = head.index(b"\x00", at)
-                    (pixel_type,) = struct.unpack_from("<i", head, end + 1)
-                    channels.append((head[at:end].decode("latin-1"), pixel_type))
-                    at = end + 17  # type, pLinear and 3 reserved bytes, x and y sampling
-                return channels
-            pos = value + size
-    except (IndexError, ValueError, struct.error):
-        return None
-    return None
-
-
-def _tiff_depth_map(f: BinaryIO, little: bool) -> str | None:
-    """The reason to leave out a TIFF whose first image has one 16-bit or float sample."""
-    order = "<" if little else ">"
-    try:
-        f.seek(4)
-        (ifd,) = struct.unpack(order + "I", f.read(4))
-        f.seek(ifd)
-        (count,) = struct.unpack(order + "H", f.read(2))
-        entries = f.read(12 * min(count, 512))
-        tags: dict[int, int] = {}
-        for k in range(len(entries) // 12):
-            tag, kind, number = struct.unpack_from(order + "HHI", entries, 12 * k)
-            if number == 1 and kind in (3, 4):  # one SHORT or LONG, stored in the entry
-                fmt = order + ("H" if kind == 3 else "I")
-                tags[tag] = struct.unpack_from(fmt, entries, 12 * k + 8)[0]
-    except (OSError, struct.error, ValueError):
-        return None
-    samples, bits, sample_format = tags.get(277, 1), tags.get(258, 1), tags.get(339, 1)
-    if samples == 1 and (sample_format == 3 or bits == 16):
-        kind = "float" if sample_format == 3 else "16-bit"
-        return f"a single-channel {kind} TIFF: a depth map, not a photo"
+    if header is not None and header.channels == 1 and header.sample_bytes >= 2:
+        wide = header.kind == "exr" or header.sample_bytes == 4  # 32-bit samples: floats
+        bits = "float" if wide else f"{8 * header.sample_bytes}-bit"
+        return f"a single-channel {bits} {header.kind.upper()}: a depth map, not a photo"
     return None
 
 

@@ -8,8 +8,10 @@ from __future__ import annotations
 
 import os
 import struct
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
+from typing import BinaryIO
 
 import cv2
 import numpy as np
@@ -37,6 +39,8 @@ __all__ = [
 #: Input images :func:`read_image` decodes (and batch folders collect): JPEG, PNG, TIFF, OpenEXR,
 #: Radiance HDR, WebP, BMP.
 IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png", ".tif", ".tiff", ".exr", ".hdr", ".webp", ".bmp")
+#: Bytes :func:`image_header` reads of a file: enough for any ordinary EXR or JPEG header.
+HEADER_BYTES = 65536
 #: Pixels converted at once by :func:`to_rgb8` (16-bit and float images): the wide temporaries
 #: stay a band of rows (about a million pixels, 16 MB), not the whole image.
 _BAND_PIXELS = 1 << 20
@@ -87,7 +91,7 @@ def read_exr(path: Path) -> np.ndarray:
     raise ReadError(f"{path}: EXR channels {sorted(channels)}; expected Y, Z or R, G, B")
 
 
-def image_header(data: bytes) -> ImageHeader | None:
+def image_header(source: bytes | BinaryIO) -> ImageHeader | None:
     """Read an image's size and sample type from its header, without decoding it.
 
     PNG (IHDR), JPEG (the first SOF marker), OpenEXR (``dataWindow``, ``channels``), Radiance
@@ -95,7 +99,26 @@ def image_header(data: bytes) -> ImageHeader | None:
     this reader does not understand: the caller then decodes the file to learn its size.
     OpenCV has no header-only API (and PIL is no dependency of m360), so the few fields are
     read here.
+
+    Parameters
+    ----------
+    source : bytes or binary file
+        The file's bytes, or the file open for reading: then only its first
+        :data:`HEADER_BYTES` are read (and a TIFF's first IFD, wherever it lies).
     """
+    if isinstance(source, (bytes, bytearray, memoryview)):
+        data = bytes(source)
+
+        def read_at(offset: int, size: int) -> bytes:
+            return data[offset : offset + size]
+    else:
+        source.seek(0)
+        data = source.read(HEADER_BYTES)
+
+        def read_at(offset: int, size: int) -> bytes:
+            source.seek(offset)
+            return source.read(size)
+
     try:
         if data[:8] == b"\x89PNG\r\n\x1a\n" and data[12:16] == b"IHDR":
             width, height, depth, colour = struct.unpack(">IIBB", data[16:26])
@@ -108,8 +131,8 @@ def image_header(data: bytes) -> ImageHeader | None:
         if data[:2] == b"#?":
             return _hdr_header(data)
         if data[:4] in (b"II*\x00", b"MM\x00*"):
-            return _tiff_header(data)
-    except (struct.error, ValueError, IndexError):
+            return _tiff_header(data, read_at)
+    except (struct.error, ValueError, IndexError, OSError):
         return None
     return None
 
@@ -170,13 +193,14 @@ def _hdr_header(data: bytes) -> ImageHeader | None:
     return ImageHeader(int(line[3]), int(line[1]), 3, 4, "hdr")
 
 
-def _tiff_header(data: bytes) -> ImageHeader | None:
+def _tiff_header(data: bytes, read_at: Callable[[int, int], bytes]) -> ImageHeader | None:
     order = "<" if data[:2] == b"II" else ">"
     (ifd,) = struct.unpack(order + "I", data[4:8])
-    (count,) = struct.unpack(order + "H", data[ifd : ifd + 2])
+    (count,) = struct.unpack(order + "H", read_at(ifd, 2))
+    entries = read_at(ifd + 2, 12 * min(count, 512))
     tags: dict[int, int] = {}
-    for k in range(count):
-        entry = data[ifd + 2 + 12 * k : ifd + 14 + 12 * k]
+    for k in range(len(entries) // 12):
+        entry = entries[12 * k : 12 * k + 12]
         tag, kind, n = struct.unpack(order + "HHI", entry[:8])
         if kind == 3:  # SHORT: the first value sits at the start of the value field
             tags[tag] = struct.unpack(order + "H", entry[8:10])[0]
@@ -184,7 +208,7 @@ def _tiff_header(data: bytes) -> ImageHeader | None:
             tags[tag] = struct.unpack(order + "I", entry[8:12])[0]
         if tag == 258 and n > 2 and kind == 3:  # BitsPerSample per channel: at an offset
             offset = struct.unpack(order + "I", entry[8:12])[0]
-            tags[tag] = struct.unpack(order + "H", data[offset : offset + 2])[0]
+            tags[tag] = struct.unpack(order + "H", read_at(offset, 2))[0]
     if 256 not in tags or 257 not in tags:
         return None
     bits = tags.get(258, 8)
