@@ -8,6 +8,7 @@ here, with a DeprecationWarning pointing to :mod:`m360.estimators`.
 
 from __future__ import annotations
 
+import logging
 import os
 import time
 from dataclasses import dataclass, field
@@ -21,6 +22,7 @@ from .._compat import moved
 from .._keywords import resolved, split
 from .._validate import as_array, check_erp_shape
 from ..errors import InputError, M360Error, ModelError
+from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import Layout, default_layout, erp_to_tangents
@@ -36,6 +38,20 @@ if TYPE_CHECKING:
     from typing_extensions import Unpack
 
 __all__ = ["EstimateResult", "estimate"]
+
+_log = logging.getLogger("m360")
+
+#: Bounds of a stitched result that is trusted (docs/method.md, "Checking the result"): at most
+#: this share of the covered pixels not finite beyond what the tangents leave uncovered, ...
+RESULT_MAX_LOST = 0.02
+#: ... at most this share of the finite pixels ≤ 0, ...
+RESULT_MAX_NEGATIVE = 0.01
+#: ... a dynamic range (99th over 1st percentile of the positive disparity) at most this times
+#: the tangents' own (measured on the real networks: the default alignment 0.18-0.33, none
+#: 0.33-0.68, the paper's energy 0.41-14; docs/method.md), ...
+RESULT_MAX_RANGE = 1.0
+#: ... and the alignment's scales within this factor of their median.
+RESULT_MAX_SCALE_SPREAD = 1e3
 
 #: Names that moved to :mod:`m360.estimators`; importing them from here warns.
 __getattr__ = moved(
@@ -66,7 +82,8 @@ class EstimateResult:
     ----------
     disparity : (H, W) float32
         Spherical disparity 1/distance (relative: up to a global scale and shift, unless the
-        model is metric and ``align="none"``); NaN where no tangent has an estimate.
+        model is metric, ``metric_depth`` or ``distance``: then in 1/metres, the network's own
+        scale); NaN where no tangent has an estimate.
     depth : (H, W) float32
         Radial depth 1/disparity where disparity > 0, NaN elsewhere (relative unless metric).
     confidence : (H, W) float32
@@ -87,8 +104,18 @@ class EstimateResult:
     stitch : StitchResult
         The stitcher's full report.
     scale : dict or None
-        How the metric scale was found (:meth:`m360.scale.ScaleFit.as_dict`), when ``scale=``
-        was given.
+        Where the metric scale came from: :meth:`m360.scale.ScaleFit.as_dict` when ``scale=``
+        was given; for a ``metric_depth`` or ``distance`` network ``{"method": "network",
+        "factor": ..., "aligned": ...}`` (the factor that put the aligned result back on the
+        network's own metres, 1.0 without alignment); None otherwise.
+    checks : dict
+        What was checked before the result was trusted (docs/method.md, "Checking the
+        network's output"): ``tangents`` (:func:`m360.estimators.kinds.sanitise`'s
+        ``dropped``, ``outlier_pixels``, ``valid_fraction`` per tangent), ``result`` (the
+        stitch's finite share, negative share, dynamic range and alignment scale range, per
+        try), ``fallback`` (``"none"``, or the options that replaced the asked ones, e.g.
+        ``"coarser alignment"`` or ``"no alignment"``) and ``valid_fraction`` (share of the
+        output's pixels with a finite, positive disparity).
     """
 
     disparity: np.ndarray
@@ -102,6 +129,7 @@ class EstimateResult:
     layout: Layout
     stitch: StitchResult = field(repr=False)
     scale: dict[str, Any] | None = None
+    checks: dict[str, Any] = field(default_factory=dict)
 
 
 def _check_erp_rgb(erp: Any) -> np.ndarray:
@@ -334,9 +362,16 @@ def _from_network(
     """
     t_network = time.perf_counter()
     perspective = _estimators.to_perspective_disparity(raw, kind, layout)
+    perspective, tangent_checks = _kinds.sanitise(perspective, kind, raw=raw)
     t_convert = time.perf_counter()
-    details = stitch(perspective, layout, mask=mask, options=opts, return_details=True)
+    details, checks = _stitch_checked(perspective, layout, mask, opts)
+    checks["tangents"] = tangent_checks
+    used = details.options if details.options is not None else opts
     disparity, confidence = details.disparity, details.confidence
+    network_scale = None
+    if kind in _kinds.DEPTH_KINDS and used.align is not None:
+        # The alignment leaves a global scale free: put the network's metres back.
+        disparity, network_scale = _network_scale(disparity, perspective, layout)
     t_stitched = time.perf_counter()
     height, width = erp_shape
     work_width = layout.erp_shape[1]
@@ -351,11 +386,16 @@ def _from_network(
     if sky_mode == "nan":
         disparity[_masks.sky(disparity)] = np.nan
     st = details.timings
-    metric = kind != "affine_disparity" and opts.align is None
+    metric = kind in _kinds.DEPTH_KINDS
     scale_fit = None
+    if metric:
+        scale_fit = network_scale or {"method": "network", "factor": 1.0, "aligned": False}
     if scale is not None:
-        disparity, fit = scale_disparity(disparity, scale, affine=kind == "affine_disparity")
+        affine = kind not in _kinds.DEPTH_KINDS
+        disparity, fit = scale_disparity(disparity, scale, affine=affine)
         metric, scale_fit = True, fit.as_dict()
+    with np.errstate(invalid="ignore"):
+        checks["valid_fraction"] = float((disparity > 0).mean())
     depth = depth_of(disparity)
     return EstimateResult(
         disparity=disparity,
@@ -372,7 +412,7 @@ def _from_network(
         model=model_info,
         units="metres" if metric else "relative",
         options={
-            **opts.as_dict(),
+            **used.as_dict(),
             "layout": repr(layout),
             "erp_shape": [height, width],
             "working_width": work_width,
@@ -383,6 +423,7 @@ def _from_network(
         layout=layout,
         stitch=details,
         scale=scale_fit,
+        checks=checks,
     )
 
 
@@ -405,3 +446,145 @@ def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
     else:
         info["sha256"] = None
     return info
+
+
+def _fallbacks(opts: StitchOptions) -> list[tuple[str, StitchOptions]]:
+    """List the options to try in turn: as asked, a coarser alignment, no alignment."""
+    blend = opts.blend
+    tries = [("none", opts)]
+    if opts.align is not None:
+        coarse = StitchOptions.from_dict(
+            {"align": {"levels": [_core_first_level()]}, "blend": blend}
+        )
+        if coarse != opts:
+            tries.append(("coarser alignment", coarse))
+        tries.append(("no alignment", StitchOptions.from_dict({"align": None, "blend": blend})))
+    return tries
+
+
+def _core_first_level() -> list[int]:
+    from .. import _core
+
+    return [int(v) for v in _core.DEFAULTS["align"]["levels"][0]]
+
+
+def _result_problems(
+    details: StitchResult, perspective: np.ndarray, layout: Layout, mask: np.ndarray | None
+) -> tuple[dict[str, Any], list[str]]:
+    """Measure a stitched result and list what is out of bounds (empty: trusted)."""
+    disparity = details.disparity
+    finite = np.isfinite(disparity)
+    # What the tangents could cover: a pixel some tangent has a valid value at (the no-align
+    # blend of the validity, cheap: nearest-neighbour coverage of the valid tangent pixels).
+    seen = np.isfinite(perspective) if mask is None else np.isfinite(perspective) & mask
+    reachable = _reachable(seen, layout)
+    lost = float((reachable & ~finite).sum() / max(int(reachable.sum()), 1))
+    values = disparity[finite]
+    negative = float((values <= 0).mean()) if values.size else 1.0
+    dynamic = _dynamic_range(values) / _dynamic_range(perspective / _kinds.ray_norms(layout))
+    spread = 1.0
+    for grid in details.grids:
+        scales = np.abs(grid[..., 0])
+        median = float(np.median(scales))
+        if not np.all(np.isfinite(grid)) or median <= 0:
+            spread = float("inf")
+            break
+        spread = max(
+            spread, float(scales.max() / median), float(median / max(scales.min(), 1e-300))
+        )
+    measured = {
+        "lost_fraction": round(lost, 6),
+        "negative_fraction": round(negative, 6),
+        "dynamic_range": round(dynamic, 4),
+        "scale_spread": spread,
+    }
+    problems = []
+    if lost > RESULT_MAX_LOST:
+        problems.append(f"{lost:.1%} of the covered pixels are not finite")
+    if negative > RESULT_MAX_NEGATIVE:
+        problems.append(f"{negative:.1%} of the disparity is <= 0")
+    if not dynamic <= RESULT_MAX_RANGE:
+        problems.append(
+            f"disparity range (99th/1st percentile) {dynamic:.3g} times the tangents' "
+            f"> {RESULT_MAX_RANGE:g}"
+        )
+    if not spread <= RESULT_MAX_SCALE_SPREAD:
+        problems.append(f"alignment scales spread {spread:.3g}x > {RESULT_MAX_SCALE_SPREAD:g}x")
+    return measured, problems
+
+
+def _dynamic_range(values: np.ndarray) -> float:
+    """99th over 1st percentile of the finite positive values (a regular subsample)."""
+    flat = values.reshape(-1)
+    flat = flat[:: max(1, flat.size // (1 << 20))]
+    with np.errstate(invalid="ignore"):
+        positive = flat[np.isfinite(flat) & (flat > 0)]
+    if positive.size == 0:
+        return float("nan")
+    p1, p99 = np.percentile(positive, [1.0, 99.0])
+    return float(p99 / p1) if p1 > 0 else float("inf")
+
+
+def _reachable(seen: np.ndarray, layout: Layout) -> np.ndarray:
+    """ERP pixels at least one valid tangent pixel maps to (nearest blend of the validity)."""
+    from ..geometry.layout import plan_for
+
+    values = np.where(seen, np.float32(1), np.float32(np.nan)).astype(np.float32)
+    plan = plan_for(layout)
+    spherical = plan.spherical_disparity(values, None)
+    covered, _, _ = plan.blend(spherical, {"method": "nn"}, confidence=False)
+    return np.isfinite(covered)
+
+
+def _stitch_checked(
+    perspective: np.ndarray, layout: Layout, mask: np.ndarray | None, opts: StitchOptions
+) -> tuple[StitchResult, dict[str, Any]]:
+    """Stitch, check the result, and fall back (coarser alignment, then none) while it fails."""
+    tries = _fallbacks(opts)
+    report: list[dict[str, Any]] = []
+    details: StitchResult | None = None
+    taken = "none"
+    for k, (name, candidate) in enumerate(tries):
+        details = stitch(perspective, layout, mask=mask, options=candidate, return_details=True)
+        measured, problems = _result_problems(details, perspective, layout, mask)
+        report.append({"options": name if k else "as asked", **measured, "problems": problems})
+        taken = name
+        if not problems:
+            break
+        if k + 1 < len(tries):
+            _log.warning(
+                "the stitched result failed its checks (%s): falling back to %s",
+                "; ".join(problems),
+                tries[k + 1][0],
+            )
+        else:
+            _log.warning(
+                "the result failed its checks without alignment too: %s", "; ".join(problems)
+            )
+    if details is None:  # _fallbacks always gives at least the asked options
+        raise RuntimeError("no stitch was tried")
+    return details, {"result": report, "fallback": taken}
+
+
+def _network_scale(
+    disparity: np.ndarray, perspective: np.ndarray, layout: Layout
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Scale an aligned disparity back to the metric network's own: the median per-pixel ratio.
+
+    The network's spherical disparity (perspective disparity / |q|) against the stitched result
+    sampled at the same tangent pixels; the median of their ratio is the factor.
+    """
+    network = perspective / _kinds.ray_norms(layout)
+    sampled = erp_to_tangents(np.ascontiguousarray(disparity, dtype=np.float32), layout)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = network / sampled
+        good = np.isfinite(ratio) & (ratio > 0)
+    if not good.any():
+        return disparity, {"method": "network", "factor": 1.0, "aligned": True, "pixels": 0}
+    factor = float(np.median(ratio[good]))
+    return (disparity * np.float32(factor)).astype(np.float32), {
+        "method": "network",
+        "factor": factor,
+        "aligned": True,
+        "pixels": int(good.sum()),
+    }
