@@ -47,9 +47,9 @@ RESULT_MAX_LOST = 0.02
 #: ... at most this share of the finite pixels ≤ 0, ...
 RESULT_MAX_NEGATIVE = 0.01
 #: ... a dynamic range (99th over 1st percentile of the positive disparity) at most this times
-#: the tangents' own (measured on the real networks: the default alignment 0.18-0.33, none
-#: 0.33-0.68, the paper's energy 0.41-14; docs/method.md), ...
-RESULT_MAX_RANGE = 1.0
+#: the tangents' own (measured, anchored: real networks 0.20-0.68, exact synthetic tangents up
+#: to 0.97; the paper's energy unanchored up to 30; docs/method.md), ...
+RESULT_MAX_RANGE = 2.0
 #: ... and the alignment's scales within this factor of their median.
 RESULT_MAX_SCALE_SPREAD = 1e3
 
@@ -81,9 +81,9 @@ class EstimateResult:
     Attributes
     ----------
     disparity : (H, W) float32
-        Spherical disparity 1/distance (relative: up to a global scale and shift, unless the
-        model is metric, ``metric_depth`` or ``distance``: then in 1/metres, the network's own
-        scale); NaN where no tangent has an estimate.
+        Spherical disparity 1/distance (relative: up to a global scale and shift, in the
+        tangents' own frame, unless the model is metric, ``metric_depth`` or ``distance``:
+        then in 1/metres, the network's own scale); NaN where no tangent has an estimate.
     depth : (H, W) float32
         Radial depth 1/disparity where disparity > 0, NaN elsewhere (relative unless metric).
     confidence : (H, W) float32
@@ -92,7 +92,8 @@ class EstimateResult:
         Per-tangent perspective disparity given to the stitcher (after kind conversion).
     timings : dict
         Seconds per stage: ``load`` (model), ``project``, ``network``, ``convert``, ``align``,
-        ``blend``, ``total``.
+        ``blend``, ``check`` (anchoring, result checks, fallback stitches), ``upsample``,
+        ``total``.
     model : dict
         ``name``, ``sha256``, ``output_kind``, ``providers``, ``threads`` (what ran).
     units : str
@@ -106,15 +107,18 @@ class EstimateResult:
     scale : dict or None
         Where the metric scale came from: :meth:`m360.scale.ScaleFit.as_dict` when ``scale=``
         was given; for a ``metric_depth`` or ``distance`` network ``{"method": "network",
-        "factor": ..., "aligned": ...}`` (the factor that put the aligned result back on the
-        network's own metres, 1.0 without alignment); None otherwise.
+        "aligned": ...}``, with the ``scale`` and ``offset`` of the anchoring that put the
+        aligned result back on the network's own metres when alignment ran; None otherwise.
     checks : dict
         What was checked before the result was trusted (docs/method.md, "Checking the
         network's output"): ``tangents`` (:func:`m360.estimators.kinds.sanitise`'s
-        ``dropped``, ``outlier_pixels``, ``valid_fraction`` per tangent), ``result`` (the
-        stitch's finite share, negative share, dynamic range and alignment scale range, per
-        try), ``fallback`` (``"none"``, or the options that replaced the asked ones, e.g.
-        ``"coarser alignment"`` or ``"no alignment"``) and ``valid_fraction`` (share of the
+        ``dropped``, ``outlier_pixels``, ``valid_fraction`` per tangent), ``result`` (per try:
+        the ``anchor`` fitted, the share of reachable pixels lost, negative share, dynamic
+        range against the tangents' and alignment scale spread, and the ``problems``),
+        ``anchor`` (the kept try's global ``scale``, ``offset`` and ``pixels``, None without
+        alignment), ``fallback`` (``"none"``, or the options that replaced the asked ones, e.g.
+        ``"coarser alignment"`` or ``"no alignment"``; then ``stitched_with`` holds the options
+        used, while ``options`` keeps those asked) and ``valid_fraction`` (share of the
         output's pixels with a finite, positive disparity).
     """
 
@@ -364,14 +368,24 @@ def _from_network(
     perspective = _estimators.to_perspective_disparity(raw, kind, layout)
     perspective, tangent_checks = _kinds.sanitise(perspective, kind, raw=raw)
     t_convert = time.perf_counter()
-    details, checks = _stitch_checked(perspective, layout, mask, opts)
+    dropped = {d["tangent"] for d in tangent_checks["dropped"]}
+    if dropped:
+        # The core aligns only tangents with valid pixels: stitch the others on their own
+        # layout (the same ERP grid, the kept cameras).
+        kept = [k for k in range(len(layout)) if k not in dropped]
+        stitch_layout = Layout.from_cameras([layout.cameras[k] for k in kept], layout.erp_shape)
+        stitch_mask = None if mask is None else np.ascontiguousarray(mask[kept])
+        details, checks = _stitch_checked(
+            np.ascontiguousarray(perspective[kept]), stitch_layout, stitch_mask, opts
+        )
+    else:
+        details, checks = _stitch_checked(perspective, layout, mask, opts)
     checks["tangents"] = tangent_checks
     used = details.options if details.options is not None else opts
+    if checks["fallback"] != "none":
+        checks["stitched_with"] = used.as_dict()  # ``options`` keeps what was asked
     disparity, confidence = details.disparity, details.confidence
-    network_scale = None
-    if kind in _kinds.DEPTH_KINDS and used.align is not None:
-        # The alignment leaves a global scale free: put the network's metres back.
-        disparity, network_scale = _network_scale(disparity, perspective, layout)
+    anchor = checks.get("anchor")
     t_stitched = time.perf_counter()
     height, width = erp_shape
     work_width = layout.erp_shape[1]
@@ -389,7 +403,10 @@ def _from_network(
     metric = kind in _kinds.DEPTH_KINDS
     scale_fit = None
     if metric:
-        scale_fit = network_scale or {"method": "network", "factor": 1.0, "aligned": False}
+        # The anchoring fitted the result to the network's own metres (scale and offset).
+        scale_fit = {"method": "network", "aligned": anchor is not None}
+        if anchor is not None:
+            scale_fit.update(scale=anchor["scale"], offset=anchor["offset"])
     if scale is not None:
         affine = kind not in _kinds.DEPTH_KINDS
         disparity, fit = scale_disparity(disparity, scale, affine=affine)
@@ -407,12 +424,14 @@ def _from_network(
             "convert": t_convert - t_network + st.get("convert", 0.0),
             "align": st.get("align", 0.0),
             "blend": st.get("blend", 0.0),
+            # The anchoring, the result checks and any stitch tried before a fallback.
+            "check": max(0.0, t_stitched - t_convert - sum(st.values())),
             "upsample": t_upsampled - t_stitched,
         },
         model=model_info,
         units="metres" if metric else "relative",
         options={
-            **used.as_dict(),
+            **opts.as_dict(),
             "layout": repr(layout),
             "erp_shape": [height, width],
             "working_width": work_width,
@@ -546,8 +565,25 @@ def _stitch_checked(
     taken = "none"
     for k, (name, candidate) in enumerate(tries):
         details = stitch(perspective, layout, mask=mask, options=candidate, return_details=True)
+        anchor = None
+        if candidate.align is not None:
+            fit = _anchor(details.disparity, perspective, layout)
+            if fit is not None:
+                a, b, pixels = fit
+                details.disparity = (details.disparity * np.float32(a) + np.float32(b)).astype(
+                    np.float32
+                )
+                details.confidence = (details.confidence * np.float32(a)).astype(np.float32)
+                anchor = {"scale": a, "offset": b, "pixels": pixels}
         measured, problems = _result_problems(details, perspective, layout, mask)
-        report.append({"options": name if k else "as asked", **measured, "problems": problems})
+        report.append(
+            {
+                "options": name if k else "as asked",
+                "anchor": anchor,
+                **measured,
+                "problems": problems,
+            }
+        )
         taken = name
         if not problems:
             break
@@ -563,28 +599,45 @@ def _stitch_checked(
             )
     if details is None:  # _fallbacks always gives at least the asked options
         raise RuntimeError("no stitch was tried")
-    return details, {"result": report, "fallback": taken}
+    return details, {"result": report, "fallback": taken, "anchor": report[-1]["anchor"]}
 
 
-def _network_scale(
+def _anchor(
     disparity: np.ndarray, perspective: np.ndarray, layout: Layout
-) -> tuple[np.ndarray, dict[str, Any]]:
-    """Scale an aligned disparity back to the metric network's own: the median per-pixel ratio.
+) -> tuple[float, float, int] | None:
+    """Fit the global affine map that puts an aligned result back on the tangents' own values.
 
-    The network's spherical disparity (perspective disparity / |q|) against the stitched result
-    sampled at the same tangent pixels; the median of their ratio is the factor.
+    The alignment fixes every tangent's scale and offset relative to the others but leaves one
+    global scale and offset free (a gauge); its standardisation puts them somewhere, and the
+    paper's energy drives them far off (docs/method.md, "Anchoring the alignment"). The fit is
+    of the tangents' spherical disparity (perspective / |q|) against the result sampled at the
+    same tangent pixels: least squares, reweighted three times with a Cauchy loss (scale 2.385
+    times the median absolute residual), on at most 2²⁰ pixels (a regular subsample).
+
+    Returns
+    -------
+    (scale, offset, pixels), or None when no usable fit exists (no common pixel, scale ≤ 0).
     """
-    network = perspective / _kinds.ray_norms(layout)
+    network = (perspective / _kinds.ray_norms(layout)).reshape(-1)
     sampled = erp_to_tangents(np.ascontiguousarray(disparity, dtype=np.float32), layout)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = network / sampled
-        good = np.isfinite(ratio) & (ratio > 0)
-    if not good.any():
-        return disparity, {"method": "network", "factor": 1.0, "aligned": True, "pixels": 0}
-    factor = float(np.median(ratio[good]))
-    return (disparity * np.float32(factor)).astype(np.float32), {
-        "method": "network",
-        "factor": factor,
-        "aligned": True,
-        "pixels": int(good.sum()),
-    }
+    sampled = sampled.reshape(-1)
+    good = np.isfinite(network) & np.isfinite(sampled)
+    count = int(good.sum())
+    if count < 2:
+        return None
+    step = max(1, count // (1 << 20))
+    x = sampled[good][::step].astype(np.float64)
+    y = network[good][::step].astype(np.float64)
+    weight = np.ones_like(x)
+    scale = offset = float("nan")
+    for _ in range(3):
+        root = np.sqrt(weight)
+        design = np.stack([x * root, root], axis=1)
+        solution, *_ = np.linalg.lstsq(design, y * root, rcond=None)
+        scale, offset = float(solution[0]), float(solution[1])
+        residual = y - (scale * x + offset)
+        width = 2.385 * float(np.median(np.abs(residual))) + 1e-12
+        weight = 1.0 / (1.0 + (residual / width) ** 2)
+    if not (np.isfinite(scale) and np.isfinite(offset) and scale > 0):
+        return None
+    return scale, offset, count
