@@ -178,11 +178,16 @@ def to_perspective_disparity(values: np.ndarray, kind: str, layout: Layout) -> n
     return out
 
 
-def _percentiles(values: np.ndarray, qs: tuple[float, ...]) -> tuple[np.ndarray, ...]:
-    """Per-tangent NaN-ignoring percentiles of (N, h, w) ``values`` (NaN for an empty tangent)."""
+def _percentiles(
+    values: np.ndarray, qs: tuple[float, ...], *, absolute: bool = False
+) -> tuple[np.ndarray, ...]:
+    """Per-tangent NaN-ignoring percentiles of (N, h, w) ``values`` (|values| if ``absolute``).
+
+    NaN for an empty tangent.
+    """
     flat = values.reshape(values.shape[0], -1)
     step = max(1, flat.shape[1] // _MAX_SAMPLES)
-    sample = flat[:, ::step]
+    sample = np.abs(flat[:, ::step]) if absolute else flat[:, ::step]
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN tangents give NaN
         result = np.nanpercentile(sample, qs, axis=1)
@@ -246,11 +251,13 @@ def sanitise(
     n = perspective.shape[0]
     flat = perspective.reshape(n, -1)
     flat[~np.isfinite(flat)] = np.nan
-    (median,) = _percentiles(np.abs(perspective), (50.0,))
-    with np.errstate(invalid="ignore"):
-        outliers = np.abs(flat) > (outlier_ratio * median)[:, None]
-    outlier_pixels = int(outliers.sum())
-    flat[outliers] = np.nan
+    (median,) = _percentiles(perspective, (50.0,), absolute=True)
+    outlier_pixels = 0
+    for k in range(n):  # one tangent at a time: no stack-sized temporary
+        with np.errstate(invalid="ignore"):
+            outliers = np.abs(flat[k]) > outlier_ratio * median[k]
+        outlier_pixels += int(outliers.sum())
+        flat[k, outliers] = np.nan
     valid = np.isfinite(flat)
     share = valid.mean(axis=1)
     lo, mid, hi = _percentiles(perspective, (5.0, 50.0, 95.0))

@@ -25,6 +25,7 @@ from ..errors import InputError, M360Error, ModelError
 from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
+from ..geometry import _sphere
 from ..geometry.layout import Layout, default_layout, erp_to_tangents
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ..stitching.stitch import StitchResult, stitch
@@ -52,6 +53,8 @@ RESULT_MAX_NEGATIVE = 0.01
 RESULT_MAX_RANGE = 2.0
 #: ... and the alignment's scales within this factor of their median.
 RESULT_MAX_SCALE_SPREAD = 1e3
+#: The checks and the anchoring read at most this many tangent pixels (a regular subsample).
+_CHECK_SAMPLES = 1 << 16
 
 #: Names that moved to :mod:`m360.estimators`; importing them from here warns.
 __getattr__ = moved(
@@ -394,6 +397,10 @@ def _from_network(
             raise InputError(f"upsampling {work_width} -> {width} needs the photo as its guide")
         disparity = guided_upsample(disparity, guide, method=upsample)
         confidence = guided_upsample(confidence, guide, method="bilinear")
+    if anchor is not None:  # in place: no second output-sized pair of maps
+        disparity *= np.float32(anchor["scale"])
+        disparity += np.float32(anchor["offset"])
+        confidence *= np.float32(anchor["scale"])
     t_upsampled = time.perf_counter()
     if erp_valid is not None:
         disparity[~erp_valid] = np.nan
@@ -488,19 +495,31 @@ def _core_first_level() -> list[int]:
 
 
 def _result_problems(
-    details: StitchResult, perspective: np.ndarray, layout: Layout, mask: np.ndarray | None
+    details: StitchResult,
+    perspective: np.ndarray,
+    layout: Layout,
+    mask: np.ndarray | None,
+    anchor: tuple[float, float] | None,
 ) -> tuple[dict[str, Any], list[str]]:
-    """Measure a stitched result and list what is out of bounds (empty: trusted)."""
+    """Measure a stitched result (as ``anchor`` maps it) and list what is out of bounds."""
     disparity = details.disparity
     finite = np.isfinite(disparity)
-    # What the tangents could cover: a pixel some tangent has a valid value at (the no-align
-    # blend of the validity, cheap: nearest-neighbour coverage of the valid tangent pixels).
-    seen = np.isfinite(perspective) if mask is None else np.isfinite(perspective) & mask
-    reachable = _reachable(seen, layout)
-    lost = float((reachable & ~finite).sum() / max(int(reachable.sum()), 1))
-    values = disparity[finite]
+    # Pixels some tangent contains that came out NaN, beyond the share of tangent pixels
+    # without an estimate (masks, sanitised pixels): those may leave holes.
+    covered = details.coverage > 0
+    lost = float((covered & ~finite).sum() / max(int(covered.sum()), 1))
+    stride = _stride(perspective)
+    sample = _spherical_sample(perspective, layout, stride)
+    valid = np.isfinite(sample)
+    if mask is not None:
+        valid &= mask[:, ::stride, ::stride]
+    allowed = RESULT_MAX_LOST + 1.5 * float(1.0 - valid.mean())
+    erp_sample = disparity.reshape(-1)[:: max(1, disparity.size // (1 << 20))]
+    values = erp_sample[np.isfinite(erp_sample)]
+    if anchor is not None:
+        values = values * np.float32(anchor[0]) + np.float32(anchor[1])
     negative = float((values <= 0).mean()) if values.size else 1.0
-    dynamic = _dynamic_range(values) / _dynamic_range(perspective / _kinds.ray_norms(layout))
+    dynamic = _dynamic_range(values) / _dynamic_range(sample)
     spread = 1.0
     for grid in details.grids:
         scales = np.abs(grid[..., 0])
@@ -518,8 +537,8 @@ def _result_problems(
         "scale_spread": spread,
     }
     problems = []
-    if lost > RESULT_MAX_LOST:
-        problems.append(f"{lost:.1%} of the covered pixels are not finite")
+    if lost > allowed:
+        problems.append(f"{lost:.1%} of the covered pixels are not finite (> {allowed:.1%})")
     if negative > RESULT_MAX_NEGATIVE:
         problems.append(f"{negative:.1%} of the disparity is <= 0")
     if not dynamic <= RESULT_MAX_RANGE:
@@ -535,7 +554,7 @@ def _result_problems(
 def _dynamic_range(values: np.ndarray) -> float:
     """99th over 1st percentile of the finite positive values (a regular subsample)."""
     flat = values.reshape(-1)
-    flat = flat[:: max(1, flat.size // (1 << 20))]
+    flat = flat[:: max(1, flat.size // _CHECK_SAMPLES)]
     with np.errstate(invalid="ignore"):
         positive = flat[np.isfinite(flat) & (flat > 0)]
     if positive.size == 0:
@@ -544,15 +563,60 @@ def _dynamic_range(values: np.ndarray) -> float:
     return float(p99 / p1) if p1 > 0 else float("inf")
 
 
-def _reachable(seen: np.ndarray, layout: Layout) -> np.ndarray:
-    """ERP pixels at least one valid tangent pixel maps to (nearest blend of the validity)."""
-    from ..geometry.layout import plan_for
+def _stride(perspective: np.ndarray) -> int:
+    """Row and column step that leaves about ``_CHECK_SAMPLES`` tangent pixels."""
+    return max(1, int(np.ceil(np.sqrt(perspective.size / _CHECK_SAMPLES))))
 
-    values = np.where(seen, np.float32(1), np.float32(np.nan)).astype(np.float32)
-    plan = plan_for(layout)
-    spherical = plan.spherical_disparity(values, None)
-    covered, _, _ = plan.blend(spherical, {"method": "nn"}, confidence=False)
-    return np.isfinite(covered)
+
+def _ray_grid(layout: Layout, stride: int) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel columns and rows ``[::stride, ::stride]`` of a tangent, as two 2D grids."""
+    h, w = layout.tangent_shape
+    cols = np.arange(0, w, stride, dtype=np.float64)
+    rows = np.arange(0, h, stride, dtype=np.float64)
+    grid_c, grid_r = np.meshgrid(cols, rows)
+    return grid_c, grid_r
+
+
+def _spherical_sample(perspective: np.ndarray, layout: Layout, stride: int) -> np.ndarray:
+    """Give the tangents' spherical disparity (perspective / |q|) at ``[:, ::stride, ::stride]``.
+
+    |q| is computed for the subsample only (the full ray-length stack is N·h·w floats).
+    """
+    grid_c, grid_r = _ray_grid(layout, stride)
+    out = perspective[:, ::stride, ::stride].astype(np.float32)
+    for k, cam in enumerate(layout.cameras):
+        norm = np.sqrt(((grid_c - cam.cx) / cam.fx) ** 2 + ((grid_r - cam.cy) / cam.fy) ** 2 + 1)
+        out[k] /= norm.astype(np.float32)
+    return out
+
+
+def _sample_at_tangent_pixels(erp: np.ndarray, layout: Layout, stride: int) -> np.ndarray:
+    """Sample an (H, W) ERP map bilinearly at the tangent pixels ``[:, ::stride, ::stride]``.
+
+    Per camera, the pixel's ray ``Rᵀ q`` to longitude and latitude (docs/conventions.md), then
+    ``cv2.remap``: only the subsample is computed, where ``erp_to_tangents`` on a float map
+    would build a second set of plan maps (about 130 MB at 2K) for one fit.
+    """
+    grid_c, grid_r = _ray_grid(layout, stride)
+    height, width = erp.shape
+    source = np.ascontiguousarray(erp, dtype=np.float32)
+    out = np.empty((len(layout), *grid_c.shape), dtype=np.float32)
+    for k, cam in enumerate(layout.cameras):
+        q = np.stack(
+            [(grid_c - cam.cx) / cam.fx, (grid_r - cam.cy) / cam.fy, np.ones_like(grid_c)],
+            axis=-1,
+        )
+        world = q @ np.asarray(cam.rotation, dtype=np.float64)  # Rᵀ q, row vectors
+        lon, lat = _sphere.directions_to_lonlat(world)
+        x, y = _sphere.lonlat_to_erp_pixel(lon, lat, height, width)
+        out[k] = cv2.remap(
+            source,
+            np.mod(x, width).astype(np.float32),  # wrap in longitude
+            np.clip(y, 0.0, height - 1.0).astype(np.float32),
+            interpolation=cv2.INTER_LINEAR,
+            borderMode=cv2.BORDER_WRAP,
+        )
+    return out
 
 
 def _stitch_checked(
@@ -566,16 +630,14 @@ def _stitch_checked(
     for k, (name, candidate) in enumerate(tries):
         details = stitch(perspective, layout, mask=mask, options=candidate, return_details=True)
         anchor = None
+        fit = None
         if candidate.align is not None:
             fit = _anchor(details.disparity, perspective, layout)
             if fit is not None:
-                a, b, pixels = fit
-                details.disparity = (details.disparity * np.float32(a) + np.float32(b)).astype(
-                    np.float32
-                )
-                details.confidence = (details.confidence * np.float32(a)).astype(np.float32)
-                anchor = {"scale": a, "offset": b, "pixels": pixels}
-        measured, problems = _result_problems(details, perspective, layout, mask)
+                anchor = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
+        measured, problems = _result_problems(
+            details, perspective, layout, mask, None if fit is None else fit[:2]
+        )
         report.append(
             {
                 "options": name if k else "as asked",
@@ -612,22 +674,23 @@ def _anchor(
     paper's energy drives them far off (docs/method.md, "Anchoring the alignment"). The fit is
     of the tangents' spherical disparity (perspective / |q|) against the result sampled at the
     same tangent pixels: least squares, reweighted three times with a Cauchy loss (scale 2.385
-    times the median absolute residual), on at most 2²⁰ pixels (a regular subsample).
+    times the median absolute residual), on about 2¹⁶ pixels (every k-th row and column). The map
+    is applied after the upsampling (:func:`_from_network`), which therefore sees the same
+    values as before the anchoring existed.
 
     Returns
     -------
     (scale, offset, pixels), or None when no usable fit exists (no common pixel, scale ≤ 0).
     """
-    network = (perspective / _kinds.ray_norms(layout)).reshape(-1)
-    sampled = erp_to_tangents(np.ascontiguousarray(disparity, dtype=np.float32), layout)
-    sampled = sampled.reshape(-1)
-    good = np.isfinite(network) & np.isfinite(sampled)
-    count = int(good.sum())
-    if count < 2:
+    stride = _stride(perspective)
+    x32 = _sample_at_tangent_pixels(disparity, layout, stride).reshape(-1)
+    y32 = _spherical_sample(perspective, layout, stride).reshape(-1)
+    good = np.isfinite(x32) & np.isfinite(y32)
+    count = int(good.sum()) * stride * stride  # about how many tangent pixels took part
+    if good.sum() < 2:
         return None
-    step = max(1, count // (1 << 20))
-    x = sampled[good][::step].astype(np.float64)
-    y = network[good][::step].astype(np.float64)
+    x = x32[good].astype(np.float64)
+    y = y32[good].astype(np.float64)
     weight = np.ones_like(x)
     scale = offset = float("nan")
     for _ in range(3):
