@@ -21,7 +21,8 @@ HERE = Path(__file__).resolve().parent
 
 
 def test_a_node_lost_mid_run_costs_only_its_images_which_are_redone(tmp_path: Path) -> None:
-    model = str(g.affine_of_mean(tmp_path / "tiny.onnx", 1.0, 0.1))
+    # Offset 3: a positive affine disparity on the dark photos too (see test_ray.py's model).
+    model = str(g.affine_of_mean(tmp_path / "tiny.onnx", 1.0, 3.0))
     photos = h.make_photos(tmp_path / "photos")
     reference = tmp_path / "reference"
     m360.batch.run([photos], reference, model=h.Faulty(model, crash=False), **h.OPTIONS)

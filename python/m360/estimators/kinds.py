@@ -6,31 +6,76 @@ An estimator declares one ``output_kind`` (docs/architecture.md, estimators):
   Depth Anything relative models: the paper's assumption); passed through;
 - ``"metric_depth"``: z-depth in metres (a metric model); perspective disparity = 1/z;
 - ``"distance"``: radial distance |P| in metres; perspective disparity = |q| / distance with the
-  pixel ray ``q = ((x - cx)/fx, (y - cy)/fy, 1)`` (docs/conventions.md).
+  pixel ray ``q = ((x - cx)/fx, (y - cy)/fy, 1)`` (docs/conventions.md);
+- ``"affine_depth"``: z-depth up to an unknown scale and shift (mobile PyDNet's raw output,
+  Marigold, LeReS); per tangent the depth is shifted so that its robust minimum (1st
+  percentile, lower values clamped to it) becomes :data:`AFFINE_DEPTH_FLOOR` times its robust
+  range (1st to 99th percentile), then inverted;
+- ``"negated_affine_disparity"``: an affine disparity with the sign flipped (an output that
+  grows with depth); negated, then as ``"affine_disparity"``.
+
+After the conversion :func:`sanitise` checks each tangent (docs/method.md, "Checking the
+network's output").
 """
 
 from __future__ import annotations
 
 import functools
-from typing import Any, Literal
+import logging
+import warnings
+from typing import Any, Literal, TypedDict
 
 import numpy as np
 
 from .._validate import as_array
-from ..errors import InputError
+from ..errors import InputError, ModelError
 from ..geometry.layout import Layout, plan_for
 
 __all__ = [
+    "AFFINE_DEPTH_FLOOR",
+    "DEPTH_KINDS",
+    "MIN_TANGENT_SHARE",
+    "MIN_VALID_FRACTION",
+    "OUTLIER_RATIO",
     "OUTPUT_KINDS",
     "OutputKind",
+    "TangentDrop",
     "check_output_kind",
     "ray_norms",
+    "sanitise",
     "to_perspective_disparity",
 ]
 
+_log = logging.getLogger("m360")
+
 #: What an estimator may declare it outputs.
-OutputKind = Literal["affine_disparity", "metric_depth", "distance"]
-OUTPUT_KINDS: tuple[str, ...] = ("affine_disparity", "metric_depth", "distance")
+OutputKind = Literal[
+    "affine_disparity", "metric_depth", "distance", "affine_depth", "negated_affine_disparity"
+]
+OUTPUT_KINDS: tuple[str, ...] = (
+    "affine_disparity",
+    "metric_depth",
+    "distance",
+    "affine_depth",
+    "negated_affine_disparity",
+)
+#: The kinds in metres whose values must be > 0 (the result keeps their scale).
+DEPTH_KINDS: tuple[str, ...] = ("metric_depth", "distance")
+#: ``affine_depth``: the robust minimum of a tangent's depth is shifted to this fraction of its
+#: robust range (1st to 99th percentile) before 1/z (docs/method.md, "affine_depth").
+AFFINE_DEPTH_FLOOR = 0.1
+#: A tangent's disparity beyond this many times its median |disparity| is no estimate
+#: (docs/method.md, "Checking the network's output").
+OUTLIER_RATIO = 100.0
+#: A tangent with fewer valid pixels than this share is dropped.
+MIN_VALID_FRACTION = 0.05
+#: Fewer tangents left than this share of the layout is a ModelError.
+MIN_TANGENT_SHARE = 0.5
+#: A tangent whose robust range (5th to 95th percentile) is below this share of its median
+#: |value| has no dynamic range (a constant output).
+_MIN_RANGE = 1e-4
+#: Percentiles are read from at most this many samples per tangent (a regular subsample).
+_MAX_SAMPLES = 1 << 16
 
 
 def check_output_kind(kind: Any, name: str = "output_kind") -> OutputKind:
@@ -90,14 +135,15 @@ def to_perspective_disparity(values: np.ndarray, kind: str, layout: Layout) -> n
     values : (N, h, w) float array
         One map per camera of ``layout``; NaN = no estimate.
     kind : str
-        ``"affine_disparity"`` (returned as float32 unchanged), ``"metric_depth"`` (z-depth:
-        1/z) or ``"distance"`` (radial: |q| / distance).
+        ``"affine_disparity"`` (returned as float32 unchanged), ``"negated_affine_disparity"``
+        (negated), ``"metric_depth"`` (z-depth: 1/z), ``"distance"`` (radial: |q| / distance)
+        or ``"affine_depth"`` (shifted per tangent, see the module's docstring, then 1/z).
     layout : Layout
 
     Returns
     -------
-    (N, h, w) float32 perspective disparity; NaN where the input is NaN, and for depths where
-    the value is not > 0.
+    (N, h, w) float32 perspective disparity; NaN where the input is not finite, and for depths
+    where the (shifted) value is not > 0 or its disparity overflows float32.
     """
     check_output_kind(kind)
     if not isinstance(layout, Layout):
@@ -108,13 +154,153 @@ def to_perspective_disparity(values: np.ndarray, kind: str, layout: Layout) -> n
         raise InputError(
             f"estimator output has shape {array.shape}, expected {(len(layout), h, w)} (N, h, w)"
         )
-    if kind == "affine_disparity":
-        with np.errstate(over="ignore"):  # beyond float32: inf, which stitch() refuses
-            return np.ascontiguousarray(array, dtype=np.float32)
+    if kind in ("affine_disparity", "negated_affine_disparity"):
+        with np.errstate(over="ignore", invalid="ignore"):  # beyond float32: inf -> NaN below
+            out = np.array(array, dtype=np.float32)
+        if kind == "negated_affine_disparity":
+            np.negative(out, out=out)
+        out[~np.isfinite(out)] = np.nan
+        return out
     depth = array.astype(np.float64)
+    if kind == "affine_depth":
+        depth[~np.isfinite(depth)] = np.nan
+        lo, hi = _percentiles(depth, (1.0, 99.0))
+        # Shift so the robust minimum sits at AFFINE_DEPTH_FLOOR of the robust range, values
+        # below it clamped there (the nearest 1 %): positive depths whose disparity ratio over
+        # the tangent is at most (hi - lo)/(F (hi - lo)) + 1 = 1/F + 1 at the 99th percentile.
+        lo3, span3 = lo[:, None, None], (hi - lo)[:, None, None]
+        depth = np.maximum(depth - lo3, 0.0) + AFFINE_DEPTH_FLOOR * span3
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        numerator = 1.0 if kind == "metric_depth" else ray_norms(layout)
+        numerator = ray_norms(layout) if kind == "distance" else 1.0
         out = np.where(depth > 0, numerator / depth, np.nan).astype(np.float32)
     # A depth so small that its disparity overflows float32 is no estimate either.
     out[np.isinf(out)] = np.nan
     return out
+
+
+def _percentiles(
+    values: np.ndarray, qs: tuple[float, ...], *, absolute: bool = False
+) -> tuple[np.ndarray, ...]:
+    """Per-tangent NaN-ignoring percentiles of (N, h, w) ``values`` (|values| if ``absolute``).
+
+    NaN for an empty tangent.
+    """
+    flat = values.reshape(values.shape[0], -1)
+    step = max(1, flat.shape[1] // _MAX_SAMPLES)
+    sample = np.abs(flat[:, ::step]) if absolute else flat[:, ::step]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN tangents give NaN
+        result = np.nanpercentile(sample, qs, axis=1)
+    return tuple(np.asarray(r, dtype=np.float64) for r in result)
+
+
+class TangentDrop(TypedDict):
+    """One tangent :func:`sanitise` dropped: its index in the layout and why."""
+
+    tangent: int
+    reason: str
+
+
+def sanitise(
+    perspective: np.ndarray,
+    kind: str,
+    *,
+    raw: np.ndarray | None = None,
+    outlier_ratio: float = OUTLIER_RATIO,
+    min_valid_fraction: float = MIN_VALID_FRACTION,
+    min_tangent_share: float = MIN_TANGENT_SHARE,
+) -> tuple[np.ndarray, dict[str, Any]]:
+    """Check each tangent's perspective disparity before anything trusts it (in place).
+
+    Pixels: not finite, or beyond ``outlier_ratio`` times the tangent's median |disparity|
+    (a near-zero depth's spike), become NaN (the depth kinds' values ≤ 0 are already NaN after
+    :func:`to_perspective_disparity`). Tangents: one with fewer than ``min_valid_fraction``
+    valid pixels, without dynamic range (a constant output), or of the wrong sign for ``kind``
+    (a depth mostly ≤ 0 in ``raw``; an affine disparity mostly < 0) is dropped, all NaN, with a
+    logged warning (logger ``m360``) naming it and why; the others go on.
+
+    Parameters
+    ----------
+    perspective : (N, h, w) float32
+        Output of :func:`to_perspective_disparity`; changed in place.
+    kind : str
+        The estimator's declared output kind.
+    raw : (N, h, w) float array, optional
+        The estimator's output before the conversion (for the sign of a depth).
+    outlier_ratio, min_valid_fraction : float
+        The thresholds (defaults :data:`OUTLIER_RATIO`, :data:`MIN_VALID_FRACTION`).
+    min_tangent_share : float
+        Fewer tangents left than this share of N raises :class:`m360.ModelError`.
+
+    Returns
+    -------
+    perspective : (N, h, w) float32
+        The same array, sanitised.
+    checks : dict
+        ``dropped`` (list of :class:`TangentDrop`), ``outlier_pixels`` (pixels made NaN by the
+        range rule), ``valid_fraction`` (per tangent, after the checks).
+
+    Raises
+    ------
+    m360.ModelError
+        When fewer than ``min_tangent_share`` of the tangents are left, naming the reasons.
+    """
+    check_output_kind(kind)
+    if perspective.ndim != 3:
+        raise InputError(f"perspective must be (N, h, w), got shape {perspective.shape}")
+    n = perspective.shape[0]
+    flat = perspective.reshape(n, -1)
+    flat[~np.isfinite(flat)] = np.nan
+    (median,) = _percentiles(perspective, (50.0,), absolute=True)
+    outlier_pixels = 0
+    for k in range(n):  # one tangent at a time: no stack-sized temporary
+        with np.errstate(invalid="ignore"):
+            outliers = np.abs(flat[k]) > outlier_ratio * median[k]
+        outlier_pixels += int(outliers.sum())
+        flat[k, outliers] = np.nan
+    valid = np.isfinite(flat)
+    share = valid.mean(axis=1)
+    lo, mid, hi = _percentiles(perspective, (5.0, 50.0, 95.0))
+    negative_raw = None
+    if raw is not None and kind in DEPTH_KINDS:
+        raw_flat = np.asarray(raw).reshape(n, -1)
+        with np.errstate(invalid="ignore"):
+            finite = np.isfinite(raw_flat)
+            negative_raw = (finite & (raw_flat <= 0)).sum(axis=1) / np.maximum(finite.sum(1), 1)
+    dropped: list[TangentDrop] = []
+    for k in range(n):
+        reason = None
+        if negative_raw is not None and negative_raw[k] > 0.5:
+            reason = (
+                f"wrong sign: {negative_raw[k]:.0%} of its {kind} output is <= 0 (a depth "
+                "must be > 0; is the output a disparity or negated?)"
+            )
+        elif share[k] < min_valid_fraction:
+            reason = f"too few valid pixels ({share[k]:.1%} < {min_valid_fraction:.0%})"
+        elif kind in ("affine_disparity", "negated_affine_disparity") and mid[k] < 0:
+            other = "negated_affine_disparity" if kind == "affine_disparity" else "affine_disparity"
+            reason = (
+                f"wrong sign: its {kind} is mostly negative (median {mid[k]:.3g}); an output "
+                f"that grows with depth needs output_kind={other!r} or 'affine_depth'"
+            )
+        elif not hi[k] - lo[k] > _MIN_RANGE * abs(mid[k]) or hi[k] == lo[k]:
+            reason = f"no dynamic range (5th to 95th percentile {lo[k]:.6g} to {hi[k]:.6g})"
+        if reason is not None:
+            flat[k] = np.nan
+            share[k] = 0.0
+            dropped.append(TangentDrop(tangent=k, reason=reason))
+            _log.warning("tangent %d dropped: %s", k, reason)
+    left = n - len(dropped)
+    if left < max(1, min_tangent_share * n):
+        reasons = "; ".join(f"tangent {d['tangent']}: {d['reason']}" for d in dropped[:5])
+        more = f" (and {len(dropped) - 5} more)" if len(dropped) > 5 else ""
+        raise ModelError(
+            f"only {left} of {n} tangents have a usable {kind} output (at least "
+            f"{min_tangent_share:.0%} needed): {reasons}{more}"
+        )
+    checks = {
+        "dropped": dropped,
+        "outlier_pixels": outlier_pixels,
+        "valid_fraction": [round(float(v), 4) for v in share],
+    }
+    return perspective, checks

@@ -26,9 +26,16 @@ from .._validate import as_array, integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError, ModelError
 from . import onnx_file
-from .kinds import check_output_kind
+from .kinds import DEPTH_KINDS, check_output_kind
 
-__all__ = ["MAX_NETWORK_SIZE", "RESIZE_MODES", "OnnxEstimator", "is_file", "network_size"]
+__all__ = [
+    "MAX_NETWORK_SIZE",
+    "RESIZE_MODES",
+    "OnnxEstimator",
+    "is_file",
+    "network_size",
+    "resize_valid",
+]
 
 RESIZE_MODES = ("upper_bound", "lower_bound", "exact")
 #: The resize policies by the names users give (``resize=``, ``--resize``) → :data:`RESIZE_MODES`:
@@ -479,7 +486,11 @@ class OnnxEstimator:
 
         Returns
         -------
-        (N, h, w) float32 in the model's ``output_kind``, NaN where the output is not finite.
+        (N, h, w) float32 in the model's ``output_kind``, NaN where the output is not finite
+        (and, for the depth kinds ``metric_depth`` and ``distance``, where it is not > 0). An
+        output at another size than the tangent is resized with :func:`resize_valid`, which
+        masks those values first: a zero depth never leaks into its neighbours (it would become
+        a disparity spike after 1/z).
         """
         array = as_array(tangents, "tangents")
         if array.ndim != 4 or array.shape[3] != 3 or min(array.shape[1:3]) < 1:
@@ -489,16 +500,11 @@ class OnnxEstimator:
         n, h, w = array.shape[:3]
         out = np.empty((n, h, w), dtype=np.float32)
         step = self.batch_size if self._input.batch is None else 1
+        positive = self.output_kind in DEPTH_KINDS
         for start in range(0, n, step):
             pred = self._run(self.preprocess(array[start : start + step]))
             for k in range(pred.shape[0]):
-                p = pred[k]
-                out[start + k] = (
-                    p
-                    if p.shape == (h, w)
-                    else cv2.resize(p, (w, h), interpolation=cv2.INTER_LINEAR)
-                )
-        out[~np.isfinite(out)] = np.nan
+                out[start + k] = resize_valid(pred[k], (h, w), positive=positive)
         return out
 
     def _run_failure(self, batch: np.ndarray, exc: Exception) -> str:
@@ -524,6 +530,42 @@ class OnnxEstimator:
             f"OnnxEstimator({self.name!r}, output_kind={self.output_kind!r}, "
             f"providers={list(self.providers)}, threads={self.threads})"
         )
+
+
+def resize_valid(values: np.ndarray, shape: tuple[int, int], *, positive: bool) -> np.ndarray:
+    """Resize one map to ``shape`` (h, w) bilinearly over its valid values only.
+
+    Invalid values (not finite; with ``positive`` also not > 0) are masked before resampling:
+    the resized map is ``resize(values·valid) / resize(valid)`` where at least half of the
+    interpolation weight is valid, NaN elsewhere, so an invalid value (a zero depth) never mixes
+    into its neighbours.
+
+    Parameters
+    ----------
+    values : (H, W) float array
+    shape : (int, int)
+        Output (h, w).
+    positive : bool
+        Treat values ≤ 0 as invalid too (depth-like outputs).
+
+    Returns
+    -------
+    (h, w) float32, NaN where invalid.
+    """
+    array = np.asarray(values, dtype=np.float32)
+    with np.errstate(invalid="ignore"):
+        valid = np.isfinite(array) & (array > 0) if positive else np.isfinite(array)
+    if array.shape == shape:
+        return np.where(valid, array, np.float32(np.nan))
+    h, w = shape
+    weight = cv2.resize(valid.astype(np.float32), (w, h), interpolation=cv2.INTER_LINEAR)
+    total = cv2.resize(
+        np.where(valid, array, np.float32(0)), (w, h), interpolation=cv2.INTER_LINEAR
+    )
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        out = total / weight
+    out[~(weight >= 0.5) | ~np.isfinite(out)] = np.nan
+    return out.astype(np.float32, copy=False)
 
 
 def is_file(path: Path) -> bool:

@@ -226,7 +226,9 @@ def _sidecar(
         },
         "options": getattr(result, "options", {}),
         "timings_s": {k: round(float(v), 6) for k, v in getattr(result, "timings", {}).items()},
-        "valid_fraction": float(np.isfinite(disparity).mean()),
+        # The truth: the share of pixels with a finite, positive disparity (a depth).
+        "valid_fraction": _valid_fraction(disparity),
+        "units": units,
     }
     if "confidence" in files:
         sidecar["quantities"]["confidence"] = {
@@ -238,8 +240,34 @@ def _sidecar(
     report = getattr(getattr(result, "stitch", None), "report", None)
     if isinstance(report, Mapping) and "align_fallback" in report:
         sidecar["alignment"] = {"fallback": report["align_fallback"]}
+    checks = getattr(result, "checks", None)
+    if isinstance(checks, Mapping) and checks:
+        # What the result was checked for before it was written (m360.EstimateResult.checks).
+        sidecar["fallback"] = checks.get("fallback", "none")
+        sidecar["checks"] = _jsonable(
+            {k: v for k, v in checks.items() if k not in ("fallback", "valid_fraction")}
+        )
     if png16:
         sidecar["png16"] = png16
     if getattr(result, "scale", None) is not None:
         sidecar["scale"] = result.scale
     return sidecar
+
+
+def _valid_fraction(disparity: np.ndarray) -> float:
+    """Share of the pixels whose disparity is finite and > 0 (they have a depth)."""
+    with np.errstate(invalid="ignore"):
+        return float((np.isfinite(disparity) & (disparity > 0)).mean())
+
+
+def _jsonable(value: Any) -> Any:
+    """``value`` with non-finite floats as None and tuples as lists (strict JSON)."""
+    if isinstance(value, Mapping):
+        return {str(k): _jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_jsonable(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
