@@ -186,7 +186,7 @@ class _MetricNetwork:
 def test_a_metric_network_gives_metres_after_alignment() -> None:
     width = 256
     lay = m360.geometry.default_layout(width)
-    truth = syn.room(0).distance(m360.geometry._sphere.erp_directions(width // 2, width))
+    truth = syn.room(0).distance(m360.geometry.sphere.erp_directions(width // 2, width))
     erp = np.zeros((width // 2, width, 3), dtype=np.uint8)
     res = m360.estimate(erp, _MetricNetwork(lay), layout=lay)
     assert res.units == "metres" and res.scale is not None
@@ -365,7 +365,7 @@ def test_a_dropped_tangent_is_left_out_of_the_stitch_and_recorded(
     assert "tangent 7 dropped: wrong sign" in caplog.text
     assert np.isnan(res.tangents[7]).all()
     # The other tangents cover the sphere (padding 0.7): the result is whole and in metres.
-    truth = syn.room(0).distance(m360.geometry._sphere.erp_directions(width // 2, width))
+    truth = syn.room(0).distance(m360.geometry.sphere.erp_directions(width // 2, width))
     assert np.isfinite(res.depth).mean() > 0.99
     assert abs(float(np.nanmedian(res.depth / truth)) - 1.0) < 0.02
     m360.save(res, tmp_path / "drop", preview=False)

@@ -25,7 +25,7 @@ from ..errors import InputError, M360Error, ModelError
 from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
-from ..geometry import _sphere
+from ..geometry import sphere
 from ..geometry.layout import Layout, default_layout, erp_to_tangents
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ..stitching.stitch import StitchResult, stitch
@@ -611,8 +611,8 @@ def _sample_at_tangent_pixels(erp: np.ndarray, layout: Layout, stride: int) -> n
             axis=-1,
         )
         world = q @ np.asarray(cam.rotation, dtype=np.float64)  # Rᵀ q, row vectors
-        lon, lat = _sphere.directions_to_lonlat(world)
-        x, y = _sphere.lonlat_to_erp_pixel(lon, lat, height, width)
+        lon, lat = sphere.directions_to_lonlat(world)
+        x, y = sphere.lonlat_to_erp_pixel(lon, lat, height, width)
         out[k] = cv2.remap(
             source,
             np.mod(x, width).astype(np.float32),  # wrap in longitude
