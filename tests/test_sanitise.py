@@ -22,7 +22,7 @@ from conftest import scene
 from m360.errors import ModelError
 from m360.estimators import OnnxEstimator, kinds
 from m360.estimators.onnx import resize_valid
-from m360.pipeline import estimate as estimate_module
+from m360.pipeline import checks as checks_module
 from m360.stitching.stitch import StitchResult
 
 REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real"
@@ -204,7 +204,7 @@ def test_a_diverged_stitch_falls_back_and_the_sidecar_says_so(
 ) -> None:
     width = 256
     lay = m360.geometry.default_layout(width)
-    real_stitch = estimate_module.stitch
+    real_stitch = checks_module.stitch
     calls: list[Any] = []
 
     def diverging(*args: Any, **kw: Any) -> StitchResult:
@@ -214,7 +214,7 @@ def test_a_diverged_stitch_falls_back_and_the_sidecar_says_so(
             result.disparity[::2] *= -1e3
         return result
 
-    monkeypatch.setattr(estimate_module, "stitch", diverging)
+    monkeypatch.setattr(checks_module, "stitch", diverging)
     erp = np.zeros((width // 2, width, 3), dtype=np.uint8)
     res = m360.estimate(erp, _MetricNetwork(lay), layout=lay, energy="paper", solver="lbfgs")
     assert len(calls) == 2 and calls[1].align["levels"] == [(4, 3)]
@@ -233,7 +233,7 @@ def test_a_diverged_stitch_falls_back_and_the_sidecar_says_so(
 def test_no_alignment_is_the_last_fallback(monkeypatch: pytest.MonkeyPatch) -> None:
     width = 256
     lay = m360.geometry.default_layout(width)
-    real_stitch = estimate_module.stitch
+    real_stitch = checks_module.stitch
 
     def diverging(*args: Any, **kw: Any) -> StitchResult:
         result = real_stitch(*args, **kw)
@@ -241,7 +241,7 @@ def test_no_alignment_is_the_last_fallback(monkeypatch: pytest.MonkeyPatch) -> N
             result.disparity = -result.disparity
         return result
 
-    monkeypatch.setattr(estimate_module, "stitch", diverging)
+    monkeypatch.setattr(checks_module, "stitch", diverging)
     erp = np.zeros((width // 2, width, 3), dtype=np.uint8)
     res = m360.estimate(erp, _MetricNetwork(lay), layout=lay)
     assert res.checks["fallback"] == "no alignment"
