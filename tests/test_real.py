@@ -137,3 +137,16 @@ def test_the_12k_photo_with_every_format_stays_within_the_memory_estimate(tmp_pa
     )
     assert result["peak"] <= 4 * 2**30, f"peak {result['peak'] / 2**30:.2f} GB > 4 GB"
     assert result["peak"] <= 1.2 * (estimate + result["baseline"]), (result, estimate)
+
+
+def test_the_seam_check_sees_a_step_at_0_360() -> None:
+    # The oracle of the check above: a smooth map passes, the same map with a 5 % step between
+    # its last and first column does not.
+    rows, cols = np.mgrid[0:64, 0:128]
+    smooth = (1.0 + 0.3 * np.sin(2 * np.pi * cols / 128) + 0.01 * rows).astype(np.float32)
+    seam, ordinary = seam_jump_is_ordinary(smooth)
+    assert seam <= ordinary * 1.5
+    stepped = smooth.copy()
+    stepped[:, -1] *= 1.05
+    seam, ordinary = seam_jump_is_ordinary(stepped)
+    assert seam > ordinary * 1.5
