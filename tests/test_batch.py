@@ -161,7 +161,11 @@ def test_a_dead_worker_costs_only_its_image(tmp_path: Path, base_rgb: np.ndarray
         align="none", blend="mean", workers=2, progress=False,
     )  # fmt: skip
     assert [(o.stem, o.error) for o in report.failed] == [("black", "WorkerCrashed")]
-    assert sorted(o.stem for o in report.done) == sorted(p.stem for p in inputs)
+    # An image in flight on the other worker when the pool broke is redone; if that worker had
+    # already renamed its sidecar before it was killed, the redo finds it complete (skipped).
+    finished = [*report.done, *report.skipped]
+    assert sorted(o.stem for o in finished) == sorted(p.stem for p in inputs)
+    assert all((tmp_path / "out" / f"{p.stem}.json").is_file() for p in inputs)
     assert report.exit_code == 1
     assert _failures(tmp_path / "out") == {"black.png": "WorkerCrashed"}
 
