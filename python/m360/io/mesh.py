@@ -368,15 +368,7 @@ def to_mesh(
     array, name, units = _depth_source(source, quantity)
     height, width = array.shape
     colours = _rgb_of(rgb, (height, width))
-    ratio = (
-        number(max_depth_ratio, "max_depth_ratio", low=1.0)
-        if np.isfinite(max_depth_ratio)
-        else float("inf")
-    )
-    if not ratio > 1.0:
-        raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
-    closed = flag(poles, "poles")
-    step = stride_for(height, width, stride, max_vertices, 2 if closed else 0)
+    ratio, closed, step = _mesh_cut(height, width, max_depth_ratio, poles, stride, max_vertices)
     _, dirs = erp_ray_grid(height, width, step)
     grid = _sanitised(array[::step, ::step], name)  # strided first: no full-size copy
     rows, cols = grid.shape
@@ -478,6 +470,26 @@ def to_mesh(
 
 
 # -------------------------------------------------------------------------------- writers
+
+
+def _mesh_cut(
+    height: int,
+    width: int,
+    max_depth_ratio: float,
+    poles: bool,
+    stride: int,
+    max_vertices: int | None,
+) -> tuple[float, bool, int]:
+    """Check a mesh's options: the depth-jump ratio, the pole fans and the stride to use."""
+    ratio = (
+        number(max_depth_ratio, "max_depth_ratio", low=1.0)
+        if np.isfinite(max_depth_ratio)
+        else float("inf")
+    )
+    if not ratio > 1.0:
+        raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
+    closed = flag(poles, "poles")
+    return ratio, closed, stride_for(height, width, stride, max_vertices, 2 if closed else 0)
 
 
 def _trimesh() -> Any:
@@ -786,15 +798,7 @@ def write_mesh_glb(
     array, name, _ = _depth_source(source, quantity)
     height, width = array.shape
     colours = _rgb_of(rgb, (height, width))
-    ratio = (
-        number(max_depth_ratio, "max_depth_ratio", low=1.0)
-        if np.isfinite(max_depth_ratio)
-        else float("inf")
-    )
-    if not ratio > 1.0:
-        raise InputError(f"max_depth_ratio must be > 1, got {max_depth_ratio!r}")
-    closed = flag(poles, "poles")
-    step = stride_for(height, width, stride, max_vertices, 2 if closed else 0)
+    ratio, closed, step = _mesh_cut(height, width, max_depth_ratio, poles, stride, max_vertices)
     grid = _Grid(array, name, colours, step)
     rows, cols = grid.rows, grid.cols
     first, last = grid.depth(0, 1)[0], grid.depth(rows - 1, rows)[0]
