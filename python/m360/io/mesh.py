@@ -379,78 +379,24 @@ def to_mesh(
 
     n_grid = rows * cols
     verts = dirs * grid[..., None]  # (rows, cols, 3)
-
-    def right(a: np.ndarray) -> np.ndarray:  # column j + 1, wrapping W − 1 → 0
-        return np.concatenate([a[:, 1:], a[:, :1]], axis=1)
-
-    # Corners of every grid quad as whole-array slices (no per-index gathers):
-    # a = (i, j), b = (i, j+1), c = (i+1, j), d = (i+1, j+1).
-    r_a, r_c = grid[:-1], grid[1:]
-    r_b, r_d = right(grid)[:-1], right(grid)[1:]
-    v_right = right(verts)
-    diff_ad = verts[:-1] - v_right[1:]
-    diff_bc = v_right[:-1] - verts[1:]
-    # Shorter 3D diagonal; a NaN diagonal counts as infinitely long so the other one is used.
-    len_ad = np.einsum("ijk,ijk->ij", diff_ad, diff_ad)
-    len_bc = np.einsum("ijk,ijk->ij", diff_bc, diff_bc)
-    del diff_ad, diff_bc, v_right
-    use_ad = np.nan_to_num(len_ad, nan=np.inf) <= np.nan_to_num(len_bc, nan=np.inf)
-    del len_ad, len_bc
-
-    def kept(r0: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.ndarray:
-        # NaN anywhere makes both sides NaN and the comparison False: dropped.
-        with np.errstate(invalid="ignore"):
-            top = np.maximum(np.maximum(r0, r1), r2)
-            low = np.minimum(np.minimum(r0, r1), r2)
-            return top <= ratio * low  # type: ignore[no-any-return]
-
-    # tri1 = (a, c, d) or (a, c, b); tri2 = (a, d, b) or (b, c, d): all CCW seen from the camera.
-    keep1 = kept(r_a, r_c, np.where(use_ad, r_d, r_b))
-    keep2 = np.where(use_ad, kept(r_a, r_d, r_b), kept(r_b, r_c, r_d))
     index_type = np.int32 if n_grid + 2 < np.iinfo(np.int32).max else np.int64
-
-    def corners(keep: np.ndarray, split: np.ndarray) -> tuple[np.ndarray, ...]:
-        q = np.flatnonzero(keep).astype(index_type)
-        i, j = np.divmod(q, index_type(cols))
-        jn = j + 1
-        jn[jn == cols] = 0
-        a, b = i * cols + j, i * cols + jn
-        return a, b, a + cols, b + cols, split.ravel()[q]
-
-    a, b, c, d, ad = corners(keep1, use_ad)
-    tri1 = np.stack([a, c, np.where(ad, d, b)], axis=1)
-    a, b, c, d, ad = corners(keep2, use_ad)
-    tri2 = np.stack([np.where(ad, a, b), np.where(ad, d, c), np.where(ad, b, d)], axis=1)
-    del a, b, c, d, ad, keep1, keep2, use_ad
-    parts = [tri1, tri2]
-
+    keep1, keep2, use_ad = _quads(grid, verts, ratio)
+    parts = [
+        _triangles(keep, use_ad, k == 0, 0, cols, index_type)
+        for k, keep in enumerate((keep1, keep2))
+    ]
+    del keep1, keep2, use_ad
     all_verts = verts.reshape(n_grid, 3)
     all_rgb = None if colours is None else colours[::step, ::step].reshape(n_grid, 3)
     if closed:
-        idx = np.arange(n_grid, dtype=index_type).reshape(rows, cols)
-        extra_verts, extra_rgb = [], []
-        for k, (row, sign) in enumerate(((0, -1.0), (rows - 1, 1.0))):
-            row_r = grid[row]
-            finite = np.isfinite(row_r)
-            pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
-            extra_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
-            if all_rgb is not None:
-                extra_rgb.append(np.rint(all_rgb[idx[row]].mean(axis=0)).astype(np.uint8))
-            ring = idx[row]
-            nxt = np.roll(ring, -1)
-            ok = kept(row_r, np.roll(row_r, -1), np.full(cols, pole_r, np.float32))
-            apex = np.full(int(ok.sum()), n_grid + k, index_type)
-            # top: (pole, ring[j], ring[j+1]); bottom: (ring[j], pole, ring[j+1]) — both CCW
-            # seen from the camera, like the grid's triangles.
-            fan = (
-                np.stack([apex, ring[ok], nxt[ok]], 1)
-                if k == 0
-                else np.stack([ring[ok], apex, nxt[ok]], 1)
-            )
-            parts.append(fan)
-        all_verts = np.concatenate([all_verts, np.stack(extra_verts)])
+        ring_rgb = (None, None) if all_rgb is None else (all_rgb[:cols], all_rgb[-cols:])
+        fans, pole_verts, pole_rgb = _pole_fans(
+            grid[0], grid[-1], ring_rgb, rows, ratio, index_type
+        )
+        parts += fans
+        all_verts = np.concatenate([all_verts, np.stack(pole_verts)])
         if all_rgb is not None:
-            all_rgb = np.concatenate([all_rgb, np.stack(extra_rgb)])
+            all_rgb = np.concatenate([all_rgb, np.stack(pole_rgb)])
 
     faces = np.concatenate(parts)
     if faces.shape[0] == 0:
@@ -733,25 +679,71 @@ def _kept(ratio: float, r0: np.ndarray, r1: np.ndarray, r2: np.ndarray) -> np.nd
         return top <= ratio * low  # type: ignore[no-any-return]
 
 
-def _quads(grid: _Grid, q0: int, q1: int, ratio: float) -> tuple[np.ndarray, ...]:
-    """keep1, keep2, use_ad of the grid quads between grid rows q0..q1 (see :func:`to_mesh`)."""
-    depth = grid.depth(q0, q1 + 1)
-    verts = grid.dirs(q0, q1 + 1) * depth[..., None]
+def _right(a: np.ndarray) -> np.ndarray:
+    """Column j + 1 of every grid column j, wrapping W − 1 → 0."""
+    return np.concatenate([a[:, 1:], a[:, :1]], axis=1)
 
-    def right(a: np.ndarray) -> np.ndarray:
-        return np.concatenate([a[:, 1:], a[:, :1]], axis=1)
 
+def _quads(
+    depth: np.ndarray, verts: np.ndarray, ratio: float
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """keep1, keep2, use_ad of the quads between the grid rows of ``depth`` (r, c) and ``verts``.
+
+    A quad's corners are a = (i, j), b = (i, j+1), c = (i+1, j), d = (i+1, j+1) (whole-array
+    slices, no per-index gathers); it is split along its shorter 3D diagonal (a NaN diagonal
+    counts as infinitely long), into tri1 = (a, c, d) or (a, c, b) and tri2 = (a, d, b) or
+    (b, c, d), all counter-clockwise seen from the camera; a triangle is kept by :func:`_kept`.
+    """
     r_a, r_c = depth[:-1], depth[1:]
-    r_b, r_d = right(depth)[:-1], right(depth)[1:]
-    v_right = right(verts)
+    r_b, r_d = _right(depth)[:-1], _right(depth)[1:]
+    v_right = _right(verts)
     diff_ad = verts[:-1] - v_right[1:]
     diff_bc = v_right[:-1] - verts[1:]
     len_ad = np.einsum("ijk,ijk->ij", diff_ad, diff_ad)
     len_bc = np.einsum("ijk,ijk->ij", diff_bc, diff_bc)
+    del diff_ad, diff_bc, v_right
     use_ad = np.nan_to_num(len_ad, nan=np.inf) <= np.nan_to_num(len_bc, nan=np.inf)
     keep1 = _kept(ratio, r_a, r_c, np.where(use_ad, r_d, r_b))
     keep2 = np.where(use_ad, _kept(ratio, r_a, r_d, r_b), _kept(ratio, r_b, r_c, r_d))
     return keep1, keep2, use_ad
+
+
+def _pole_fans(
+    first: np.ndarray,
+    last: np.ndarray,
+    ring_rgb: tuple[np.ndarray | None, np.ndarray | None],
+    rows: int,
+    ratio: float,
+    index_type: type,
+) -> tuple[list[np.ndarray], list[np.ndarray], list[np.ndarray]]:
+    """Close the first and last grid rows with a fan to a pole vertex each (see :func:`to_mesh`).
+
+    Returns the fans' triangles, the two pole vertices (at the median depth of their ring, on
+    the axis) and, with colours, the poles' colours (their ring's mean). The pole vertices are
+    numbered after the ``rows`` x ``len(first)`` grid.
+    """
+    cols = len(first)
+    n_grid = rows * cols
+    fans, pole_verts, pole_rgb = [], [], []
+    for k, (row_r, row, sign) in enumerate(((first, 0, -1.0), (last, rows - 1, 1.0))):
+        finite = np.isfinite(row_r)
+        pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
+        pole_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
+        colours = ring_rgb[k]
+        if colours is not None:
+            pole_rgb.append(np.rint(colours.mean(axis=0)).astype(np.uint8))
+        ring: np.ndarray = np.arange(row * cols, (row + 1) * cols, dtype=index_type)
+        nxt = np.roll(ring, -1)
+        ok = _kept(ratio, row_r, np.roll(row_r, -1), np.full(cols, pole_r, np.float32))
+        apex: np.ndarray = np.full(int(ok.sum()), n_grid + k, index_type)
+        # top: (pole, ring[j], ring[j+1]); bottom: (ring[j], pole, ring[j+1]) — both CCW seen
+        # from the camera, like the grid's triangles.
+        fans.append(
+            np.stack([apex, ring[ok], nxt[ok]], 1)
+            if k == 0
+            else np.stack([ring[ok], apex, nxt[ok]], 1)
+        )
+    return fans, pole_verts, pole_rgb
 
 
 def _triangles(
@@ -816,32 +808,23 @@ def write_mesh_glb(
     used = np.zeros(n_grid + 2, bool)
     n_faces = 0
     for q0, q1 in grid.bands(rows - 1):
-        keep1[q0:q1], keep2[q0:q1], use_ad[q0:q1] = _quads(grid, q0, q1, ratio)
+        depth = grid.depth(q0, q1 + 1)
+        verts = grid.dirs(q0, q1 + 1) * depth[..., None]
+        keep1[q0:q1], keep2[q0:q1], use_ad[q0:q1] = _quads(depth, verts, ratio)
         for k, keep in enumerate((keep1, keep2)):
             tri = _triangles(keep[q0:q1], use_ad[q0:q1], k == 0, q0, cols, index_type)
             used[tri.ravel()] = True
             n_faces += tri.shape[0]
-    fans, pole_verts, pole_rgb = [], [], []
+    fans: list[np.ndarray] = []
+    pole_verts: list[np.ndarray] = []
+    pole_rgb: list[np.ndarray] = []
     if closed:
-        for k, (row_r, row, sign) in enumerate(((first, 0, -1.0), (last, rows - 1, 1.0))):
-            finite = np.isfinite(row_r)
-            pole_r = float(np.median(row_r[finite])) if finite.any() else np.nan
-            pole_verts.append(np.array([0.0, sign * pole_r, 0.0], np.float32))
-            ring_rgb = grid.rgb(row, row + 1)
-            if ring_rgb is not None:
-                pole_rgb.append(np.rint(ring_rgb[0].mean(axis=0)).astype(np.uint8))
-            ring = np.arange(row * cols, (row + 1) * cols, dtype=index_type)
-            nxt = np.roll(ring, -1)
-            ok = _kept(ratio, row_r, np.roll(row_r, -1), np.full(cols, pole_r, np.float32))
-            apex = np.full(int(ok.sum()), n_grid + k, index_type)
-            fan = (
-                np.stack([apex, ring[ok], nxt[ok]], 1)
-                if k == 0
-                else np.stack([ring[ok], apex, nxt[ok]], 1)
-            )
+        top, bottom = grid.rgb(0, 1), grid.rgb(rows - 1, rows)
+        rings = (None if top is None else top[0], None if bottom is None else bottom[0])
+        fans, pole_verts, pole_rgb = _pole_fans(first, last, rings, rows, ratio, index_type)
+        for fan in fans:
             used[fan.ravel()] = True
             n_faces += fan.shape[0]
-            fans.append(fan)
     if n_faces == 0:
         raise InputError(
             f"no triangle survives: every one touches NaN or spans a depth ratio above {ratio:g}"
