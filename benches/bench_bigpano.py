@@ -28,18 +28,20 @@ Tables:
    sizes.
 
 4. with ``--outputs IMAGE`` (alone: tables 1-3 are skipped): one real image through the whole
-   run with a real network (``--model``, default the shared fastdepth_224.onnx; metric depth,
-   RGB in [0, 1]) and the outputs ``--formats`` (default npy,png16,ply,glb): the peak above the
-   stage's start of reading, the estimate, and ``m360.save`` of each format alone and of npy with
-   the preview, in one fresh interpreter; then ``m360.batch.run`` of all of it in another, its
-   peak against the whole-run estimate (:func:`m360.memory.estimate_memory` with the formats and
-   the file's header). Works on older m360 trees (the whole-run estimate then shows "-").
+   run with a real network (``--model``, default the real data's fastdepth_224.onnx, see
+   tests/real_data.py; metric depth, RGB in [0, 1]) and the outputs ``--formats`` (default
+   npy,png16,ply,glb): the peak above the stage's start of reading, the estimate, and
+   ``m360.save`` of each format alone and of npy with the preview, in one fresh interpreter;
+   then ``m360.batch.run`` of all of it in another, its peak against the whole-run estimate
+   (:func:`m360.memory.estimate_memory` with the formats and the file's header). Works on older
+   m360 trees (the whole-run estimate then shows "-").
 
 Every child has its own ``M360_HOME`` (a temporary folder), so tables 1-2 measure cold plans
 whatever the user's cache holds.
 
 Run: ``.venv/bin/python benches/bench_bigpano.py [--sizes 2048 4096 8192] [--repeats 3]
-[--mp72] [--plan-cache 3]``, or ``... --outputs ../shared/real/panos/street_11968.jpg``.
+[--mp72] [--plan-cache 3]``, or ``... --outputs PHOTO`` (e.g. the real data's 12K street photo,
+tests/real_data.py).
 Sizes above 8K need ``free -g`` headroom: run them alone.
 """
 
@@ -62,8 +64,10 @@ import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 import _harness as h
 import m360
+import real_data
 
 DEFAULT_BLEND = m360._core.DEFAULTS["blend"]["method"]  # what blend=None selects
 STAGES = ("load", "project", "network", "convert", "align", "blend", "upsample")
@@ -239,7 +243,7 @@ def fmt_gb(v: float | None) -> str:
     return "-" if v is None else f"{v:.2f}"
 
 
-_REAL_MODEL = Path(__file__).resolve().parents[2] / "shared/real/models/fastdepth_224.onnx"
+_REAL_MODEL = real_data.MODELS / "fastdepth_224.onnx"
 _REAL_OPTIONS = {"output_kind": "metric_depth", "mean": (0, 0, 0), "std": (1, 1, 1)}
 
 

@@ -22,6 +22,7 @@ import m360
 import numpy as np
 import onnx_graphs as g
 import pytest
+import real_data
 from m360.cli import main
 
 FAST = ["--align", "none", "--blend", "frustum", "--threads", "1", "--input-size", "64", "96"]
@@ -982,10 +983,10 @@ def test_a_disk_too_full_for_locks_or_failures_jsonl_still_reports_every_image(
     assert report.exit_code == 1
 
 
-_REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "panos"
+_REAL = real_data.PANOS
 
 
-@pytest.mark.skipif(not _REAL.is_dir(), reason=f"real panoramas not found at {_REAL}")
+@real_data.requires_real
 def test_a_scan_of_real_panoramas_takes_every_one_and_the_hdr_files_run(
     model: Path, tmp_path: Path
 ) -> None:

@@ -11,6 +11,7 @@ import m360
 import numpy as np
 import onnx_graphs as g
 import pytest
+import real_data
 from check_graphs import half_resolution, only_at, oracle, unet
 from m360 import models
 from m360.cli import main
@@ -18,7 +19,7 @@ from m360.estimators import _probe, network_size
 from norm_graphs import NCHW, VARIANTS, chain_then_channel
 
 WIDTH = 512  # a small ERP keeps the one-tangent run quick
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real" / "models"
+REAL = real_data.MODELS
 
 
 @pytest.fixture(autouse=True)
@@ -282,7 +283,7 @@ def test_check_options_as_in_m360_run(tmp_path: Path, capsys: pytest.CaptureFixt
 
 
 # --------------------------------------------------------------------------------------------
-# The shared real networks (skipped when ../shared/real is absent).
+# The real networks (tests/real_data.py; skipped when absent).
 
 
 @pytest.mark.parametrize(

@@ -1,8 +1,8 @@
 """Real networks on real photos: every shared panorama through every shared network.
 
-The tier runs where the real data sits beside the repository (``../shared/real``: three small
-trained depth networks and 16 panoramas from 1K to 12K; CI has it) and skips, saying why, where
-it does not (a user's clone). No ground truth comes with the photos, so the checks are the ones
+The tier runs where the real data is (tests/real_data.py: three small trained depth networks
+and 16 panoramas from 1K to 12K; CI has it) and skips, saying why, where it is not (a user's
+clone). No ground truth comes with the photos, so the checks are the ones
 that hold for any correct result: every output finite where it says so, no negative disparity,
 the sidecar's ``valid_fraction`` the truth, no seam across 0/360° beyond what the map shows
 elsewhere, the 12K photo with every format within the memory estimate.
@@ -20,12 +20,10 @@ from typing import Any
 import m360
 import numpy as np
 import pytest
+import real_data
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real"
-pytestmark = pytest.mark.skipif(
-    not (REAL / "models").is_dir() or not (REAL / "panos").is_dir(),
-    reason=f"no real data at {REAL} (a clone without ../shared/real: the tier runs in CI)",
-)
+REAL = real_data.ROOT
+pytestmark = real_data.requires_real
 
 #: How each shared network is described to m360 (docs/your-own-model.md walks through them).
 NETWORKS: dict[str, dict[str, Any]] = {

@@ -3,7 +3,7 @@
 Issue 23, items 1 and 2: NaN-aware resize of a network's output, per-tangent sanitising, the
 ``affine_depth`` and ``negated_affine_disparity`` kinds, metric results in metres, the result
 check with its fallback, and the sidecar telling the truth. The last tests run the real
-networks of ../shared/real (skipped when absent).
+networks (tests/real_data.py; skipped when absent).
 """
 
 from __future__ import annotations
@@ -18,6 +18,7 @@ import m360.synthetic as syn
 import numpy as np
 import onnx_graphs as g
 import pytest
+import real_data
 from conftest import scene
 from m360.errors import ModelError
 from m360.estimators import OnnxEstimator, kinds
@@ -25,10 +26,8 @@ from m360.estimators.onnx import resize_valid
 from m360.pipeline import checks as checks_module
 from m360.stitching.stitch import StitchResult
 
-REAL = Path(__file__).resolve().parents[1].parent / "shared" / "real"
-needs_real = pytest.mark.skipif(
-    not (REAL / "models").is_dir(), reason=f"real networks and photos not found at {REAL}"
-)
+REAL = real_data.ROOT
+needs_real = real_data.requires_real
 
 
 # -- 1. NaN-aware resize ---------------------------------------------------------------------
@@ -272,7 +271,7 @@ def test_the_paper_energy_on_a_clean_stack_passes_its_checks() -> None:
     )
 
 
-# -- real networks (../shared/real) ----------------------------------------------------------
+# -- real networks (tests/real_data.py) ------------------------------------------------------
 
 
 def _real(
