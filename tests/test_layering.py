@@ -25,6 +25,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("m360.io",),
     ("m360.pipeline",),
     ("m360.batch",),
+    ("m360.video",),
     ("m360.cli",),
     ("m360",),  # the package's own __init__: the public API on top of everything
 ]

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import sys as _sys
 
-from . import batch, estimators, evaluation, geometry, io, pipeline, stitching
+from . import batch, estimators, evaluation, geometry, io, pipeline, stitching, video
 from ._core import __version__, get_num_threads, set_num_threads
 from .errors import (
     AspectRatioError,
@@ -117,4 +117,5 @@ __all__ = [
     "to_mesh",
     "to_points",
     "upsample",
+    "video",
 ]

@@ -6,7 +6,7 @@ network, the tests); :mod:`~m360.evaluation.metrics` scores a prediction against
 
 from __future__ import annotations
 
-from . import metrics, synthetic
+from . import metrics, sequence, synthetic
 from .metrics import depth_metrics, fit_scale_shift, format_metrics, seam_score
 
 __all__ = [
@@ -15,5 +15,6 @@ __all__ = [
     "format_metrics",
     "metrics",
     "seam_score",
+    "sequence",
     "synthetic",
 ]

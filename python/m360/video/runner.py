@@ -1,0 +1,534 @@
+"""Depth for every frame of a 360° video, resumable: :func:`run`, the engine of ``m360 video``.
+
+>>> report = m360.video.run("walk.mp4", "out/walk/", model="midas-v21-small")
+>>> report.exit_code          # 0: all done; 1: some frames failed; 3: another run holds OUT
+
+Frame by frame, with the batch's guarantees (docs/architecture.md, "Batch guarantees"):
+
+- **One output set per frame**: ``OUT/000123.disparity.npy`` … and its sidecar
+  ``OUT/000123.json`` (written last, so a sidecar means a complete frame), the frame's
+  ``index``, ``time`` and what the temporal term did in it; plus ``OUT/000123.temporal.npy``,
+  the small state the next frame starts from (:class:`m360.video.temporal.TemporalState`).
+  One sidecar per frame, not one per run: a frame is complete or absent on its own (a run
+  index would be a file every frame rewrites, which a kill can leave behind the frames), and
+  ``m360.load("OUT/000123")`` reads any frame alone. ``OUT/video.json`` describes the run
+  (source, selection, the preview's colour scale).
+- **Resumable**: a frame is skipped when its sidecar holds the same fingerprint (the batch's,
+  plus the temporal mode and the frame selection), was made from the same video file (path,
+  size, modification time) and its files and state exist; a rerun after a kill redoes only
+  the unfinished frames, from the state the last finished frame left, so it writes the same
+  bytes as a run that was never stopped.
+- **One claim per run**: the temporal term makes frames sequential, so a run claims the whole
+  folder (an OS lock on ``OUT/.video.lock``); a second run into it finds it busy (exit 3).
+- **One failure is one line** in ``OUT/failures.jsonl``; the next frame starts afresh (no
+  temporal term across a failed frame) and the run goes on.
+- **Progress** with frames per second and the time left (tqdm).
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import hashlib
+import json
+import os
+import time
+import uuid
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import TYPE_CHECKING, Any
+
+import cv2
+import numpy as np
+
+from .._keywords import definition, resolved, split
+from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure, is_done
+from ..batch.runner import (
+    FAILURES_FILE,
+    BatchReport,
+    _append_failure,
+    _keyboard_interrupt_once,
+    _make_output_folder,
+    fingerprint,
+)
+from ..errors import InputError, M360Error, ModelError, ReadError
+from ..estimators import registry as _models
+from ..estimators.options import ModelKeywords, ModelOptions
+from ..geometry.layout import DEFAULT_PADDING
+from ..io import check_formats, save
+from ..io.files import atomic_path, save_json
+from ..pipeline.options import EstimateKeywords, JobKeywords
+from ..stitching.depth import depth_of
+from ..stitching.options import StitchKeywords, StitchOptions, build
+from .reader import Frame, Source, check_selection, frames, prefetch, probe
+from .temporal import TEMPORAL_MODES, Temporal, TemporalState
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
+__all__ = ["RUN_FILE", "STATE_SUFFIX", "VideoReport", "frame_stem", "run"]
+
+#: The run's own description in OUT.
+RUN_FILE = "video.json"
+#: Suffix of a frame's temporal state (``OUT/000123.temporal.npy``).
+STATE_SUFFIX = ".temporal.npy"
+#: How many decoded frames wait for the network at most.
+READ_AHEAD = 4
+
+
+def frame_stem(index: int) -> str:
+    """Give the output stem of frame ``index``: six digits at least (``000123``)."""
+    return f"{index:06d}"
+
+
+@dataclass
+class VideoReport(BatchReport):
+    """The result of :func:`run`: a :class:`m360.batch.BatchReport` of frames, and more.
+
+    Attributes
+    ----------
+    source : Source or None
+        What was read (:func:`m360.video.probe`).
+    preview_video : Path or None
+        ``OUT/preview.mp4`` when written.
+    colour_scale : (float, float) or None
+        The preview's disparity range, fixed for the whole run.
+    """
+
+    source: Source | None = None
+    preview_video: Path | None = None
+    colour_scale: tuple[float, float] | None = None
+
+    def summary(self) -> str:
+        """Describe the run in a few lines: counts, frames per second, notes."""
+        counts = (
+            f"{len(self.done)} done, {len(self.skipped)} already done, "
+            f"{len(self.failed)} failed" + (", folder busy in another run" * bool(self.busy))
+        )
+        lines = [f"m360 video: {counts} in {self.seconds:.1f} s"]
+        if self.done:
+            lines.append(f"  {len(self.done) / max(self.seconds, 1e-9):.2f} frames/s")
+        if self.failed:
+            lines.append(f"  failures: {self.failures_file}")
+        if self.preview_video is not None:
+            lines.append(f"  preview video: {self.preview_video}")
+        lines += [f"  {note}" for note in self.notes]
+        if self.busy:
+            lines.append("  another run is writing this folder: rerun when it has finished")
+        if self.interrupted:
+            lines.append("  interrupted: rerun the same command to finish the rest")
+        if self.model_error is not None:
+            lines.append(f"  stopped: the model failed on the first frame: {self.model_error}")
+        return "\n".join(lines)
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What every frame of a run shares."""
+
+    out: Path
+    source: Source
+    estimator: Any
+    options: StitchOptions
+    job: dict[str, Any]
+    formats: tuple[str, ...]
+    preview: bool
+    confidence: bool
+    fingerprint: dict[str, Any]
+    run_id: str
+    resume: bool
+    temporal: Temporal
+
+
+def _input_of(plan: _Plan, frame: Frame) -> Path:
+    """Give the file a frame comes from (its image in a folder, else the video)."""
+    return frame.path if frame.path is not None else plan.source.path
+
+
+def _job(plan: _Plan, frame: Frame) -> Job:
+    name = frame_stem(frame.index)
+    return Job(_input_of(plan, frame), plan.out / name, name, f"{plan.source.path}#{frame.index}")
+
+
+def _state_path(stem: Path) -> Path:
+    return stem.with_name(stem.name + STATE_SUFFIX)
+
+
+def _done(plan: _Plan, job: Job) -> bool:
+    done = is_done(job, plan.fingerprint)
+    return done and (plan.temporal.mode == "none" or _state_path(job.stem).is_file())
+
+
+def _process(
+    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None
+) -> tuple[TemporalState, dict[str, float]]:
+    """Estimate, smooth and write one frame; its state for the next one and its timings."""
+    from ..pipeline.estimate import estimate
+
+    assert frame.rgb is not None
+    t0 = time.perf_counter()
+    grey, confidence, record = plan.temporal.prepare(frame.rgb, previous)
+    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job)
+    t_estimate = time.perf_counter()
+    disparity, state, applied = plan.temporal.apply(
+        result.disparity,
+        grey,
+        confidence,
+        None if confidence is None else previous,
+        relative=result.units == "relative",
+    )
+    if disparity is not result.disparity:
+        result = dataclasses.replace(result, disparity=disparity, depth=depth_of(disparity))
+    t_temporal = time.perf_counter()
+    stat = job.input.stat()
+    source = {
+        "path": str(job.input),
+        "size": stat.st_size,
+        "mtime_ns": stat.st_mtime_ns,
+        "rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest(),
+    }
+    extra = {
+        "input": source,
+        "frame": {"index": frame.index, "time": frame.time, "video": str(plan.source.path)},
+        "temporal": {"mode": plan.temporal.mode, **record, **applied},
+        "batch": {"fingerprint": plan.fingerprint, "run": plan.run_id},
+    }
+    if plan.temporal.mode != "none":
+        state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
+    save(
+        result,
+        job.stem,
+        formats=plan.formats,
+        preview=plan.preview,
+        extra=extra,
+        confidence=plan.confidence,
+    )
+    t_write = time.perf_counter()
+    timings = {
+        **{k: v for k, v in result.timings.items() if k != "total"},
+        "estimate": t_estimate - t0,
+        "temporal": t_temporal - t_estimate,
+        "write": t_write - t_temporal,
+    }
+    return state, timings
+
+
+def run(
+    src: str | os.PathLike[str],
+    out_dir: str | os.PathLike[str],
+    *,
+    model: Any = _models.DEFAULT_MODEL,
+    options: StitchOptions | None = None,
+    model_options: ModelOptions | None = None,
+    temporal: str = "smooth",
+    every: int = 1,
+    start: int | float | None = None,
+    end: int | float | None = None,
+    fps: float | None = None,
+    formats: Sequence[str] | str = ("npy",),
+    preview: bool = False,
+    preview_video: bool = False,
+    confidence: bool = False,
+    resume: bool = True,
+    progress: bool = True,
+    on_outcome: Callable[[ImageOutcome], None] | None = None,
+    **keywords: Unpack[EstimateKeywords],
+) -> VideoReport:
+    """Estimate the depth of every (selected) frame of a 360° video into ``out_dir``.
+
+    See the module docstring for what is written and guaranteed, and docs/video.md.
+
+    Parameters
+    ----------
+    src : path
+        A video file (``pip install "m360[video]"``) or a folder of frames.
+    out_dir : path
+        Output folder: ``OUT/000123.*`` per frame, ``OUT/video.json``, ``OUT/failures.jsonl``.
+    model : str, path or estimator
+        As for :func:`m360.estimate`.
+    options, model_options :
+        Every stitching / model option at once, as for :func:`m360.estimate`.
+    temporal : {"smooth", "none"}
+        ``"smooth"`` (default): each frame kept consistent with the previous one where the
+        image did not change, restarted at scene cuts (:mod:`m360.video.temporal`);
+        ``"none"``: every frame on its own, as stills.
+    every, start, end, fps :
+        Frame selection, as for :func:`m360.video.frames`.
+    formats : sequence of str
+        Array formats per frame, see :func:`m360.save`.
+    preview : bool
+        Also write each frame's colour preview PNG (coloured per frame).
+    preview_video : bool
+        Write ``OUT/preview.mp4``, the disparity in colour with one colour scale for the whole
+        run (the 2nd and 98th percentiles of every frame's disparity).
+    confidence : bool
+        Also write each frame's confidence map.
+    resume : bool
+        Skip frames already done with the same input and options (default).
+    progress : bool
+        Show a progress bar with frames per second and the time left.
+    on_outcome : callable, optional
+        Called with each frame's :class:`m360.batch.ImageOutcome` as it arrives.
+    **keywords
+        Every option of :func:`m360.estimate` beyond its named ones
+        (:class:`m360.pipeline.options.EstimateKeywords`).
+
+    Returns
+    -------
+    VideoReport
+        Per-frame outcomes; ``exit_code`` as ``m360 video`` uses it.
+    """
+    from ..estimators import load_estimator
+
+    started = time.perf_counter()
+    if not isinstance(out_dir, (str, os.PathLike)):
+        raise InputError(f"out_dir must be a path, got {type(out_dir).__name__}")
+    if not isinstance(src, (str, os.PathLike)):
+        raise InputError(f"src must be a path, got {type(src).__name__}")
+    out = Path(out_dir)
+    if out.exists() and not out.is_dir():
+        raise InputError(f"output folder {out} exists and is not a folder")
+    if temporal not in TEMPORAL_MODES:
+        raise InputError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
+    if on_outcome is not None and not callable(on_outcome):
+        raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
+    stitch_keywords, model_keywords, job_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="video.run"
+    )
+    model_opts = ModelOptions.build(model_options, **model_keywords)
+    job_options = resolved(job_keywords, JobKeywords)
+    opts = build(options, **stitch_keywords)
+    chosen = check_formats(formats)
+    # The selection is checked (and the source opened) before anything is made.
+    every, start, end = check_selection(every, start, end, fps)
+    source = probe(src, fps=fps)
+    if preview_video:
+        from .reader import _av
+
+        _av()  # the preview video is encoded with PyAV: say so before any frame
+    estimator = load_estimator(model, model_options=model_opts)
+    fp = fingerprint(
+        estimator, opts, chosen, preview=bool(preview), fix_aspect=False, confidence=confidence
+    )
+    defaults = {name: o.default for name, o in definition(JobKeywords).items()}
+    fp.update({k: v for k, v in job_options.items() if v != defaults[k]})
+    padding = job_options["padding"]
+    fp["padding"] = DEFAULT_PADDING if padding is None else padding
+    # With the temporal term a frame depends on the frames before it: the selection counts.
+    fp["video"] = {"temporal": temporal, "every": every, "start": start, "end": end}
+    plan = _Plan(
+        out=out,
+        source=source,
+        estimator=estimator,
+        options=opts,
+        job=job_options,
+        formats=chosen,
+        preview=bool(preview),
+        confidence=bool(confidence),
+        fingerprint=fp,
+        run_id=uuid.uuid4().hex[:12],
+        resume=bool(resume),
+        temporal=Temporal(temporal),
+    )
+    _make_output_folder(out)
+    report = VideoReport(
+        outcomes=[], seconds=0.0, interrupted=False, failures_file=out / FAILURES_FILE
+    )
+    report.source = source
+    with contextlib.ExitStack() as stack:
+        if not stack.enter_context(_claim(out / "video")):
+            report.outcomes.append(ImageOutcome(str(src), str(out), "busy"))
+            report.seconds = time.perf_counter() - started
+            return report
+        _run_frames(plan, src, (every, start, end, fps), report, progress, on_outcome)
+        if preview_video and not report.interrupted:
+            stems = [out / o.stem for o in report.outcomes if o.status in ("done", "skipped")]
+            rate = (source.fps or 30.0) / every
+            try:
+                report.preview_video, report.colour_scale = _write_preview_video(
+                    stems, out / "preview.mp4", rate
+                )
+            except M360Error as exc:
+                report.notes.append(f"the preview video could not be written: {exc}")
+        _write_run_file(plan, report, (every, start, end, fps))
+    report.seconds = time.perf_counter() - started
+    return report
+
+
+def _run_frames(
+    plan: _Plan,
+    src: str | os.PathLike[str],
+    selection: tuple[Any, ...],
+    report: VideoReport,
+    progress: bool,
+    on_outcome: Callable[[ImageOutcome], None] | None,
+) -> None:
+    """Process the frames in order, recording each outcome in ``report``."""
+    from ..batch._interrupt import MainThreadInterrupts
+
+    every, start, end, fps = selection
+    total = _expected_frames(plan.source, every, start, end)
+    bar = _progress_bar(total, progress)
+    state: TemporalState | None = None
+    done_before: Path | None = None  # the last frame skipped as done: its state, if needed
+    tried = False
+
+    def record(outcome: ImageOutcome) -> None:
+        report.outcomes.append(outcome)
+        bar.update(1)
+        if outcome.status == "failed":
+            try:
+                _append_failure(report.failures_file, outcome, plan.run_id)
+            except OSError as exc:
+                report.notes.append(f"failures.jsonl could not be written ({exc})")
+        if on_outcome is not None:
+            on_outcome(outcome)
+
+    try:
+        with MainThreadInterrupts(_keyboard_interrupt_once()):
+            reader = frames(src, every, start, end, fps=fps, on_error="yield")
+            for frame in prefetch(reader, READ_AHEAD):
+                job = _job(plan, frame)
+                if frame.error is not None or frame.rgb is None:
+                    error = frame.error or ReadError(f"frame {frame.index} could not be read")
+                    record(_failure(job.input, job.name, error))
+                    state, done_before = None, None
+                    continue
+                if plan.resume and _done(plan, job):
+                    record(ImageOutcome(str(job.input), job.name, "skipped"))
+                    state, done_before = None, job.stem
+                    continue
+                if state is None and done_before is not None and plan.temporal.mode != "none":
+                    with contextlib.suppress(ReadError):
+                        state = TemporalState.load(_state_path(done_before))
+                done_before = None
+                try:
+                    state, timings = _process(plan, frame, job, state)
+                except ModelError as exc:
+                    if not tried and not report.done:
+                        report.model_error = str(exc)
+                        return
+                    record(_error_outcome(job, exc))
+                    state = None
+                except Exception as exc:  # a frame fails alone
+                    record(_error_outcome(job, exc))
+                    state = None
+                else:
+                    record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
+                tried = True
+    except KeyboardInterrupt:
+        report.interrupted = True
+    finally:
+        bar.close()
+
+
+def _expected_frames(source: Source, every: int, start: Any, end: Any) -> int | None:
+    """How many frames the selection takes, for the progress bar (None if unknown)."""
+    if not source.frames or isinstance(start, float) or isinstance(end, float):
+        return None
+    first = start or 0
+    last = source.frames if end is None else min(end, source.frames)
+    return max(0, -(-(last - first) // every))
+
+
+def _progress_bar(total: int | None, show: bool) -> Any:
+    if not show:
+        from ..batch.runner import _NoBar
+
+        return _NoBar()
+    from tqdm import tqdm
+
+    # tqdm shows frames per second and, with a total, the time left.
+    return tqdm(total=total, unit="frame", desc="m360 video", dynamic_ncols=True, smoothing=0.1)
+
+
+def _fixed_colours(disparity: np.ndarray, lo: float, hi: float) -> np.ndarray:
+    """Colour a disparity map with a fixed range: (H, W, 3) uint8 RGB, NaN black."""
+    finite = np.isfinite(disparity)
+    scaled = np.clip((np.nan_to_num(disparity) - lo) / max(hi - lo, 1e-12), 0.0, 1.0)
+    grey = (scaled * 255.0 + 0.5).astype(np.uint8)
+    colours = cv2.applyColorMap(grey, cv2.COLORMAP_TURBO)
+    colours[~finite] = 0
+    return cv2.cvtColor(colours, cv2.COLOR_BGR2RGB)  # type: ignore[no-any-return]
+
+
+#: Width of the preview video at most (encoders and players take it).
+PREVIEW_WIDTH = 2048
+
+
+def _write_preview_video(
+    stems: Sequence[Path], path: Path, rate: float
+) -> tuple[Path | None, tuple[float, float] | None]:
+    """Encode the frames' disparity in colour with one scale for all; (path, scale).
+
+    Two passes over the written frames: the 2nd and 98th percentiles of a sample of every
+    frame's disparity fix the scale (a scale per frame would itself flicker), then each frame
+    is coloured and encoded (H.264, else MPEG-4 Part 2), atomically.
+    """
+    from fractions import Fraction
+
+    from ..io import load
+    from .reader import _av
+
+    if not stems:
+        return None, None
+    samples = []
+    for stem in stems:
+        disparity = load(stem).disparity
+        step = max(1, int(np.sqrt(disparity.size / 20_000)))
+        sample = disparity[::step, ::step]
+        samples.append(sample[np.isfinite(sample)])
+    values = np.concatenate(samples)
+    if not values.size:
+        return None, None
+    lo, hi = (float(v) for v in np.percentile(values, (2.0, 98.0)))
+    av = _av()
+    codec = "libx264" if "libx264" in av.codecs_available else "mpeg4"
+    with atomic_path(path) as tmp:
+        container = av.open(str(tmp), "w", format="mp4")
+        try:
+            stream = container.add_stream(codec, rate=Fraction(rate).limit_denominator(1001))
+            first = load(stems[0]).disparity
+            width = min(PREVIEW_WIDTH, first.shape[1]) // 2 * 2
+            height = max(2, round(width * first.shape[0] / first.shape[1]) // 2 * 2)
+            stream.width, stream.height, stream.pix_fmt = width, height, "yuv420p"
+            for stem in stems:
+                disparity = load(stem).disparity
+                colours = _fixed_colours(disparity, lo, hi)
+                colours = cv2.resize(colours, (width, height), interpolation=cv2.INTER_AREA)
+                frame = av.VideoFrame.from_ndarray(colours, format="rgb24")
+                for packet in stream.encode(frame):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
+        finally:
+            container.close()
+    return path, (lo, hi)
+
+
+def _write_run_file(plan: _Plan, report: VideoReport, selection: tuple[Any, ...]) -> None:
+    """Write ``OUT/video.json``: the source, the selection, the run's counts and scale."""
+    every, start, end, fps = selection
+    record = {
+        "source": {
+            "path": str(plan.source.path),
+            "kind": plan.source.kind,
+            "frames": plan.source.frames,
+            "frames_exact": plan.source.exact,
+            "fps": plan.source.fps,
+            "codec": plan.source.codec,
+        },
+        "selection": {"every": every, "start": start, "end": end, "fps": fps},
+        "temporal": plan.temporal.mode,
+        "frames": sorted(o.stem for o in report.outcomes if o.status in ("done", "skipped")),
+        "failed": sorted(o.stem for o in report.failed),
+        "preview_video": None
+        if report.preview_video is None
+        else {"file": report.preview_video.name, "disparity_range": report.colour_scale},
+        "run": plan.run_id,
+    }
+    try:
+        save_json(plan.out / RUN_FILE, json.loads(json.dumps(record)))
+    except OSError as exc:
+        report.notes.append(f"{RUN_FILE} could not be written ({exc})")

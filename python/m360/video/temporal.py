@@ -1,0 +1,293 @@
+"""The temporal term: frame t's depth kept consistent with frame t−1's where the image agrees.
+
+Per-tangent networks make each frame's tangents wrong in a different way, so a video estimated
+frame by frame flickers: the alignment's gauge (the global scale and offset of a relative
+result) jumps, and each tile's content errors come and go. :class:`Temporal` carries a small
+state from one frame to the next, a low-resolution copy of the previous frame's result and of
+its grey image (:class:`TemporalState`, written next to each frame's outputs so a resumed run
+makes the same bytes), and for each new frame:
+
+1. **Scene cut?** The grey images are compared (:func:`scene_cut`); after a cut, or without a
+   previous frame, the frame is taken as it is and starts a new state.
+2. **Where did the image change?** ``confidence = exp(−(|Δgrey| / CHANGE_SCALE)²)`` per
+   state pixel: 1 where the image is the same, near 0 where something moved.
+3. **Prior** (when :func:`m360.estimate` takes one): the previous state is handed to the
+   stitch as a relative prior with that confidence, so the alignment starts from the previous
+   frame's solution; see :func:`estimate_kwargs`.
+4. **Gauge**: a relative result is mapped by the affine map ``a·D + b`` that best fits the
+   previous state where the confidence is high (weighted least squares, refitted once without
+   the worst residuals), so the global scale does not jump.
+5. **Smoothing**: at the state's resolution the result is pulled towards the previous state,
+   ``S = D + STRENGTH·confidence·(S_prev − D)`` (an exponential moving average where the image
+   did not change), and the full-resolution map takes the low-frequency correction ``S − D``
+   (bilinearly upsampled); the frame's own detail above the state's resolution is kept.
+
+The issue behind this asked for a term on the alignment's fields (each tangent's scale and
+offset fields close to the previous frame's). Those fields legitimately change from frame to
+frame, since they absorb each frame's own per-tile errors, and the stack is standardised per
+tangent before the alignment, so fields of two frames are not comparable: the prior on the
+result (steps 3–5) is the nearest sound formulation (docs/video.md).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+from ..errors import InputError, ReadError
+from ..io.files import save_npy
+
+__all__ = [
+    "CHANGE_SCALE",
+    "CUT_THRESHOLD",
+    "STATE_WIDTH",
+    "STRENGTH",
+    "TEMPORAL_MODES",
+    "Temporal",
+    "TemporalState",
+    "scene_cut",
+]
+
+#: ``temporal=`` choices, the default first.
+TEMPORAL_MODES = ("smooth", "none")
+#: Width of the state's maps (height half of it): the per-tile errors are larger than a pixel of
+#: it at any ERP width, and a state stays small (1 MB per frame).
+STATE_WIDTH = 512
+#: Weight of the previous state where the image did not change (the moving average's α).
+STRENGTH = 0.7
+#: Gain of the trend (the alpha-beta filter's β): how fast the state learns a steady change.
+TREND = 0.1
+#: Relative difference between frame and state at which the pull is halved (moved edges).
+AGREEMENT = 0.1
+#: Relative difference between a pixel and its state-resolution blur beyond which it is an edge.
+EDGE_SCALE = 0.02
+#: Grey-level change (0–1) at which a state pixel's confidence has fallen to 1/e.
+CHANGE_SCALE = 0.06
+#: A scene cut: the grey-level histograms of two frames differ by more than this share.
+CUT_THRESHOLD = 0.3
+#: Least share of state pixels that must be confident for the gauge fit.
+_MIN_FIT_SHARE = 0.05
+
+
+@dataclass(frozen=True)
+class TemporalState:
+    """What a frame hands to the next: low-resolution disparity and grey image.
+
+    Attributes
+    ----------
+    disparity : (h, w) float32
+        The frame's output disparity at :data:`STATE_WIDTH` (NaN where none).
+    grey : (h, w) float32
+        Its grey image in [0, 1] at the same size (lightly blurred).
+    """
+
+    disparity: np.ndarray
+    grey: np.ndarray
+    velocity: np.ndarray | None = None
+
+    def save(self, path: str | Path) -> Path:
+        """Write the state as one ``.npy`` of shape (3, h, w) float32, atomically."""
+        velocity = np.zeros_like(self.disparity) if self.velocity is None else self.velocity
+        return save_npy(path, np.stack([self.disparity, self.grey, velocity]).astype(np.float32))
+
+    @classmethod
+    def load(cls, path: str | Path) -> TemporalState:
+        """Read a state written by :meth:`save` (ReadError if missing or not one)."""
+        try:
+            array = np.load(path, allow_pickle=False)
+        except (OSError, ValueError) as exc:
+            raise ReadError(f"temporal state {path} cannot be read: {exc}") from exc
+        if array.ndim != 3 or array.shape[0] != 3 or array.dtype != np.float32:
+            raise ReadError(f"temporal state {path} is not one (shape {array.shape})")
+        return cls(*(np.ascontiguousarray(a) for a in array))
+
+
+def _state_size(shape: tuple[int, int]) -> tuple[int, int]:
+    """(width, height) of the state for an ERP of ``shape``: at most STATE_WIDTH wide."""
+    width = min(STATE_WIDTH, shape[1])
+    return width, max(1, width // 2)
+
+
+def grey_of(rgb: np.ndarray) -> np.ndarray:
+    """Give the state's grey image of an (H, W, 3) RGB frame: (h, w) float32 in [0, 1]."""
+    size = _state_size(rgb.shape[:2])
+    small = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
+    grey = cv2.cvtColor(small, cv2.COLOR_RGB2GRAY).astype(np.float32)
+    if rgb.dtype == np.uint8:
+        grey /= 255.0
+    blurred: np.ndarray = cv2.GaussianBlur(grey, (0, 0), 1.0, borderType=cv2.BORDER_REFLECT)
+    return blurred
+
+
+def shrink(disparity: np.ndarray) -> np.ndarray:
+    """Shrink an (H, W) map to the state's size, NaN-aware (area average of finite pixels)."""
+    size = _state_size(disparity.shape)
+    finite = np.isfinite(disparity)
+    filled = np.where(finite, disparity, 0).astype(np.float32)
+    total = cv2.resize(filled, size, interpolation=cv2.INTER_AREA)
+    weight = cv2.resize(finite.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(weight > 0.5, total / weight, np.nan).astype(np.float32)
+
+
+def _grow(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Bilinear upsampling of a state-sized map to ``shape`` (H, W), wrapping in longitude."""
+    height, width = shape
+    h, w = values.shape
+    col = ((np.arange(width, dtype=np.float32) + 0.5) * (w / width) - 0.5)[None, :]
+    row = ((np.arange(height, dtype=np.float32) + 0.5) * (h / height) - 0.5)[:, None]
+    map_x = np.broadcast_to(np.mod(col, w), shape).astype(np.float32)
+    map_y = np.broadcast_to(np.clip(row, 0, h - 1), shape).astype(np.float32)
+    grown: np.ndarray = cv2.remap(
+        values, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
+    )
+    return grown
+
+
+def scene_cut(grey: np.ndarray, previous: np.ndarray) -> tuple[bool, float]:
+    """Tell whether two frames' grey images (:func:`grey_of`) are a scene cut.
+
+    The share of pixels that would have to change bins between the two 32-bin grey-level
+    histograms (half their L1 distance): a camera moving through one scene keeps its histogram
+    (measured below 0.1 on the synthetic sequences), another scene does not.
+
+    Returns
+    -------
+    (bool, float)
+        Whether it is a cut (distance > :data:`CUT_THRESHOLD`), and the distance.
+    """
+    bins = np.linspace(0.0, 1.0, 33)
+    a = np.histogram(grey, bins)[0] / max(grey.size, 1)
+    b = np.histogram(previous, bins)[0] / max(previous.size, 1)
+    distance = 0.5 * float(np.abs(a - b).sum())
+    return distance > CUT_THRESHOLD, distance
+
+
+def _fit_gauge(
+    current: np.ndarray, target: np.ndarray, weight: np.ndarray
+) -> tuple[float, float] | None:
+    """Affine (a, b) with a·current + b ≈ target, weighted; refitted without the worst 20 %."""
+    keep = np.isfinite(current) & np.isfinite(target) & (weight > 0.5)
+    if keep.mean() < _MIN_FIT_SHARE:
+        return None
+    x, y, w = current[keep].astype(np.float64), target[keep].astype(np.float64), weight[keep]
+    fit = None
+    for _ in range(2):
+        design = np.stack([x, np.ones_like(x)], axis=1) * np.sqrt(w)[:, None]
+        solution, *_ = np.linalg.lstsq(design, y * np.sqrt(w), rcond=None)
+        fit = (float(solution[0]), float(solution[1]))
+        residual = np.abs(fit[0] * x + fit[1] - y)
+        inliers = residual <= np.quantile(residual, 0.8)
+        x, y, w = x[inliers], y[inliers], w[inliers]
+        if x.size < 16:
+            break
+    if fit is None or not (fit[0] > 0 and math.isfinite(fit[0]) and math.isfinite(fit[1])):
+        return None
+    return fit
+
+
+class Temporal:
+    """The temporal term of a video run: one instance per run, frames in order.
+
+    Parameters
+    ----------
+    mode : {"smooth", "none"}
+        ``"none"``: every frame on its own (today's still pipeline); ``"smooth"``: the steps of
+        this module.
+    """
+
+    def __init__(self, mode: str = "smooth") -> None:
+        if mode not in TEMPORAL_MODES:
+            raise InputError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {mode!r}")
+        self.mode = mode
+
+    def prepare(
+        self, rgb: np.ndarray, previous: TemporalState | None
+    ) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
+        """Before the frame's estimate: its grey image, the confidence map, and what was found.
+
+        Returns
+        -------
+        grey : (h, w) float32
+        confidence : (h, w) float32 or None
+            None when the frame starts afresh (first frame, scene cut, mode ``"none"``).
+        record : dict
+            ``cut`` (bool), ``histogram_distance``, ``reset`` (why there is no term, or None).
+        """
+        grey = grey_of(rgb)
+        if self.mode == "none":
+            return grey, None, {"reset": "temporal none"}
+        if previous is None:
+            return grey, None, {"cut": False, "reset": "first frame"}
+        if previous.grey.shape != grey.shape:
+            return grey, None, {"cut": True, "reset": "frame size changed"}
+        cut, distance = scene_cut(grey, previous.grey)
+        record: dict[str, Any] = {"cut": cut, "histogram_distance": round(distance, 6)}
+        if cut:
+            return grey, None, {**record, "reset": "scene cut"}
+        confidence = np.exp(-np.square((grey - previous.grey) / CHANGE_SCALE)).astype(np.float32)
+        record["confidence_mean"] = round(float(confidence.mean()), 6)
+        return grey, confidence, {**record, "reset": None}
+
+    def apply(
+        self,
+        disparity: np.ndarray,
+        grey: np.ndarray,
+        confidence: np.ndarray | None,
+        previous: TemporalState | None,
+        *,
+        relative: bool = True,
+    ) -> tuple[np.ndarray, TemporalState, dict[str, Any]]:
+        """After the frame's estimate: the smoothed disparity and the state for the next frame.
+
+        Parameters
+        ----------
+        disparity : (H, W) float32
+            The frame's result (not changed).
+        grey, confidence :
+            From :meth:`prepare`.
+        previous : TemporalState or None
+        relative : bool
+            The result is up to scale and shift (fit the gauge); False for metric results.
+
+        Returns
+        -------
+        disparity : (H, W) float32
+        state : TemporalState
+        record : dict
+            ``gauge`` ([a, b] or None), ``strength``.
+        """
+        small = shrink(disparity)
+        if confidence is None or previous is None or self.mode == "none":
+            return disparity, TemporalState(small, grey), {"gauge": None, "strength": 0.0}
+        gauge = _fit_gauge(small, previous.disparity, confidence) if relative else (1.0, 0.0)
+        if gauge is None:  # too little agrees with the previous frame: start afresh
+            return disparity, TemporalState(small, grey), {"gauge": None, "strength": 0.0}
+        a, b = gauge
+        out = disparity * np.float32(a) + np.float32(b)
+        small = small * np.float32(a) + np.float32(b)
+        velocity = np.zeros_like(small) if previous.velocity is None else previous.velocity
+        predicted = previous.disparity + velocity
+        pull = np.float32(STRENGTH) * confidence
+        pull[~np.isfinite(predicted) | ~np.isfinite(small)] = 0
+        innovation = np.nan_to_num(small - predicted).astype(np.float32)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            relative = np.nan_to_num(np.abs(innovation / small), nan=1.0)
+        pull *= 1 / (1 + np.square(relative / AGREEMENT))
+        correction = np.nan_to_num(pull * (predicted - small)).astype(np.float32)
+        velocity = (confidence * (velocity + np.float32(TREND) * innovation)).astype(np.float32)
+        velocity[pull == 0] = 0
+        state = TemporalState((small + correction).astype(np.float32), grey, velocity)
+        # Near depth edges the low-resolution maps mix both sides and a moving camera shifts
+        # the edge: the correction is kept only where the frame is smooth at the state's scale.
+        grown = _grow(small, disparity.shape)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            edge = np.abs(out / grown - 1)
+        smooth = np.exp(-np.square(np.nan_to_num(edge, nan=1.0) / EDGE_SCALE)).astype(np.float32)
+        out += smooth * _grow(correction, disparity.shape)
+        return out, state, {"gauge": [a, b], "strength": STRENGTH}
