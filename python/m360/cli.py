@@ -195,6 +195,7 @@ def build_parser() -> argparse.ArgumentParser:
     add_flags(run.add_argument_group("model (ONNX models given by name or path)"), ModelKeywords)
     add_flags(run.add_argument_group("job"), JobKeywords)
     _stitch_options(run)
+    _add_video_parser(commands)
 
     ev = commands.add_parser(
         "eval",
@@ -279,6 +280,8 @@ def _dispatch(args: argparse.Namespace) -> int:
             return _demo(args.output, args.width, args.seed, args.noise, _options(args))
         if args.command == "run":
             return _run(args)
+        if args.command == "video":
+            return _video(args)
         if args.command == "eval":
             return _eval(args)
         if args.command == "view":
@@ -629,6 +632,118 @@ def _models_command(args: argparse.Namespace) -> int:
         print(f"{row['name']:<24} {size:>8}  {cached:<6}  {sha:<10}  {row['licence']}")
     print("fetch with `m360 models fetch NAME`; the default model is fetched on first `m360 run`")
     return 0
+
+
+# --------------------------------------------------------------------------------------------
+# m360 video
+
+
+def _frame_bound(text: str) -> int | float:
+    """``--start``/``--end``: a frame index (``120``) or seconds (``4.5s``)."""
+    try:
+        return float(text[:-1]) if text.endswith("s") else int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(
+            f"expected a frame index (120) or seconds (4.5s), got {text!r}"
+        ) from None
+
+
+def _add_video_parser(commands: Any) -> None:
+    from .video import TEMPORAL_MODES
+
+    video = commands.add_parser(
+        "video",
+        help="estimate the depth of every frame of a 360° video (resumable, no flicker)",
+        description=(
+            "Estimate the depth of every frame of a 360-degree video file (MP4, MOV, MKV, "
+            'WebM ...: pip install "m360[video]") or of a folder of frames, and write per '
+            "frame OUT/000123.disparity.EXT, OUT/000123.depth.EXT per format, the small state "
+            "the next frame starts from (OUT/000123.temporal.npy) and last the sidecar "
+            "OUT/000123.json (frame index and time). --temporal smooth (default) keeps each "
+            "frame consistent with the one before where the image did not change, and starts "
+            "afresh at scene cuts. Ctrl-C and rerun: goes on where it stopped (same bytes). "
+            "Failed frames go to OUT/failures.jsonl and the run goes on. Exit codes: 0 all "
+            "done, 1 some frames failed, 2 usage error, 3 another run is writing OUT, 130 "
+            "interrupted."
+        ),
+    )
+    video.add_argument("video", type=Path, help="video file or folder of frames")
+    video.add_argument("-o", "--output", type=Path, required=True, help="output folder")
+    video.add_argument(
+        "--model",
+        default=models.DEFAULT_MODEL,
+        help=f"registry name or path to an .onnx file (default {models.DEFAULT_MODEL})",
+    )
+    video.add_argument("--every", type=int, default=1, metavar="N", help="every N-th frame")
+    video.add_argument(
+        "--start", type=_frame_bound, default=None, help="first frame: index (120) or time (4.5s)"
+    )
+    video.add_argument(
+        "--end",
+        type=_frame_bound,
+        default=None,
+        help="first frame no longer taken: index or time (4.5s)",
+    )
+    video.add_argument(
+        "--fps", type=float, default=None, help="frame rate of a folder of frames (gives times)"
+    )
+    video.add_argument(
+        "--temporal",
+        choices=TEMPORAL_MODES,
+        default=TEMPORAL_MODES[0],
+        help="smooth: consistent with the previous frame (default); none: frames as stills",
+    )
+    video.add_argument(
+        "--formats",
+        type=_formats,
+        default=("npy",),
+        help=f"comma-separated array formats: {', '.join(SAVE_FORMATS)} (default npy)",
+    )
+    video.add_argument(
+        "--preview", action="store_true", help="also write each frame's colour preview PNG"
+    )
+    video.add_argument(
+        "--preview-video",
+        action="store_true",
+        help="write OUT/preview.mp4, the disparity in colour with one scale for the whole run",
+    )
+    video.add_argument("--confidence", action="store_true", help="also write confidence maps")
+    video.add_argument("--overwrite", dest="resume", action="store_false", help="redo every frame")
+    video.add_argument("--no-progress", action="store_true", help="no progress bar")
+    add_flags(video.add_argument_group("model (ONNX models given by name or path)"), ModelKeywords)
+    add_flags(video.add_argument_group("job"), JobKeywords)
+    _stitch_options(video)
+
+
+def _video(args: argparse.Namespace) -> int:
+    from . import video
+
+    def report_failure(outcome: batch.ImageOutcome) -> None:
+        if outcome.status == "failed":
+            _log(f"m360: frame {outcome.stem}: {outcome.error}: {outcome.message}")
+
+    report = video.run(
+        args.video,
+        args.output,
+        model=args.model,
+        options=_options(args),
+        temporal=args.temporal,
+        every=args.every,
+        start=args.start,
+        end=args.end,
+        fps=args.fps,
+        formats=args.formats,
+        preview=args.preview,
+        preview_video=args.preview_video,
+        confidence=args.confidence,
+        resume=args.resume,
+        progress=not args.no_progress,
+        on_outcome=report_failure,
+        model_options=ModelOptions(**from_args(args, ModelKeywords)),
+        **from_args(args, JobKeywords),
+    )
+    print(report.summary(), file=sys.stderr)
+    return report.exit_code
 
 
 if __name__ == "__main__":
