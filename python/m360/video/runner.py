@@ -161,14 +161,14 @@ def _done(plan: _Plan, job: Job) -> bool:
 
 
 def _process(
-    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None
+    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
 ) -> tuple[TemporalState, dict[str, float]]:
     """Estimate, smooth and write one frame; its state for the next one and its timings."""
     from ..pipeline.estimate import estimate
 
     assert frame.rgb is not None
     t0 = time.perf_counter()
-    grey, confidence, record = plan.temporal.prepare(frame.rgb, previous)
+    grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
     result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job)
     t_estimate = time.perf_counter()
     disparity, state, applied = plan.temporal.apply(
@@ -371,6 +371,7 @@ def _run_frames(
     total = _expected_frames(plan.source, every, start, end)
     bar = _progress_bar(total, progress)
     state: TemporalState | None = None
+    missing = "first frame"  # why there is no state (recorded in the next frame's sidecar)
     done_before: Path | None = None  # the last frame skipped as done: its state, if needed
     tried = False
 
@@ -393,27 +394,29 @@ def _run_frames(
                 if frame.error is not None or frame.rgb is None:
                     error = frame.error or ReadError(f"frame {frame.index} could not be read")
                     record(_failure(job.input, job.name, error))
-                    state, done_before = None, None
+                    state, done_before, missing = None, None, "previous frame failed"
                     continue
                 if plan.resume and _done(plan, job):
                     record(ImageOutcome(str(job.input), job.name, "skipped"))
                     state, done_before = None, job.stem
                     continue
                 if state is None and done_before is not None and plan.temporal.mode != "none":
-                    with contextlib.suppress(ReadError):
+                    try:
                         state = TemporalState.load(_state_path(done_before))
+                    except ReadError:
+                        missing = "previous frame's state unreadable"
                 done_before = None
                 try:
-                    state, timings = _process(plan, frame, job, state)
+                    state, timings = _process(plan, frame, job, state, missing)
                 except ModelError as exc:
                     if not tried and not report.done:
                         report.model_error = str(exc)
                         return
                     record(_error_outcome(job, exc))
-                    state = None
+                    state, missing = None, "previous frame failed"
                 except Exception as exc:  # a frame fails alone
                     record(_error_outcome(job, exc))
-                    state = None
+                    state, missing = None, "previous frame failed"
                 else:
                     record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
                 tried = True

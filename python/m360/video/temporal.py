@@ -7,7 +7,7 @@ state from one frame to the next, a low-resolution copy of the previous frame's 
 its grey image (:class:`TemporalState`, written next to each frame's outputs so a resumed run
 makes the same bytes), and for each new frame:
 
-1. **Scene cut?** The grey images are compared (:func:`scene_cut`); after a cut, or without a
+1. **Scene cut?** The grey images are correlated (:func:`scene_cut`); after a cut, or without a
    previous frame, the frame is taken as it is and starts a new state.
 2. **Where did the image change?** ``confidence = exp(−(|Δgrey| / CHANGE_SCALE)²)`` per
    state pixel: 1 where the image is the same, near 0 where something moved.
@@ -44,7 +44,7 @@ from ..io.files import save_npy
 
 __all__ = [
     "CHANGE_SCALE",
-    "CUT_THRESHOLD",
+    "CUT_CORRELATION",
     "STATE_WIDTH",
     "STRENGTH",
     "TEMPORAL_MODES",
@@ -68,8 +68,8 @@ AGREEMENT = 0.1
 EDGE_SCALE = 0.02
 #: Grey-level change (0–1) at which a state pixel's confidence has fallen to 1/e.
 CHANGE_SCALE = 0.06
-#: A scene cut: the grey-level histograms of two frames differ by more than this share.
-CUT_THRESHOLD = 0.3
+#: A scene cut: two frames' grey images correlate less than this (at the best turn).
+CUT_CORRELATION = 0.75
 #: Least share of state pixels that must be confident for the gauge fit.
 _MIN_FIT_SHARE = 0.05
 
@@ -152,20 +152,22 @@ def _grow(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
 def scene_cut(grey: np.ndarray, previous: np.ndarray) -> tuple[bool, float]:
     """Tell whether two frames' grey images (:func:`grey_of`) are a scene cut.
 
-    The share of pixels that would have to change bins between the two 32-bin grey-level
-    histograms (half their L1 distance): a camera moving through one scene keeps its histogram
-    (measured below 0.1 on the synthetic sequences), another scene does not.
+    The correlation of the two standardised images, at the best circular shift in longitude
+    (a 360° camera that turns about its vertical axis shifts its columns; found for all
+    shifts at once by FFT along the rows). Measured on the synthetic walks (8 rooms, 256 px):
+    at least 0.987 between consecutive frames of one walk, at most 0.55 between two rooms;
+    a cut is below :data:`CUT_CORRELATION`.
 
     Returns
     -------
     (bool, float)
-        Whether it is a cut (distance > :data:`CUT_THRESHOLD`), and the distance.
+        Whether it is a cut, and the correlation.
     """
-    bins = np.linspace(0.0, 1.0, 33)
-    a = np.histogram(grey, bins)[0] / max(grey.size, 1)
-    b = np.histogram(previous, bins)[0] / max(previous.size, 1)
-    distance = 0.5 * float(np.abs(a - b).sum())
-    return distance > CUT_THRESHOLD, distance
+    a = (grey - grey.mean()) / max(float(grey.std()), 1e-6)
+    b = (previous - previous.mean()) / max(float(previous.std()), 1e-6)
+    spectrum = np.fft.rfft(a, axis=1) * np.conj(np.fft.rfft(b, axis=1))
+    correlation = float(np.fft.irfft(spectrum, n=a.shape[1], axis=1).sum(axis=0).max() / a.size)
+    return correlation < CUT_CORRELATION, correlation
 
 
 def _fit_gauge(
@@ -207,9 +209,11 @@ class Temporal:
         self.mode = mode
 
     def prepare(
-        self, rgb: np.ndarray, previous: TemporalState | None
+        self, rgb: np.ndarray, previous: TemporalState | None, *, missing: str = "first frame"
     ) -> tuple[np.ndarray, np.ndarray | None, dict[str, Any]]:
         """Before the frame's estimate: its grey image, the confidence map, and what was found.
+
+        ``missing`` says why there is no ``previous`` state (recorded as the ``reset``).
 
         Returns
         -------
@@ -217,17 +221,17 @@ class Temporal:
         confidence : (h, w) float32 or None
             None when the frame starts afresh (first frame, scene cut, mode ``"none"``).
         record : dict
-            ``cut`` (bool), ``histogram_distance``, ``reset`` (why there is no term, or None).
+            ``cut`` (bool), ``correlation``, ``reset`` (why there is no term, or None).
         """
         grey = grey_of(rgb)
         if self.mode == "none":
             return grey, None, {"reset": "temporal none"}
         if previous is None:
-            return grey, None, {"cut": False, "reset": "first frame"}
+            return grey, None, {"cut": False, "reset": missing}
         if previous.grey.shape != grey.shape:
             return grey, None, {"cut": True, "reset": "frame size changed"}
-        cut, distance = scene_cut(grey, previous.grey)
-        record: dict[str, Any] = {"cut": cut, "histogram_distance": round(distance, 6)}
+        cut, correlation = scene_cut(grey, previous.grey)
+        record: dict[str, Any] = {"cut": cut, "correlation": round(correlation, 6)}
         if cut:
             return grey, None, {**record, "reset": "scene cut"}
         confidence = np.exp(-np.square((grey - previous.grey) / CHANGE_SCALE)).astype(np.float32)
