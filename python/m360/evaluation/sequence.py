@@ -197,13 +197,19 @@ class SequenceEstimator:
     NOT a network. ``predict`` recognises which frame its RGB tangents come from (the nearest
     frame by a small thumbnail of every tangent, so decoded video frames with compression
     noise are recognised too) and returns that frame's simulated output. Made for one layout
-    (``layout``); the outputs are computed on first use and kept.
+    (``layout``); the outputs are computed on first use and kept. ``frames``: the frame
+    indices it knows (default all); ``images``: their RGB frames when already rendered.
     """
 
     output_kind = "affine_disparity"
 
     def __init__(
-        self, seq: Sequence, layout: Layout, frames: SequenceOf[int] | None = None
+        self,
+        seq: Sequence,
+        layout: Layout,
+        frames: SequenceOf[int] | None = None,
+        *,
+        images: SequenceOf[np.ndarray] | None = None,
     ) -> None:
         from m360.geometry.layout import erp_to_tangents
 
@@ -216,9 +222,11 @@ class SequenceEstimator:
         self.frames = list(range(len(seq))) if frames is None else [int(f) for f in frames]
         self.name = f"simulated sequence (seed {seq.seed}, per-frame tangent errors)"
         self._cache: dict[int, np.ndarray] = {}
+        if images is not None and len(images) != len(self.frames):
+            raise InputError(f"images must hold {len(self.frames)} frames, got {len(images)}")
         thumbs = []
-        for index in self.frames:
-            rgb, _ = seq.render(index)
+        for k, index in enumerate(self.frames):
+            rgb = seq.render(index)[0] if images is None else np.asarray(images[k])
             thumbs.append(_thumbnail(erp_to_tangents(_resized(rgb, layout), layout)))
         self._thumbs = np.stack(thumbs)
 
