@@ -169,7 +169,11 @@ def _process(
     assert frame.rgb is not None
     t0 = time.perf_counter()
     grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
-    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job)
+    prior = {}
+    if plan.options.align is not None:  # a prior needs the alignment
+        prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
+    record["prior"] = bool(prior)
+    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
     t_estimate = time.perf_counter()
     disparity, state, applied = plan.temporal.apply(
         result.disparity,
@@ -214,6 +218,16 @@ def _process(
     return state, timings
 
 
+def _estimate_keywords() -> set[str]:
+    """List the keyword names :func:`m360.estimate` takes (its own and its keyword lists')."""
+    import inspect
+
+    from ..pipeline.estimate import estimate
+
+    names = set(inspect.signature(estimate).parameters)
+    return names | set(definition(EstimateKeywords))
+
+
 def run(
     src: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
@@ -221,7 +235,7 @@ def run(
     model: Any = _models.DEFAULT_MODEL,
     options: StitchOptions | None = None,
     model_options: ModelOptions | None = None,
-    temporal: str = "smooth",
+    temporal: str | Temporal = "smooth",
     every: int = 1,
     start: int | float | None = None,
     end: int | float | None = None,
@@ -249,10 +263,10 @@ def run(
         As for :func:`m360.estimate`.
     options, model_options :
         Every stitching / model option at once, as for :func:`m360.estimate`.
-    temporal : {"smooth", "none"}
+    temporal : {"smooth", "none"} or Temporal
         ``"smooth"`` (default): each frame kept consistent with the previous one where the
         image did not change, restarted at scene cuts (:mod:`m360.video.temporal`);
-        ``"none"``: every frame on its own, as stills.
+        ``"none"``: every frame on its own, as stills; or a :class:`Temporal` itself.
     every, start, end, fps :
         Frame selection, as for :func:`m360.video.frames`.
     formats : sequence of str
@@ -289,8 +303,11 @@ def run(
     out = Path(out_dir)
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
-    if temporal not in TEMPORAL_MODES:
-        raise InputError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {temporal!r}")
+    if not isinstance(temporal, Temporal):
+        if temporal not in TEMPORAL_MODES:
+            choices = ", ".join(TEMPORAL_MODES)
+            raise InputError(f"temporal must be one of {choices}, got {temporal!r}")
+        temporal = Temporal(temporal)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     stitch_keywords, model_keywords, job_keywords = split(
@@ -316,7 +333,7 @@ def run(
     padding = job_options["padding"]
     fp["padding"] = DEFAULT_PADDING if padding is None else padding
     # With the temporal term a frame depends on the frames before it: the selection counts.
-    fp["video"] = {"temporal": temporal, "every": every, "start": start, "end": end}
+    fp["video"] = {"temporal": temporal.describe(), "every": every, "start": start, "end": end}
     plan = _Plan(
         out=out,
         source=source,
@@ -329,7 +346,7 @@ def run(
         fingerprint=fp,
         run_id=uuid.uuid4().hex[:12],
         resume=bool(resume),
-        temporal=Temporal(temporal),
+        temporal=temporal,
     )
     _make_output_folder(out)
     report = VideoReport(

@@ -201,12 +201,22 @@ class Temporal:
     mode : {"smooth", "none"}
         ``"none"``: every frame on its own (today's still pipeline); ``"smooth"``: the steps of
         this module.
+    prior : bool
+        Hand the previous state to the stitch as a prior where :func:`m360.estimate` takes
+        one and the alignment runs (step 3; default True); False: steps 4-5 only.
     """
 
-    def __init__(self, mode: str = "smooth") -> None:
+    def __init__(self, mode: str = "smooth", *, prior: bool = True) -> None:
         if mode not in TEMPORAL_MODES:
             raise InputError(f"temporal must be one of {', '.join(TEMPORAL_MODES)}, got {mode!r}")
+        if not isinstance(prior, bool):
+            raise InputError(f"prior must be True or False, got {prior!r}")
         self.mode = mode
+        self.prior = prior
+
+    def describe(self) -> dict[str, Any]:
+        """Describe what decides the outputs (for the resume fingerprint)."""
+        return {"mode": self.mode, "prior": self.prior and self.mode != "none"}
 
     def prepare(
         self, rgb: np.ndarray, previous: TemporalState | None, *, missing: str = "first frame"
@@ -237,6 +247,33 @@ class Temporal:
         confidence = np.exp(-np.square((grey - previous.grey) / CHANGE_SCALE)).astype(np.float32)
         record["confidence_mean"] = round(float(confidence.mean()), 6)
         return grey, confidence, {**record, "reset": None}
+
+    def prior_keywords(
+        self,
+        previous: TemporalState | None,
+        confidence: np.ndarray | None,
+        accepted: Any,
+    ) -> dict[str, Any]:
+        """Give the keywords that hand the previous state to the stitch as a prior (step 3).
+
+        Empty when there is nothing to hand over (first frame, cut, mode ``"none"``), or when
+        ``accepted`` (the keyword names :func:`m360.estimate` takes) has no ``prior``. The
+        prior is the state predicted to this frame (value plus trend), in the run's units
+        (``prior_kind="disparity"``: the result takes them, so the gauge does not jump), with
+        the image-change confidence.
+        """
+        if self.mode == "none" or not self.prior or previous is None or confidence is None:
+            return {}
+        if not {"prior", "prior_kind", "prior_confidence"} <= set(accepted):
+            return {}
+        predicted = previous.disparity
+        if previous.velocity is not None:
+            predicted = predicted + previous.velocity
+        return {
+            "prior": predicted.astype(np.float32),
+            "prior_kind": "disparity",
+            "prior_confidence": confidence,
+        }
 
     def apply(
         self,
