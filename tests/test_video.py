@@ -318,6 +318,22 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries, locks
 
 
+def test_a_video_that_is_not_equirectangular_is_refused_before_any_frame(tmp_path: Path) -> None:
+    clip = tmp_path / "wide.mp4"
+    with av.open(str(clip), "w") as container:
+        stream = container.add_stream("mpeg4", rate=24)
+        stream.width, stream.height, stream.pix_fmt = 320, 128, "yuv420p"
+        for _ in range(2):
+            image = np.zeros((128, 320, 3), np.uint8)
+            for packet in stream.encode(av.VideoFrame.from_ndarray(image, format="rgb24")):
+                container.mux(packet)
+        for packet in stream.encode():
+            container.mux(packet)
+    with pytest.raises(m360.InputError, match="320x128"):
+        m360.video.run(clip, tmp_path / "out", model=batch_helpers.Gated(None), progress=False)
+    assert not (tmp_path / "out").exists()
+
+
 def test_a_second_run_into_a_busy_folder_is_refused(tmp_path: Path) -> None:
     from m360.batch.image import _claim
 

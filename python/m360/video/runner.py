@@ -320,6 +320,11 @@ def run(
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
+    if source.width is not None and source.height is not None and source.width != 2 * source.height:
+        raise InputError(
+            f"{source.path} is {source.width}x{source.height}: an equirectangular 360° video has "
+            "W == 2H (convert dual-fisheye or cube-map footage to equirectangular first)"
+        )
     if preview_video:
         from .reader import _av
 
