@@ -419,3 +419,45 @@ def test_the_temporal_term_removes_flicker_without_losing_accuracy() -> None:
         results[mode] = (flicker, float(np.mean(absrel)))
     assert results["smooth"][0] < results["none"][0] / 3, results
     assert results["smooth"][1] <= results["none"][1] + 0.002, results
+
+
+def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Plumbing: where m360.estimate takes a prior, each frame after the first (and not after a
+    cut) gets the previous frame's state as one, in the run's units, with the image-change
+    confidence; none without alignment."""
+    import m360.pipeline.estimate as pipeline_estimate
+    import m360.video.runner as runner
+
+    real = pipeline_estimate.estimate
+    calls: list[dict] = []
+
+    def estimate(rgb, model, **keywords):
+        prior = {
+            k: keywords.pop(k) for k in ("prior", "prior_kind", "prior_confidence") if k in keywords
+        }
+        calls.append(prior)
+        return real(rgb, model, **keywords)
+
+    monkeypatch.setattr(pipeline_estimate, "estimate", estimate)
+    monkeypatch.setattr(
+        runner, "_estimate_keywords", lambda: {"prior", "prior_kind", "prior_confidence"}
+    )
+    folder = tmp_path / "frames"
+    _walk_frames(folder, 3, 3)
+    model = batch_helpers.Gated(None)
+    out = tmp_path / "out"
+    assert m360.video.run(folder, out, model=model, progress=False, blend="mean").exit_code == 0
+    assert calls[0] == {} and len(calls) == 3
+    for k, prior in enumerate(calls[1:], start=1):
+        state = m360.video.TemporalState.load(out / f"{k - 1:06d}{m360.video.STATE_SUFFIX}")
+        np.testing.assert_array_equal(prior["prior"], state.disparity + state.velocity)
+        assert prior["prior_kind"] == "disparity"
+        confidence = prior["prior_confidence"]
+        assert confidence.shape == state.disparity.shape
+        assert 0 <= confidence.min() and confidence.max() <= 1 and confidence.mean() > 0.5
+    assert [_sidecar(out, k)["temporal"]["prior"] for k in range(3)] == [False, True, True]
+    calls.clear()
+    m360.video.run(folder, tmp_path / "none", model=model, progress=False, **FAST)
+    assert calls == [{}, {}, {}]  # align="none": no prior
