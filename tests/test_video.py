@@ -461,3 +461,30 @@ def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
     calls.clear()
     m360.video.run(folder, tmp_path / "none", model=model, progress=False, **FAST)
     assert calls == [{}, {}, {}]  # align="none": no prior
+
+
+def test_a_damaged_packet_of_a_video_fails_its_frame_alone(tmp_path: Path) -> None:
+    """The decoder drops a frame it cannot decode without an error; the frame is reported lost
+    and the frames after it keep the encoder's numbers (ranked by timestamp, not counted)."""
+    clip = _encode(tmp_path / "clip.mkv", 40)
+    with av.open(str(clip)) as container:  # where the 20th packet's bytes lie in the file
+        packets = [(p.pos, p.size) for p in container.demux(video=0) if p.size]
+    pos, size = packets[20]
+    data = bytearray(clip.read_bytes())
+    data[pos + size - size // 2 : pos + size] = bytes(size // 2)  # half its payload zeroed
+    clip.write_bytes(bytes(data))
+    frames = list(m360.video.frames(clip, on_error="yield"))
+    assert [f.index for f in frames] == list(range(40))
+    assert [f.index for f in frames if f.error is not None] == [20]
+    assert isinstance(frames[20].error, m360.ReadError) and frames[20].rgb is None
+    assert frames[20].time == pytest.approx(20 / 24, abs=1e-3)  # MKV: millisecond times
+    assert [_index_of(f.rgb) for f in frames[:20]] == list(range(20))
+    with pytest.raises(m360.ReadError, match="frame 20 of"):
+        list(m360.video.frames(clip))
+    out = tmp_path / "out"
+    report = m360.video.run(clip, out, model=batch_helpers.Gated(None), progress=False, **FAST)
+    assert report.exit_code == 1
+    assert [o.stem for o in report.failed] == ["000020"] and len(report.done) == 39
+    failures = (out / "failures.jsonl").read_text().splitlines()
+    assert len(failures) == 1 and json.loads(failures[0])["output"] == "000020"
+    assert _sidecar(out, 21)["temporal"]["reset"] == "previous frame failed"

@@ -16,6 +16,7 @@ natural name order (``frame2`` before ``frame10``); a frame's time is ``index / 
 
 from __future__ import annotations
 
+import bisect
 import os
 import queue
 import re
@@ -301,37 +302,80 @@ def _folder_frames(
 def _video_frames(
     path: Path, select: Callable[[int, float | None], str], on_error: str
 ) -> Iterator[Frame]:
+    """Decode ``path``; a frame's index is the rank of its timestamp among the packets'.
+
+    A video packet holds one frame, so ranking the frames' presentation timestamps among the
+    packets demuxed so far numbers them as the encoder did, even where the decoder drops a
+    frame it cannot decode (FFmpeg conceals or drops damaged frames without an error: a count
+    of decoded frames would then shift every later index). The decoder outputs a frame only
+    after every packet that comes before it in presentation order, so the rank is final when
+    the frame arrives; a rank skipped is a frame lost, reported as such. Streams without
+    timestamps are counted instead.
+    """
     av = _av()
     container = _open(path)
     try:
         stream = container.streams.video[0]
         stream.thread_type = "AUTO"  # FFmpeg's own frame threads (they release the GIL)
         rate = float(stream.average_rate or 0) or None
-        index = 0
-        packets = container.demux(stream)
-        while True:
-            try:
-                packet = next(packets)
-                decoded = packet.decode()
-            except StopIteration:
-                return
-            except av.error.FFmpegError as exc:  # a damaged packet: its frames are lost
+        base = stream.time_base
+        timestamps: list[int] = []  # every packet's pts so far, sorted
+        counted = 0  # the next index where timestamps are missing
+        next_index = 0  # the index the next frame should have: below it, every frame was seen
+
+        def lost(upto: int, reason: str) -> Iterator[Frame]:
+            nonlocal next_index
+            while next_index < upto:
+                index = next_index
+                next_index += 1
+                time = float(timestamps[index] * base) if base is not None else None
+                if select(index, time) != "take":
+                    continue
+                error = ReadError(f"frame {index} of {path} cannot be decoded ({reason})")
                 if on_error == "raise":
-                    raise ReadError(f"cannot decode {path} after frame {index - 1}: {exc}") from exc
-                yield Frame(index, None, None, None, ReadError(f"{path}: {exc}"))
-                continue
+                    raise error
+                yield Frame(index, time, None, None, error)
+
+        for packet in _packets(container, stream, path):
+            problem = None
+            if packet.pts is not None and packet.size:
+                bisect.insort(timestamps, packet.pts)
+            try:
+                decoded = packet.decode()
+            except av.error.FFmpegError as exc:  # a damaged packet: its frame is lost
+                decoded, problem = [], str(exc)
             for frame in decoded:
+                if frame.pts is not None and timestamps:
+                    index = bisect.bisect_left(timestamps, frame.pts)
+                else:
+                    index, counted = counted, counted + 1
+                yield from lost(index, problem or "dropped by the decoder")
                 time = float(frame.time) if frame.time is not None else None
                 if time is None and rate:
                     time = index / rate
+                next_index = max(next_index, index + 1)
                 verdict = select(index, time)
                 if verdict == "stop":
                     return
                 if verdict == "take":
                     yield Frame(index, time, frame.to_ndarray(format="rgb24"))
-                index += 1
+        yield from lost(len(timestamps), "dropped by the decoder")
     finally:
         container.close()
+
+
+def _packets(container: Any, stream: Any, path: Path) -> Iterator[Any]:
+    """Yield the stream's packets; a damaged container is a ReadError where it stops."""
+    av = _av()
+    packets = container.demux(stream)
+    while True:
+        try:
+            packet = next(packets)
+        except StopIteration:
+            return
+        except av.error.FFmpegError as exc:
+            raise ReadError(f"cannot read {path} further: {exc}") from exc
+        yield packet
 
 
 _DONE = object()

@@ -396,6 +396,7 @@ def _run_frames(
     missing = "first frame"  # why there is no state (recorded in the next frame's sidecar)
     done_before: Path | None = None  # the last frame skipped as done: its state, if needed
     tried = False
+    job: Job | None = None
 
     def record(outcome: ImageOutcome) -> None:
         report.outcomes.append(outcome)
@@ -444,6 +445,9 @@ def _run_frames(
                 tried = True
     except KeyboardInterrupt:
         report.interrupted = True
+    except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
+        name = "video" if job is None else f"after {job.name}"
+        record(_failure(plan.source.path, name, exc))
     finally:
         bar.close()
 
