@@ -448,7 +448,11 @@ def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
     _walk_frames(folder, 3, 3)
     model = batch_helpers.Gated(None)
     out = tmp_path / "out"
-    assert m360.video.run(folder, out, model=model, progress=False, blend="mean").exit_code == 0
+    with_prior = m360.video.Temporal("smooth", prior=True)
+    run = m360.video.run(
+        folder, out, model=model, temporal=with_prior, progress=False, blend="mean"
+    )
+    assert run.exit_code == 0
     assert calls[0] == {} and len(calls) == 3
     for k, prior in enumerate(calls[1:], start=1):
         state = m360.video.TemporalState.load(out / f"{k - 1:06d}{m360.video.STATE_SUFFIX}")
@@ -459,8 +463,13 @@ def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
         assert 0 <= confidence.min() and confidence.max() <= 1 and confidence.mean() > 0.5
     assert [_sidecar(out, k)["temporal"]["prior"] for k in range(3)] == [False, True, True]
     calls.clear()
-    m360.video.run(folder, tmp_path / "none", model=model, progress=False, **FAST)
+    m360.video.run(
+        folder, tmp_path / "none", model=model, temporal=with_prior, progress=False, **FAST
+    )
     assert calls == [{}, {}, {}]  # align="none": no prior
+    calls.clear()
+    m360.video.run(folder, tmp_path / "default", model=model, progress=False, blend="mean")
+    assert calls == [{}, {}, {}]  # the default: steps 4-5 only (measured, docs/video.md)
 
 
 def test_a_damaged_packet_of_a_video_fails_its_frame_alone(tmp_path: Path) -> None:
