@@ -309,6 +309,9 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
             proc.wait()
     finished = {p.name: p.stat().st_mtime_ns for p in out.glob("*.json")}
     assert sorted(finished) == ["000000.json", "000001.json", "000002.json"]
+    # What a writer killed half-way leaves: temporaries of the 4th frame's files.
+    for name in ("000003.disparity.npy", "000003.temporal.npy"):
+        (out / f".{name}.abcdefgh.tmp").write_bytes(b"partial")
     rerun = subprocess.run([*cmd, ""], env=env, capture_output=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr.decode()
     assert "5 done, 3 already done, 0 failed" in rerun.stderr.decode()

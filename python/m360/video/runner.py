@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import contextlib
 import dataclasses
+import glob
 import hashlib
 import json
 import os
@@ -56,8 +57,8 @@ from ..errors import InputError, M360Error, ModelError, ReadError
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
-from ..io import check_formats, save
-from ..io.files import atomic_path, save_json
+from ..io import check_formats, remove_stale_temporaries, save
+from ..io.files import atomic_path, save_json, temporary_prefix
 from ..pipeline.options import EstimateKeywords, JobKeywords
 from ..stitching.depth import depth_of
 from ..stitching.options import StitchKeywords, StitchOptions, build
@@ -167,6 +168,12 @@ def _process(
     from ..pipeline.estimate import estimate
 
     assert frame.rgb is not None
+    # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
+    remove_stale_temporaries(job.stem)
+    state_name = _state_path(job.stem).name
+    for tmp in job.stem.parent.glob(f"{glob.escape(temporary_prefix(state_name))}{'?' * 8}.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
     t0 = time.perf_counter()
     grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
     prior = {}
