@@ -4,7 +4,8 @@
 exit codes: 0 every image succeeded (or was already done), 1 some failed, 2 usage errors (or
 the model failed on the first image: the run stops there), 3 none failed but some were still
 being written by another run into OUT (rerun to finish them), 130 interrupted (Ctrl-C; rerun
-to finish).
+to finish). ``m360 video`` is :func:`m360.video.run` (every frame of a 360° video, resumable,
+the same exit codes).
 """
 
 from __future__ import annotations
