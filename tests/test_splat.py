@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import os
 
 import m360
 import m360.synthetic as syn
@@ -202,3 +203,81 @@ def test_bad_input(tmp_path):
     with pytest.raises(m360.ReadError):
         splat_mod.read_splats(tmp_path / "missing.ply")
     assert not list(tmp_path.glob("*.tmp"))
+
+
+# ------------------------------------------------------------------------- m360 run, batch
+
+
+def run_room(tmp_path, engine: str):
+    import cv2
+    import onnx_graphs as g
+    from m360.cli import main
+
+    rgb, _ = m360.synthetic.render(m360.synthetic.room(3), 128)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    for k in range(2):
+        cv2.imwrite(str(photos / f"p{k}.png"), np.roll(rgb, 16 * k, axis=1)[:, :, ::-1])
+    model = g.affine_of_mean(tmp_path / "m.onnx", 1.0, 3.0)
+    out = tmp_path / "out"
+    args = ["run", str(photos), "-o", str(out), "--model", str(model), "--formats",
+            "npy,normals,splat", "--align", "none", "--blend", "mean", "--input-size", "64",
+            "96", "--no-progress", "--engine", engine]  # fmt: skip
+    return main(args), out, rgb
+
+
+@pytest.fixture
+def offline(tmp_path, monkeypatch):
+    monkeypatch.setenv("M360_HOME", str(tmp_path / "home"))
+    monkeypatch.setenv("M360_OFFLINE", "1")
+
+
+def check_run(out, rgb) -> None:
+    for k in range(2):
+        saved = m360.load(out / f"p{k}")
+        meta = saved.metadata
+        assert meta["files"]["normals"] == {"exr": f"p{k}.normals.exr", "png": f"p{k}.normals.png"}
+        assert meta["files"]["splat"] == {"splat": f"p{k}.splat.ply"}
+        np.testing.assert_array_equal(
+            m360.decode.read_exr(out / f"p{k}.normals.exr"), m360.normals(saved)
+        )
+        records = read_ply(out / f"p{k}.splat.ply")
+        splats = m360.to_splats(saved, np.roll(rgb, 16 * k, axis=1))
+        assert len(records) == len(splats)
+        f_dc = np.stack([records[f"f_dc_{c}"] for c in range(3)], 1)
+        np.testing.assert_array_equal(f_dc, splats.f_dc)  # the panorama's colours reached it
+
+
+def test_cli_run_writes_normals_and_splats_and_resumes(tmp_path, offline, capsys):
+    code, out, rgb = run_room(tmp_path, "local")
+    assert code == 0, capsys.readouterr().err
+    check_run(out, rgb)
+    stamp = (out / "p0.splat.ply").stat().st_mtime_ns
+    from m360.cli import main
+
+    args = ["run", str(tmp_path / "photos"), "-o", str(out), "--model", str(tmp_path / "m.onnx"),
+            "--formats", "npy,normals,splat", "--align", "none", "--blend", "mean",
+            "--input-size", "64", "96", "--no-progress"]  # fmt: skip
+    assert main(args) == 0
+    assert "2 already done" in capsys.readouterr().err
+    assert (out / "p0.splat.ply").stat().st_mtime_ns == stamp
+    (out / "p1.normals.png").unlink()  # a missing file: that image is done again
+    assert main(args) == 0
+    assert (out / "p1.normals.png").is_file()
+
+
+def test_ray_engine_writes_normals_and_splats(tmp_path, offline, monkeypatch, capsys):
+    ray = pytest.importorskip("ray")
+    from pathlib import Path
+
+    here = str(Path(__file__).parent)
+    monkeypatch.setenv(
+        "PYTHONPATH", os.pathsep.join(filter(None, [here, os.environ.get("PYTHONPATH")]))
+    )
+    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
+    try:
+        code, out, rgb = run_room(tmp_path, "ray")
+    finally:
+        ray.shutdown()
+    assert code == 0, capsys.readouterr().err
+    check_run(out, rgb)
