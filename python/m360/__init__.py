@@ -35,7 +35,7 @@ from .estimators import registry as models
 from .evaluation import metrics as eval
 from .evaluation import synthetic
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
-from .io import SavedResult, decode, load, mesh, save, viewer
+from .io import SavedResult, decode, load, mesh, save, splat, viewer
 from .io.mesh import Mesh, PointCloud, to_mesh, to_points
 from .io.normals import normals
 from .io.splat import Splats, to_splats
@@ -114,6 +114,7 @@ __all__ = [
     "save",
     "scale",
     "set_num_threads",
+    "splat",
     "stitch",
     "stitching",
     "synthetic",

@@ -183,71 +183,64 @@ def _quaternions(rot: np.ndarray) -> np.ndarray:
     return q / np.linalg.norm(q, axis=1, keepdims=True)  # type: ignore[no-any-return]
 
 
-def _band_records(
-    sphere: _SphereGrid, r0: int, r1: int, log_opacity: float
-) -> tuple[np.ndarray, np.ndarray]:
-    """Build the PLY records of the splats of grid rows r0…r1 and their flat ERP indices."""
+def _band_fields(sphere: _SphereGrid, r0: int, r1: int) -> dict[str, np.ndarray]:
+    """Compute the splats of grid rows r0…r1: :class:`Splats`' arrays (no opacity, units)."""
     band = sphere.band(r0, r1)
     keep = band.valid
-    index = np.flatnonzero(keep)
-    n_local, t_e, t_s = (v[:, keep] for v in (band.normal, band.east, band.south))
-    # The footprint's in-plane frame: u1 along the longitude chord, u2 = n × u1 (both in the
-    # plane: n = ±t_e × t_s). The (d, e, s) frame is right-handed, so its cross is the world's.
-    a = np.sqrt(np.einsum("kn,kn->n", t_e, t_e))
-    u1 = t_e / np.where(a > 0, a, 1)
-    u2 = np.cross(n_local, u1, axis=0)
-    b = np.einsum("kn,kn->n", t_s, u1)
-    c = np.einsum("kn,kn->n", t_s, u2)
-    # In-plane second moment of the two chords, [[a² + b², bc], [bc, c²]]: its eigenvectors.
-    m11, m12, m22 = a * a + b * b, b * c, c * c
-    theta = 0.5 * np.arctan2(2 * m12, m11 - m22)
-    mean, radius = (m11 + m22) / 2, np.sqrt(((m11 - m22) / 2) ** 2 + m12 * m12)
-    major = np.sqrt(np.maximum(mean + radius, 0)) * FOOTPRINT_SIGMA
-    minor = np.sqrt(np.maximum(mean - radius, 0)) * FOOTPRINT_SIGMA
-    minor = np.maximum(minor, major * 1e-3)
+    n_local, t_e, t_s = band.normal, band.east, band.south  # (3, b, cols) along (d, e, s)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        # The footprint's in-plane frame: u1 along the longitude chord, u2 = n × u1 (both in
+        # the plane: n = ±t_e × t_s). The (d, e, s) frame is right-handed: its cross is the
+        # world's.
+        a = np.sqrt(np.einsum("kij,kij->ij", t_e, t_e))
+        u1 = t_e / np.where(a > 0, a, 1)
+        u2 = np.cross(n_local, u1, axis=0)
+        b = np.einsum("kij,kij->ij", t_s, u1)
+        c = np.einsum("kij,kij->ij", t_s, u2)
+        # In-plane second moment of the two chords, [[a² + b², bc], [bc, c²]]: its eigenvectors.
+        m11, m12, m22 = a * a + b * b, b * c, c * c
+        theta = 0.5 * np.arctan2(2 * m12, m11 - m22)
+        mean, radius = (m11 + m22) / 2, np.sqrt(((m11 - m22) / 2) ** 2 + m12 * m12)
+        major = np.sqrt(np.maximum(mean + radius, 0)) * np.float32(FOOTPRINT_SIGMA)
+        minor = np.sqrt(np.maximum(mean - radius, 0)) * np.float32(FOOTPRINT_SIGMA)
+        minor = np.maximum(minor, major * np.float32(1e-3))
+        sigma = np.stack([major[keep], minor[keep], minor[keep] * np.float32(THICKNESS)], 1)
     cos_t, sin_t = np.cos(theta), np.sin(theta)
     v1 = u1 * cos_t + u2 * sin_t
     v2 = u2 * cos_t - u1 * sin_t  # n × v1
-    rows = np.repeat(np.arange(r0, r1), sphere.grid.cols)[index]
-    cols = np.tile(np.arange(sphere.grid.cols), r1 - r0)[index]
-    world = [_points_to_world(sphere, v, rows, cols) for v in (v1, v2, n_local)]
-    rotation = np.stack(world, axis=2)  # columns: the axes of scale_0, scale_1, scale_2
-    depth = band.depth.ravel()[index]
-    ray = _points_to_world(sphere, np.stack([np.ones_like(depth), 0 * depth, 0 * depth]),
-                           rows, cols)  # fmt: skip
-    records = np.empty(index.size, _RECORD)
-    for k, name in enumerate("xyz"):
-        records[name] = ray[:, k] * depth
-        records["n" + name] = world[2][:, k]
+    # columns: the axes of scale_0, scale_1, scale_2 (the normal), in the world frame
+    rotation = np.stack([sphere.to_world(v, r0, r1)[keep] for v in (v1, v2, n_local)], axis=2)
     colours = sphere.grid.rgb(r0, r1)
     if colours is None:
-        f_dc = np.zeros((index.size, 3), np.float32)
+        f_dc = np.zeros((rotation.shape[0], 3), np.float32)
     else:
-        f_dc = (colours.reshape(-1, 3)[index] / np.float32(255) - 0.5) / np.float32(SH_C0)
-    for k in range(3):
-        records[f"f_dc_{k}"] = f_dc[:, k]
-    records["opacity"] = log_opacity
-    for k, sigma in enumerate((major, minor, minor * THICKNESS)):
-        records[f"scale_{k}"] = np.log(sigma)
-    quaternion = _quaternions(rotation)
-    for k in range(4):
-        records[f"rot_{k}"] = quaternion[:, k]
-    return records, rows * sphere.grid.step * sphere.grid.width + cols * sphere.grid.step
+        f_dc = (colours[keep] / np.float32(255) - np.float32(0.5)) / np.float32(SH_C0)
+    rows, cols = np.divmod(np.flatnonzero(keep), sphere.grid.cols)
+    step, width = sphere.grid.step, sphere.grid.width
+    return {
+        "xyz": (sphere.grid.dirs(r0, r1) * band.depth[..., None])[keep],  # to_points' points
+        "normals": rotation[:, :, 2],
+        "f_dc": f_dc.astype(np.float32),
+        "scales": np.log(sigma),
+        "rotations": _quaternions(rotation),
+        "pixels": (rows + r0) * step * width + cols * step,
+    }
 
 
-def _points_to_world(
-    sphere: _SphereGrid, local: np.ndarray, rows: np.ndarray, cols: np.ndarray
-) -> np.ndarray:
-    """(n, 3) float32 world vectors of (3, n) (d, e, s) components at grid (rows, cols)."""
-    lat, lon = sphere.lat[rows], sphere.lon[cols]
-    cos_lat, sin_lat = np.cos(lat).astype(np.float32), np.sin(lat).astype(np.float32)
-    cos_lon, sin_lon = np.cos(lon).astype(np.float32), np.sin(lon).astype(np.float32)
-    v_d, v_e, v_s = local.astype(np.float32)
-    horizontal = v_d * cos_lat + v_s * sin_lat
-    return np.stack(
-        [horizontal * sin_lon + v_e * cos_lon, v_s * cos_lat - v_d * sin_lat,
-         horizontal * cos_lon - v_e * sin_lon], axis=1
-    )  # fmt: skip
+def _records(fields: dict[str, np.ndarray], opacity: np.ndarray | float) -> np.ndarray:
+    """Pack splat arrays (the keys of :class:`Splats`) into the PLY's records."""
+    records = np.empty(fields["xyz"].shape[0], _RECORD)
+    for key, names in (
+        ("xyz", ("x", "y", "z")),
+        ("normals", ("nx", "ny", "nz")),
+        ("f_dc", ("f_dc_0", "f_dc_1", "f_dc_2")),
+        ("scales", ("scale_0", "scale_1", "scale_2")),
+        ("rotations", ("rot_0", "rot_1", "rot_2", "rot_3")),
+    ):
+        for k, name in enumerate(names):
+            records[name] = fields[key][:, k]
+    records["opacity"] = opacity
+    return records
 
 
 def _prepare(
@@ -325,12 +318,20 @@ def to_splats(
     sphere, log_opacity, units = _prepare(
         source, rgb, stride, max_depth_ratio, max_vertices, opacity, quantity
     )
-    parts = [_band_records(sphere, r0, r1, log_opacity) for r0, r1 in sphere.bands()]
-    records = np.concatenate([p[0] for p in parts])
-    if records.size == 0:
+    count = sum(int(sphere.valid(r0, r1).sum()) for r0, r1 in sphere.bands())
+    if not count:
         raise _no_splats()
-    pixels = np.concatenate([p[1] for p in parts])
-    return Splats(**_fields(records), pixels=pixels.astype(np.int64), units=units)
+    widths = {"xyz": 3, "normals": 3, "f_dc": 3, "scales": 3, "rotations": 4}
+    out: dict[str, Any] = {k: np.empty((count, w), np.float32) for k, w in widths.items()}
+    out["pixels"] = np.empty(count, np.int64)
+    start = 0
+    for r0, r1 in sphere.bands():
+        fields = _band_fields(sphere, r0, r1)
+        stop = start + fields["pixels"].shape[0]
+        for key, values in fields.items():
+            out[key][start:stop] = values
+        start = stop
+    return Splats(**out, opacity=np.full(count, log_opacity, np.float32), units=units)
 
 
 def _fields(records: np.ndarray) -> dict[str, Any]:
@@ -375,18 +376,14 @@ def write_splats(path: str | os.PathLike[str], splats: Splats) -> Path:
         f.write(_header(n))
         for k in range(0, n, _CHUNK):
             part = slice(k, k + _CHUNK)
-            records = np.empty(min(_CHUNK, n - k), _RECORD)
-            for names, values in (
-                (("x", "y", "z"), splats.xyz),
-                (("nx", "ny", "nz"), splats.normals),
-                (("f_dc_0", "f_dc_1", "f_dc_2"), splats.f_dc),
-                (("scale_0", "scale_1", "scale_2"), splats.scales),
-                (("rot_0", "rot_1", "rot_2", "rot_3"), splats.rotations),
-            ):
-                for j, name in enumerate(names):
-                    records[name] = values[part, j]
-            records["opacity"] = splats.opacity[part]
-            records.tofile(f)
+            fields = {
+                "xyz": splats.xyz[part],
+                "normals": splats.normals[part],
+                "f_dc": splats.f_dc[part],
+                "scales": splats.scales[part],
+                "rotations": splats.rotations[part],
+            }
+            _records(fields, splats.opacity[part]).tofile(f)
     return target
 
 
@@ -424,7 +421,7 @@ def write_splat_ply(
     with atomic_path(target) as tmp, open(tmp, "wb") as f:
         f.write(_header(count))
         for r0, r1 in sphere.bands():
-            _band_records(sphere, r0, r1, log_opacity)[0].tofile(f)
+            _records(_band_fields(sphere, r0, r1), log_opacity).tofile(f)
     return {"stride": sphere.grid.step, "splats": count}
 
 
