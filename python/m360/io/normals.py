@@ -52,6 +52,12 @@ def _ratio(max_depth_ratio: Any) -> float:
 
 #: Grid pixels per band (tens of MB of temporaries).
 _BAND_PIXELS = 1 << 18
+#: Shortest longitude chord, as an angle seen from the camera (radians). Near the poles one
+#: column is a tiny angle (row 0 at 8K: 3e-7 rad), where the depth difference of neighbours is
+#: below float32's resolution; there the chord reaches as many columns as this angle needs
+#: (at most a quarter turn), which keeps the normal's error from the depths' rounding near
+#: 0.02° (it was 3° median at 8K's first row with one column).
+MIN_CHORD_ANGLE = 2.5e-4
 
 
 @dataclass
@@ -90,7 +96,12 @@ class _SphereGrid:
         cols = np.arange(0, width, step)
         self.lat = np.pi / 2 - np.pi * (rows + 0.5) / height
         self.lon = 2 * np.pi * (cols + 0.5) / width - np.pi
-        # Longitude step to the next grid column (the seam: back to column 0 plus 2π).
+        # Columns the longitude chords reach per row (1 but near the poles, MIN_CHORD_ANGLE)
+        # and the longitude step to the next grid column (the seam: column 0 plus 2π).
+        column_angle = np.cos(self.lat) * (2 * np.pi * step / width)
+        self.reach = np.clip(
+            np.ceil(MIN_CHORD_ANGLE / np.maximum(column_angle, 1e-300)), 1, max(1, cols.size // 4)
+        ).astype(np.int64)
         dlon = np.diff(self.lon, append=self.lon[0] + 2 * np.pi)
         # Latitude step to the next row south and north; across a pole it is twice the
         # distance to the pole, on the opposite meridian (``shift`` grid columns away).
@@ -123,19 +134,48 @@ class _SphereGrid:
 
     def valid(self, r0: int, r1: int) -> np.ndarray:
         """Which pixels of rows r0…r1 get a normal (cheap: depths and ratios only)."""
-        return self._neighbours(self.halo(r0, r1))[-1]
+        return self._neighbours(self.halo(r0, r1), r0, r1)[-1]
 
-    def _neighbours(self, halo: np.ndarray) -> tuple[np.ndarray, ...]:
+    def _columns(self, r0: int, r1: int) -> tuple[np.ndarray, np.ndarray] | None:
+        """East and west neighbour columns (b, cols) of rows r0…r1; None: one column each."""
+        reach = self.reach[r0:r1, None]
+        if (reach == 1).all():
+            return None
+        cols = np.arange(self.grid.cols)
+        return (cols + reach) % cols.size, (cols - reach) % cols.size
+
+    def _neighbours(self, halo: np.ndarray, r0: int, r1: int) -> tuple[np.ndarray, ...]:
         r = halo[1:-1]
-        r_e, r_w = np.roll(r, -1, axis=1), np.roll(r, 1, axis=1)
+        columns = self._columns(r0, r1)
+        if columns is None:
+            r_e, r_w = np.roll(r, -1, axis=1), np.roll(r, 1, axis=1)
+        else:
+            r_e, r_w = (np.take_along_axis(r, c, axis=1) for c in columns)
         r_n, r_s = halo[:-2], halo[2:]
         ok = [_kept(self.ratio, r, other, r) for other in (r_e, r_w, r_s, r_n)]
         valid = (ok[0] | ok[1]) & (ok[2] | ok[3])
         return r, r_e, r_w, r_s, r_n, *ok, valid
 
+    def _longitude_steps(self, r0: int, r1: int) -> tuple[np.ndarray, ...]:
+        """1 − cos and sin of the longitude steps to the east and west neighbours."""
+        columns = self._columns(r0, r1)
+        if columns is None:
+            return (self.one_minus_cos_east, self.sin_east, self.one_minus_cos_west,
+                    self.sin_west)  # fmt: skip
+        east = (self.lon[columns[0]] - self.lon) % (2 * np.pi)
+        west = (self.lon - self.lon[columns[1]]) % (2 * np.pi)
+        return tuple(
+            f(angle).astype(np.float32)
+            for angle in (east, west)
+            for f in (lambda x: 1 - np.cos(x), np.sin)
+        )
+
     def band(self, r0: int, r1: int) -> _Band:
         """Compute the normals and chords of rows r0…r1 in each pixel's frame (:class:`_Band`)."""
-        r, r_e, r_w, r_s, r_n, ok_e, ok_w, ok_s, ok_n, valid = self._neighbours(self.halo(r0, r1))
+        r, r_e, r_w, r_s, r_n, ok_e, ok_w, ok_s, ok_n, valid = self._neighbours(
+            self.halo(r0, r1), r0, r1
+        )
+        one_minus_cos_e, sin_e, one_minus_cos_w, sin_w = self._longitude_steps(r0, r1)
         lat = self.lat[r0:r1, None]
         cos_lat = np.cos(lat).astype(np.float32)
         cos2 = (np.cos(lat) ** 2).astype(np.float32)
@@ -144,16 +184,17 @@ class _SphereGrid:
             # Chords along longitude, (d, e, s) components: P_e − P and P − P_w. The ray
             # component is (r_e − r) − r_e (1 − d_e·d): the depth difference first, exact.
             east = (
-                (r_e - r) - r_e * (cos2 * self.one_minus_cos_east),
-                r_e * (cos_lat * self.sin_east),
-                -r_e * (sin_cos * self.one_minus_cos_east),
+                (r_e - r) - r_e * (cos2 * one_minus_cos_e),
+                r_e * (cos_lat * sin_e),
+                -r_e * (sin_cos * one_minus_cos_e),
             )
             west = (
-                (r - r_w) + r_w * (cos2 * self.one_minus_cos_west),
-                r_w * (cos_lat * self.sin_west),
-                r_w * (sin_cos * self.one_minus_cos_west),
+                (r - r_w) + r_w * (cos2 * one_minus_cos_w),
+                r_w * (cos_lat * sin_w),
+                r_w * (sin_cos * one_minus_cos_w),
             )
-            t_e = _shorter(east, west, ok_e, ok_w)
+            # per grid column (the splats' footprint): a chord over k columns is k times one
+            t_e = _shorter(east, west, ok_e, ok_w) / self.reach[r0:r1, None].astype(np.float32)
             # Chords along latitude: P_s − P and P − P_n (no east component: same meridian,
             # or across the pole the opposite one, which is the same great circle).
             eps_s = self.eps_south[r0:r1, None]
