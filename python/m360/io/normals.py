@@ -12,8 +12,10 @@ row on the opposite meridian, as for bilinear taps.
 The chords are computed in each pixel's own frame (ray, east, south) from per-row
 coefficients in float64: differences of nearby float32 points near the poles (a few 1e-7 of
 the depth apart at 8K) would lose most of their digits, the local form only keeps the depths'
-own rounding. For a plane, any two chords from a pixel lie in the plane, so the normal is
-exact up to float rounding.
+own rounding. Next to the poles, where one column is too small an angle for float32 depths
+to tell apart, the longitude chord spans several columns (:data:`MIN_CHORD_ANGLE`). For a
+plane, any two chords from a pixel lie in the plane, so the normal is exact up to float
+rounding.
 """
 
 from __future__ import annotations
@@ -31,7 +33,14 @@ from ..errors import InputError
 from .files import NORMALS_FILES
 from .mesh import DEFAULT_MAX_DEPTH_RATIO, _depth_source, _Grid, _kept
 
-__all__ = ["NORMALS_FILES", "NORMALS_FRAME", "encode_png", "normals", "write_normals"]
+__all__ = [
+    "MIN_CHORD_ANGLE",
+    "NORMALS_FILES",
+    "NORMALS_FRAME",
+    "encode_png",
+    "normals",
+    "write_normals",
+]
 
 #: The frame of :func:`normals` and of the normals files (recorded in the sidecar's ``frame``).
 NORMALS_FRAME = (
