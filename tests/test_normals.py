@@ -263,3 +263,25 @@ def test_pole_rows_keep_their_digits_at_4k():
     for row in (0, 1, 2, 3, height - 2, height - 1):
         error = angles_deg(n[row], truth[row])
         assert error.max() < 0.1, (row, error.max())
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_random_maps_never_fail(seed):
+    # Noise, holes, zeros, negatives, infinities and tiny maps: unit normals facing the camera
+    # where the depth is valid and a neighbour on each axis is usable, NaN elsewhere.
+    rng = np.random.default_rng(seed)
+    height = int(rng.integers(2, 40))
+    depth = rng.lognormal(0.0, 0.5 * seed, (height, 2 * height)).astype(np.float32)
+    bad = rng.random(depth.shape) < 0.2
+    depth[bad] = rng.choice(np.array([np.nan, 0.0, -1.0, np.inf], np.float32), bad.sum())
+    n = m360.normals(depth, max_depth_ratio=float(rng.choice([1.05, 2.0, np.inf])))
+    assert n.shape == (*depth.shape, 3) and n.dtype == np.float32
+    valid = np.isfinite(n).all(-1)
+    assert (np.isnan(n) == ~valid[..., None]).all()  # a normal is whole or NaN
+    assert not valid[~(np.isfinite(depth) & (depth > 0))].any()
+    np.testing.assert_allclose(np.linalg.norm(n[valid], axis=-1), 1.0, atol=1e-5)
+    rays = erp_directions(2 * height)
+    assert ((n[valid] * rays[valid]).sum(-1) <= 1e-6).all()
+    splats = m360.to_splats(depth, max_depth_ratio=np.inf) if valid.any() else None
+    if splats is not None:
+        assert np.isfinite(splats.scales).all() and np.isfinite(splats.rotations).all()
