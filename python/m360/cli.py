@@ -128,8 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_max_vertices,
         default=DEFAULT_MAX_VERTICES,
         metavar="N",
-        help=f"most vertices of each 3D file (ply, glb): larger images are strided to fit "
-        f"(default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar records the stride",
+        help=f"most vertices (splats) of each 3D file (ply, glb, splat): larger images are "
+        f"strided to fit (default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar "
+        "records the stride",
     )
     run.add_argument(
         "--workers",
