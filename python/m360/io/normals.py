@@ -113,7 +113,8 @@ class _SphereGrid:
         ).astype(np.int64)
         dlon = np.diff(self.lon, append=self.lon[0] + 2 * np.pi)
         # Latitude step to the next row south and north; across a pole it is twice the
-        # distance to the pole, on the opposite meridian (``shift`` grid columns away).
+        # distance to the pole, on the opposite meridian (``shift`` grid columns away: the
+        # nearest grid column when the stride does not divide H, off by less than a column).
         lat = self.lat
         self.eps_south = np.append(np.diff(lat), -2 * (lat[-1] + np.pi / 2))
         self.eps_north = np.concatenate([[2 * (np.pi / 2 - lat[0])], -np.diff(lat)])
