@@ -119,6 +119,12 @@ class _SphereGrid:
         self.eps_south = np.append(np.diff(lat), -2 * (lat[-1] + np.pi / 2))
         self.eps_north = np.concatenate([[2 * (np.pi / 2 - lat[0])], -np.diff(lat)])
         self.shift = round(height / step) % cols.size
+        # That column's longitude is λ + π + δ: the chords across a pole take δ into account
+        # (cos²(δ/2) shortens them, sin δ turns them east); δ = 0 when the stride divides H.
+        delta = self.lon[(np.arange(cols.size) + self.shift) % cols.size] - self.lon - np.pi
+        delta = (delta + np.pi) % (2 * np.pi) - np.pi
+        self.pole_cos2 = (np.cos(delta / 2) ** 2).astype(np.float32)
+        self.pole_sin = np.sin(delta).astype(np.float32)
         self.one_minus_cos_east = (1 - np.cos(dlon)).astype(np.float32)
         self.sin_east = np.sin(dlon).astype(np.float32)
         self.one_minus_cos_west = np.roll(self.one_minus_cos_east, 1)
@@ -205,20 +211,26 @@ class _SphereGrid:
             )
             # per grid column (the splats' footprint): a chord over k columns is k times one
             t_e = _shorter(east, west, ok_e, ok_w) / self.reach[r0:r1, None].astype(np.float32)
-            # Chords along latitude: P_s − P and P − P_n (no east component: same meridian,
-            # or across the pole the opposite one, which is the same great circle).
+            # Chords along latitude: P_s − P and P − P_n (no east component on the same
+            # meridian, nor across a pole on the opposite one: the same great circle).
             eps_s = self.eps_south[r0:r1, None]
             eps_n = self.eps_north[r0:r1, None]
-            south = (
-                (r_s - r) - r_s * (1 - np.cos(eps_s)).astype(np.float32),
-                np.zeros_like(r),
-                -r_s * np.sin(eps_s).astype(np.float32),
-            )
-            north = (
-                (r - r_n) + r_n * (1 - np.cos(eps_n)).astype(np.float32),
-                np.zeros_like(r),
-                r_n * np.sin(eps_n).astype(np.float32),
-            )
+            south_d = r_s * (1 - np.cos(eps_s)).astype(np.float32)
+            south_s = -r_s * np.sin(eps_s).astype(np.float32)
+            south_e = np.zeros_like(r)
+            north_d = r_n * (1 - np.cos(eps_n)).astype(np.float32)
+            north_s = r_n * np.sin(eps_n).astype(np.float32)
+            north_e = np.zeros_like(r)
+            if r0 == 0:  # across the north pole: the neighbour is at λ + π + δ
+                north_d[0] *= self.pole_cos2
+                north_s[0] *= self.pole_cos2
+                north_e[0] = r_n[0] * np.float32(np.cos(self.lat[0])) * self.pole_sin
+            if r1 == self.grid.rows:  # across the south pole
+                south_d[-1] *= self.pole_cos2
+                south_s[-1] *= self.pole_cos2
+                south_e[-1] = -r_s[-1] * np.float32(np.cos(self.lat[-1])) * self.pole_sin
+            south = ((r_s - r) - south_d, south_e, south_s)
+            north = ((r - r_n) + north_d, north_e, north_s)
             t_s = _shorter(south, north, ok_s, ok_n)
             normal = _unit_facing_camera(np.cross(t_e, t_s, axis=0))
         return _Band(r, normal, t_e, t_s, valid)
