@@ -129,8 +129,11 @@ def test_splats_lie_on_the_walls_and_cover_each_pixels_footprint():
     assert np.median(np.abs(ratio_minor - 1)) < 0.01 and np.quantile(ratio_minor, 0.01) > 0.95
     # thin along the normal
     np.testing.assert_allclose(sigma[:, 2], splat_mod.THICKNESS * sigma[:, 1], rtol=1e-4)
-    # the covariance's in-plane part itself (not only its eigenvalues)
-    cov = splats.covariances()[keep].astype(np.float64)
+    # the covariance's in-plane part itself (not only its eigenvalues), built as the 3DGS
+    # reference code does (L = R S, Σ = L Lᵀ) with scipy's rotation of the quaternion
+    scaled = axes[keep] * np.exp(splats.scales[keep].astype(np.float64))[:, None, :]
+    cov = np.einsum("nik,njk->nij", scaled, scaled)
+    np.testing.assert_allclose(splats.covariances()[keep], cov, rtol=1e-3, atol=1e-9)
     n = hit.normal[keep]
     thin = np.einsum("ni,nj->nij", n, n) * (sigma[:, 2] ** 2)[:, None, None]
     err = np.linalg.norm(cov - thin - expected[keep], axis=(1, 2)) / np.linalg.norm(
