@@ -31,6 +31,8 @@ from .evaluation.metrics import depth_metrics, format_metrics
 from .geometry.layout import default_layout
 from .io import (
     GEOMETRY_FORMATS,
+    KNOWN_FORMATS,
+    NORMALS_FORMATS,
     SAVE_FORMATS,
     load,
     output_stem,
@@ -112,7 +114,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_formats,
         default=("npy",),
         help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
-        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
+        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh, splat: Gaussian splats; "
+        f"extra m360[3d]); {', '.join(NORMALS_FORMATS)} (surface normals, exr and png)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument(
@@ -125,8 +128,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_max_vertices,
         default=DEFAULT_MAX_VERTICES,
         metavar="N",
-        help=f"most vertices of each 3D file (ply, glb): larger images are strided to fit "
-        f"(default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar records the stride",
+        help=f"most vertices (splats) of each 3D file (ply, glb, splat): larger images are "
+        f"strided to fit (default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar "
+        "records the stride",
     )
     run.add_argument(
         "--workers",
@@ -255,17 +259,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     view = commands.add_parser(
         "view",
-        help="show a result's point cloud or mesh in the browser (extra m360[3d])",
+        help="show a result's point cloud, mesh or splats in the browser (extra m360[3d])",
         description=(
             "Serve a local page (viser) on 127.0.0.1 showing the point cloud of an output "
             "(STEM.points.ply with the panorama's colours, else the depth map's points coloured "
-            "by distance) or, with --mesh, its mesh. Prints the address and opens it in the "
-            "browser when there is one. Large clouds are subsampled for display only."
+            "by distance) or, with --mesh, its mesh, with --splats its Gaussian splats. Prints "
+            "the address and opens it in the browser when there is one. Large clouds are "
+            "subsampled for display only."
         ),
     )
     view.add_argument("path", type=Path, help="output stem (or one of its files), .ply or .glb")
     view.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
-    view.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    shown = view.add_mutually_exclusive_group()
+    shown.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    shown.add_argument(
+        "--splats",
+        action="store_true",
+        help="show the Gaussian splats (STEM.splat.ply, else made from the depth map)",
+    )
     view.add_argument("--colour", choices=("rgb", "depth"), default="rgb", help="point colours")
     view.add_argument("--max-points", type=int, default=2_000_000, help="most points displayed")
     view.add_argument("--no-browser", action="store_true", help="do not open a browser")
@@ -310,7 +321,7 @@ def _max_vertices(text: str) -> int | None:
 
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
-    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    known = KNOWN_FORMATS
     unknown = [f for f in chosen if f not in known]
     if unknown or not chosen:
         raise argparse.ArgumentTypeError(
@@ -364,6 +375,7 @@ def _view(args: argparse.Namespace) -> int:
         args.path,
         port=args.port,
         mesh=args.mesh,
+        splats=args.splats,
         colour=args.colour,
         max_points=args.max_points,
         open_browser=not args.no_browser,

@@ -27,6 +27,7 @@ from ..io import (
     FORMAT_SUFFIXES,
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
+    NORMALS_FILES,
     QUANTITIES,
     SAVE_FORMATS,
     listed_files,
@@ -432,6 +433,7 @@ def output_names(
     ]
     names += [f"{stem}.preview.png"] * bool(preview)
     names += [stem + GEOMETRY_FILES[fmt][1] for fmt in formats if fmt in GEOMETRY_FILES]
+    names += [stem + tail for tail in NORMALS_FILES.values()] * ("normals" in formats)
     return [*names, f"{stem}.json"]
 
 
@@ -499,7 +501,7 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
         names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
     except M360Error:
         return False
-    for extra in ("preview", *(kind for kind, _ in GEOMETRY_FILES.values())):
+    for extra in ("preview", "normals", *(kind for kind, _ in GEOMETRY_FILES.values())):
         entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
         for name in entry.values() if isinstance(entry, dict) else [entry]:
             if isinstance(name, str) and Path(name).name == name:

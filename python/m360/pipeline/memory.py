@@ -73,9 +73,19 @@ _RGB_BYTES_PER_PIXEL = 3.0
 #: panorama held), measured at 12K: npy streams into the file; pfm's and exr's encoders hold
 #: the encoded map (and a copy); png16 holds its uint16 codes and the encoded PNG; the preview
 #: the finite values (for the percentiles), then the colour image and its PNG.
-_OUTPUT_BYTES_PER_PIXEL = {"npy": 1.0, "pfm": 8.5, "exr": 8.5, "png16": 4.2, "preview": 5.0}
-#: The streamed 3D writers: a band's temporaries (about a million vertices) ...
-_GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
+#: ``normals`` holds its three float32 planes and 8-bit codes (13 bytes) and the encoders'
+#: buffers (measured 19.7 at 4K, 17.4 at 8K: benches/bench_3d.py normals_files).
+_OUTPUT_BYTES_PER_PIXEL = {
+    "npy": 1.0,
+    "pfm": 8.5,
+    "exr": 8.5,
+    "png16": 4.2,
+    "preview": 5.0,
+    "normals": 20.0,
+}
+#: The streamed 3D writers: a band's temporaries (about a million vertices; the splats' a
+#: quarter million pixels, measured 114 MB at 4K and 141 MB at 8K) ...
+_GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20, "splat": 160 * 2**20}
 #: ... and, for the mesh, per strided grid vertex: the per-quad flags, the used mask and the
 #: renumbering (int32).
 _MESH_BYTES_PER_VERTEX = 9.0
@@ -213,8 +223,8 @@ def _writing_bytes(
     for fmt in formats:
         if fmt in _OUTPUT_BYTES_PER_PIXEL:
             peaks.append(_OUTPUT_BYTES_PER_PIXEL[fmt] * pixels)
-        elif fmt == "ply":
-            peaks.append(_GEOMETRY_BAND_BYTES["ply"])
+        elif fmt in ("ply", "splat"):
+            peaks.append(_GEOMETRY_BAND_BYTES[fmt])
         elif fmt == "glb":
             step = mesh.stride_for(height, width, 1, budget if budget is None else int(budget), 2)
             grid = -(-height // step) * -(-width // step)
