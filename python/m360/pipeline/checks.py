@@ -9,6 +9,7 @@ none, recording every try (docs/method.md, "Checking the result", "Anchoring the
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 import cv2
@@ -184,28 +185,48 @@ def _sample_at_tangent_pixels(erp: np.ndarray, layout: Layout, stride: int) -> n
 
 
 def stitch_checked(
-    perspective: np.ndarray, layout: Layout, mask: np.ndarray | None, opts: StitchOptions
+    perspective: np.ndarray,
+    layout: Layout,
+    mask: np.ndarray | None,
+    opts: StitchOptions,
+    *,
+    prior: Mapping[str, Any] | None = None,
+    anchor: bool = True,
 ) -> tuple[StitchResult, dict[str, Any]]:
-    """Stitch, check the result, and fall back (coarser alignment, then none) while it fails."""
+    """Stitch, check the result, and fall back (coarser alignment, then none) while it fails.
+
+    ``prior`` holds the prior's keywords of :func:`m360.stitch` (``prior``, ``prior_kind``,
+    ``prior_confidence``), given to every try. ``anchor`` False leaves an aligned result where
+    the stitch put it (a prior in metres sets its scale) instead of anchoring it on the
+    tangents' own values.
+    """
+    prior_args = dict(prior or {})
     tries = _fallbacks(opts)
     report: list[dict[str, Any]] = []
     details: StitchResult | None = None
     taken = "none"
     for k, (name, candidate) in enumerate(tries):
-        details = stitch(perspective, layout, mask=mask, options=candidate, return_details=True)
-        anchor = None
+        details = stitch(
+            perspective,
+            layout,
+            mask=mask,
+            options=candidate,
+            return_details=True,
+            **prior_args,
+        )
+        anchored = None
         fit = None
-        if candidate.align is not None:
+        if candidate.align is not None and anchor:
             fit = _anchor(details.disparity, perspective, layout)
             if fit is not None:
-                anchor = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
+                anchored = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
         measured, problems = _result_problems(
             details, perspective, layout, mask, None if fit is None else fit[:2]
         )
         report.append(
             {
                 "options": name if k else "as asked",
-                "anchor": anchor,
+                "anchor": anchored,
                 **measured,
                 "problems": problems,
             }

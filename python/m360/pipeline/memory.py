@@ -18,6 +18,13 @@ reached (its result and plan stay, and the allocator keeps what it freed); the f
 written one after another, so the largest counts. The per-pixel costs of
 decoding and writing were measured at 12K (benches/bench_bigpano.py ``--outputs``).
 
+A global prior adds its map's pixels (a prior model's: its network input and output, then the
+map fitted to the job and its trust) and its resampling onto the working ERP; a panoramic model
+alone (:func:`estimate_panoramic_memory`) needs its network's arrays, the upsampling's planes at
+the network's size and the full-resolution outputs. These are counted from the arrays m360
+allocates (not fitted to measured peaks like the coefficients above); the networks' own
+activations, held by ONNX Runtime, are not counted for any model.
+
 ``M360_MEMORY_LIMIT`` (bytes, or with a K/M/G suffix) replaces the available memory the check
 compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
 """
@@ -43,6 +50,7 @@ __all__ = [
     "check_memory",
     "check_working_width",
     "estimate_memory",
+    "estimate_panoramic_memory",
     "taps_per_pixel",
     "working_width_for",
 ]
@@ -79,6 +87,15 @@ _GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
 #: ... and, for the mesh, per strided grid vertex: the per-quad flags, the used mask and the
 #: renumbering (int32).
 _MESH_BYTES_PER_VERTEX = 9.0
+
+#: Bytes per prior-map pixel: a model's float32 RGB input (12) and output (4), the map fitted
+#: to the job (4) and its trust (4), and a resizing temporary (8).
+_PRIOR_BYTES_PER_PIXEL = 32.0
+#: Bytes per working-resolution ERP pixel of the prior on the stitch's grid (map and weight).
+_PRIOR_BYTES_PER_WORKING_PIXEL = 8.0
+#: Bytes per network pixel of a panoramic model: input (12), output and disparity (8), the
+#: guided upsampling's planes of that resolution (7 float32 planes and their sums in f64: 84).
+_PANORAMIC_BYTES_PER_NETWORK_PIXEL = 104.0
 
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -125,6 +142,7 @@ def estimate_memory(
     max_vertices: int | str | None = "default",
     header: ImageHeader | None = None,
     file_bytes: int = 0,
+    prior_pixels: int = 0,
 ) -> int:
     """Peak bytes :func:`m360.estimate` (or, with outputs or a header, a whole run) adds.
 
@@ -151,6 +169,8 @@ def estimate_memory(
         any aspect fix).
     file_bytes : int
         The input file's size (held while it is decoded).
+    prior_pixels : int
+        Pixels of the global prior's map (a prior model's: its network input); 0: no prior.
 
     Returns
     -------
@@ -168,6 +188,9 @@ def estimate_memory(
     per_pixel += _BYTES_PER_TAP * (taps - _REFERENCE_TAPS)
     working_pixels = work * (work // 2)
     total = _FIXED_BYTES + per_pixel * working_pixels
+    if prior_pixels:
+        total += _PRIOR_BYTES_PER_PIXEL * prior_pixels
+        total += _PRIOR_BYTES_PER_WORKING_PIXEL * working_pixels
     if work != width:
         total += _BYTES_PER_FULL_PIXEL * width * (width // 2)
     if formats is None and header is None:
@@ -179,6 +202,30 @@ def estimate_memory(
     # result, its plan kept for the next image, and freed memory the allocator keeps).
     writing = _writing_bytes(width, formats or (), preview, confidence, max_vertices)
     return int(max(decoding, rgb + total + writing))
+
+
+def estimate_panoramic_memory(width: int, network_shape: tuple[int, int]) -> int:
+    """Peak bytes :func:`m360.estimate` adds with a panoramic model (its activations apart).
+
+    Parameters
+    ----------
+    width : int
+        Input ERP width (height width / 2): the outputs' size.
+    network_shape : (int, int)
+        The network's input (height, width).
+
+    Returns
+    -------
+    int
+        Bytes beyond the input image.
+    """
+    network_pixels = int(network_shape[0]) * int(network_shape[1])
+    full = width * (width // 2)
+    return int(
+        _FIXED_BYTES
+        + _PANORAMIC_BYTES_PER_NETWORK_PIXEL * network_pixels
+        + _BYTES_PER_FULL_PIXEL * full
+    )
 
 
 def _decoding_bytes(header: ImageHeader) -> float:
