@@ -175,7 +175,7 @@ def estimate(
     model : str, path or estimator
         A registry name (default ``"midas-v21-small"``, downloaded and verified on first use;
         see ``m360 models``), a path to an ``.onnx`` file, or any object with
-        ``predict(tangents) -> (N, h, w)`` and ``output_kind``.
+        ``predict(tangents) -> (N, h, w)`` and ``output_kind`` (or a panoramic one, see below).
     options : StitchOptions, optional
         Every stitching option at once (then give none of them as a keyword).
     model_options : ModelOptions, optional
@@ -215,7 +215,25 @@ def estimate(
           (docs/method.md). ``padding="paper"`` is the paper's layout;
         - ``sky``: ``"nan"`` makes pixels whose disparity is at or below
           ``m360.masks.SKY_THRESHOLD`` times its 90th percentile (the sky, or beyond) NaN
-          instead of a huge fake distance; default ``"keep"``.
+          instead of a huge fake distance; default ``"keep"``;
+        - the global prior (:class:`m360.pipeline.options.PriorKeywords`, tangent models
+          only): ``prior``, an ERP map (Hp, 2 Hp) of any resolution (NaN = unknown: another
+          tool's output, a LiDAR map, the previous video frame) or a panoramic model (a
+          :class:`m360.estimators.PanoramicEstimator`, or a path or registry name loaded with
+          ``kind="panoramic"`` and the model options' ``providers`` and ``threads``, run once on
+          the working-resolution photo at its own size); ``prior_kind``, what it holds
+          (``affine_disparity``, ``disparity``, ``affine_depth``, ``distance``; required for a
+          map, a model's output kind otherwise); ``prior_confidence``, a map's per-pixel trust
+          in [0, 1]. The prior is fitted to the job (an ERP grid no larger than the working
+          ERP, NaN under the masks) and given to :func:`m360.stitch`; a prior in metres
+          (``disparity``, ``distance``) gives the result its metres. ``options["prior"]``
+          records it (kind, model name and sha256, or ``"array"``).
+
+        With a panoramic model (``kind="panoramic"``, or a panoramic estimator object) the
+        network runs once on the whole photo at its own size and its map is upsampled to the
+        photo's resolution (``upsample``); ERP masks, ``sky`` and ``scale`` apply as above,
+        while ``layout``, ``padding``, a tangent mask and a prior do not (the stitching
+        options and ``working_width`` are ignored).
 
     Returns
     -------
@@ -263,6 +281,8 @@ def estimate(
         prior_given.get("prior"),
         prior_given.get("prior_kind"),
         prior_given.get("prior_confidence"),
+        providers=model_opts.providers,
+        threads=model_opts.threads,
     )
     _memory.check_memory(
         _memory.estimate_memory(
@@ -272,7 +292,6 @@ def estimate(
     )
     sky_mode = job["sky"]
     mask, erp_valid = _split_mask(mask, layout, (height, width))
-    photo = rgb
     guide = None
     if work_width != width:
         guide = rgb  # the full-resolution photo guides the upsampling
@@ -291,10 +310,10 @@ def estimate(
     }
     prior_map = None
     if prior is not None:
-        # The prior model sees the photo at its own size (from the full resolution).
-        prior_map = _prior_map(prior, photo, prior_input=None)
+        # The prior model sees the working-resolution photo (as the Ray engine ships it to
+        # its model actors), resized to the network's size.
+        prior_map = _prior_map(prior, rgb, prior_input=None)
         timings["prior"] = time.perf_counter() - t_network
-    del photo
     result = _from_network(
         raw,
         estimator.output_kind,

@@ -27,10 +27,12 @@ from ..estimators.kinds import PANORAMIC_METRIC_KINDS, PANORAMIC_OUTPUT_KINDS
 __all__ = [
     "PRIOR_KINDS",
     "Prior",
+    "as_keywords",
     "check_prior",
     "check_prior_confidence",
     "describe",
     "fit_to_job",
+    "is_model",
     "load_prior",
     "prior_input",
     "run_prior",
@@ -131,7 +133,12 @@ def check_prior_confidence(value: Any, name: str = "prior_confidence") -> Any:
 
 
 def load_prior(
-    prior: Any, prior_kind: str | None = None, prior_confidence: Any = None
+    prior: Any,
+    prior_kind: str | None = None,
+    prior_confidence: Any = None,
+    *,
+    providers: Any = None,
+    threads: int | None = None,
 ) -> Prior | None:
     """Resolve the prior options of :func:`m360.estimate` (checked, a model loaded).
 
@@ -147,6 +154,9 @@ def load_prior(
         own, which a different ``prior_kind`` contradicts).
     prior_confidence : (Hp, Wp) array in [0, 1], optional
         Per-pixel trust in an array prior (same shape).
+    providers, threads : optional
+        ONNX Runtime's providers and threads for a prior model given by path or name (the
+        main model's, so that a GPU run runs both on the GPU).
 
     Returns
     -------
@@ -197,7 +207,13 @@ def load_prior(
         )
     if isinstance(value, str):
         try:
-            estimator = load_estimator(value, kind="panoramic", output_kind=prior_kind)
+            estimator = load_estimator(
+                value,
+                kind="panoramic",
+                output_kind=prior_kind,
+                providers=providers,
+                threads=threads,
+            )
         except ModelError as exc:
             raise ModelError(f"the prior model cannot be used: {exc}") from exc
     else:
@@ -208,6 +224,28 @@ def load_prior(
                 f"{estimator.output_kind!r}; leave prior_kind out for an estimator object"
             )
     return Prior(estimator.output_kind, estimator=estimator)
+
+
+def is_model(prior: Any) -> bool:
+    """Whether a ``prior`` option names a model (a path or name, or an estimator), not a map."""
+    if prior is None or isinstance(prior, np.ndarray):
+        return False
+    if isinstance(prior, (str, os.PathLike)):
+        return os.path.splitext(os.fspath(prior))[1].lower() not in MAP_SUFFIXES
+    return True
+
+
+def as_keywords(prior: Prior | None) -> dict[str, Any]:
+    """Give the keywords of :func:`m360.estimate` that pass ``prior`` as it is (loaded)."""
+    if prior is None:
+        return {}
+    if prior.array is not None:
+        return {
+            "prior": prior.array,
+            "prior_kind": prior.kind,
+            "prior_confidence": prior.confidence,
+        }
+    return {"prior": prior.estimator}
 
 
 def prior_input(estimator: Any, rgb: np.ndarray) -> np.ndarray:
