@@ -132,9 +132,11 @@ class PriorKeywords(TypedDict, total=False):
     prior_confidence: Annotated[
         Any,
         Option(
-            "per-pixel trust in a prior map, (Hp, Wp) in [0, 1] (Python only)",
+            "per-pixel trust in a prior map, (Hp, Wp) in [0, 1] (on the command line a .npy, "
+            ".pfm or .exr file)",
             check=lambda v, n: check_prior_confidence(v, n),
-            flag="",
+            parse=str,
+            metavar="MAP",
         ),
     ]
 

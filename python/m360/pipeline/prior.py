@@ -118,9 +118,16 @@ def check_prior(value: Any, name: str = "prior") -> Any:
 
 
 def check_prior_confidence(value: Any, name: str = "prior_confidence") -> Any:
-    """Check a ``prior_confidence`` map: (Hp, 2 Hp) in [0, 1] (NaN: 0, unknown)."""
+    """Check a ``prior_confidence`` map: (Hp, 2 Hp) in [0, 1] (NaN: 0, unknown).
+
+    A path is read as an array file (:func:`m360.io.read_array`: .npy, .pfm, .exr).
+    """
     if value is None:
         return None
+    if isinstance(value, (str, os.PathLike)):
+        from ..io import read_array
+
+        value = read_array(value)
     array = _erp_map(value, name).copy()
     finite = array[np.isfinite(array)]
     if finite.size and (finite.min() < 0 or finite.max() > 1):
