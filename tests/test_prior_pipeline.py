@@ -27,7 +27,8 @@ from m360.evaluation import synthetic
 from m360.pipeline import checks, memory
 
 WIDTH = 512
-FAST = {"align": "none", "blend": "frustum"}
+#: One coarse alignment level and a row blend: quick (a prior acts through the alignment).
+FAST = {"align": (4, 3), "blend": "frustum"}
 #: Whether the installed m360.stitch takes a prior (the alignment's prior term).
 STITCH_TAKES_PRIOR = "prior" in inspect.signature(m360.stitch).parameters
 
@@ -223,12 +224,32 @@ def test_prior_options_are_checked_before_the_network_runs(
         ),
         ({"prior": network}, InputError, "tangent estimator"),
         ({"prior": 3}, InputError, "must be an ERP map"),
+        ({"prior": good, "prior_kind": "distance", "align": "none"}, InputError, "alignment"),
         ({"prior": str(priors["broken"])}, ModelError, "the prior model cannot be used"),
         ({"prior": "nowhere/pano.onnx"}, ModelError, "the prior model cannot be used"),
     ]
     for keywords, error, message in cases:
         with pytest.raises(error, match=message):
             m360.estimate(rgb, network, **keywords)
+
+
+def test_the_fallback_without_alignment_stitches_without_the_prior(
+    room: tuple, network: SimulatedEstimator, stitched: list, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    # Every try fails its checks: the asked options, a coarser alignment, then none.
+    real = checks._result_problems
+
+    def failing(*args: Any, **keywords: Any) -> Any:
+        measured, _ = real(*args, **keywords)
+        return measured, ["forced by the test"]
+
+    monkeypatch.setattr(checks, "_result_problems", failing)
+    prior = np.ones((16, 32), np.float32)
+    res = m360.estimate(room[0], network, prior=prior, prior_kind="distance", align=(8, 7))
+    assert [("prior" in call) for call in stitched] == [True, True, False]
+    tries = res.checks["result"]
+    assert [t.get("prior") for t in tries] == [None, None, "dropped"]
+    assert res.checks["fallback"] == "no alignment"
 
 
 def test_a_prior_map_file(
@@ -317,7 +338,7 @@ def test_cli_run_with_a_prior_model(
     model = g.affine_of_mean(tmp_path / "tiny.onnx", 1.0, 3.0)
     base = [
         "run", str(photo_folder), "-o", str(tmp_path / "out"), "--model", str(model),
-        "--input-size", "64", "64", "--align", "none", "--blend", "frustum", "--no-progress",
+        "--input-size", "64", "64", "--align", "4x3", "--blend", "frustum", "--no-progress",
     ]  # fmt: skip
     code = main([*base, "--prior", str(priors["distance"]), "--prior-kind", "distance"])
     assert code == 0, capsys.readouterr().err

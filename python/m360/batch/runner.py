@@ -489,6 +489,8 @@ def run(
     prior_given = checked(prior_keywords, PriorKeywords)
     if panoramic and prior_given:
         raise InputError("a prior goes with a tangent model; a panoramic model is used alone")
+    if prior_given.get("prior") is not None and opts.align is None:
+        raise InputError("a prior acts through the alignment: give align other than 'none'")
     if panoramic and job_options["padding"] is not None:
         raise InputError("a panoramic model runs once on the whole ERP: padding does not apply")
     # The prior too: a prior model that cannot be loaded is one ModelError before any image.

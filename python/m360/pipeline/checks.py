@@ -196,9 +196,10 @@ def stitch_checked(
     """Stitch, check the result, and fall back (coarser alignment, then none) while it fails.
 
     ``prior`` holds the prior's keywords of :func:`m360.stitch` (``prior``, ``prior_kind``,
-    ``prior_confidence``), given to every try. ``anchor`` False leaves an aligned result where
-    the stitch put it (a prior in metres sets its scale) instead of anchoring it on the
-    tangents' own values.
+    ``prior_confidence``), given to every try that aligns (a prior acts through the alignment;
+    the last fallback, no alignment, stitches without it and its try records ``"prior":
+    "dropped"``). ``anchor`` False leaves an aligned result where the stitch put it (a prior in
+    metres sets its scale) instead of anchoring it on the tangents' own values.
     """
     prior_args = dict(prior or {})
     tries = _fallbacks(opts)
@@ -206,13 +207,14 @@ def stitch_checked(
     details: StitchResult | None = None
     taken = "none"
     for k, (name, candidate) in enumerate(tries):
+        with_prior = prior_args if candidate.align is not None else {}
         details = stitch(
             perspective,
             layout,
             mask=mask,
             options=candidate,
             return_details=True,
-            **prior_args,
+            **with_prior,
         )
         anchored = None
         fit = None
@@ -229,6 +231,7 @@ def stitch_checked(
                 "anchor": anchored,
                 **measured,
                 "problems": problems,
+                **({"prior": "dropped"} if prior_args and not with_prior else {}),
             }
         )
         taken = name

@@ -225,7 +225,8 @@ def estimate(
           (``affine_disparity``, ``disparity``, ``affine_depth``, ``distance``; required for a
           map, a model's output kind otherwise); ``prior_confidence``, a map's per-pixel trust
           in [0, 1]. The prior is fitted to the job (an ERP grid no larger than the working
-          ERP, NaN under the masks) and given to :func:`m360.stitch`; a prior in metres
+          ERP, NaN under the masks) and given to :func:`m360.stitch`, whose alignment follows
+          it (``align="none"`` is refused with a prior); a prior in metres
           (``disparity``, ``distance``) gives the result its metres. ``options["prior"]``
           records it (kind, model name and sha256, or ``"array"``).
 
@@ -277,6 +278,8 @@ def estimate(
         )
     else:
         work_width = layout.erp_shape[1]
+    if prior_given.get("prior") is not None and opts.align is None:
+        raise InputError("a prior acts through the alignment: give align other than 'none'")
     prior = _prior.load_prior(
         prior_given.get("prior"),
         prior_given.get("prior_kind"),

@@ -113,7 +113,7 @@ class PriorKeywords(TypedDict, total=False):
             "a global prior the alignment pulls the tangents' low frequencies toward: a "
             "panoramic model (an .onnx path or registry name, loaded with kind panoramic and "
             "run on each photo at its own size) or an ERP map (Hp, 2 Hp) of any resolution, "
-            "NaN = unknown (on the command line a .npy, .pfm or .exr file)",
+            "NaN = unknown (on the command line a .npy, .pfm or .exr file); needs alignment",
             check=lambda v, n: check_prior(v, n),
             parse=str,
             metavar="MODEL|MAP",
