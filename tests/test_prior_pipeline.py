@@ -20,6 +20,7 @@ import m360
 import numpy as np
 import onnx_graphs as g
 import pytest
+import real_data
 from m360.cli import main
 from m360.errors import InputError, ModelError
 from m360.estimators import SimulatedEstimator, _probe, load_estimator
@@ -432,3 +433,34 @@ def test_ray_engine_panoramic_model_and_prior_equal_the_local_engine(
     for name in ("room.depth.npy", "room.disparity.npy"):
         assert (runs["local"] / name).read_bytes() == (runs["ray"] / name).read_bytes()
     assert _sidecar(runs["ray"])["options"]["prior"] == _sidecar(runs["local"])["options"]["prior"]
+
+
+# --------------------------------------------------------------------------------------------
+# Real networks and photos (the real-data tier; skipped where absent).
+
+
+@real_data.requires_real
+def test_real_networks_as_a_panoramic_model_and_as_a_prior(stitched: list) -> None:
+    fast = real_data.MODELS / "fastdepth_dynamic.onnx"
+    pydnet = real_data.MODELS / "mobile_pydnet_dynamic.onnx"
+    # A real graph with a size rule: models check finds it on the ERP, as for tangents.
+    info = m360.models.check(fast, kind="panoramic", normalize="unit")
+    assert info["kind"] == "panoramic" and info["usable"]
+    assert info["size_rule"] == 32  # 512 x 1024 already is a multiple: no flag needed
+    rgb = m360.io.load_image(real_data.PANOS / "empty_warehouse_01_1k.tonemapped.png")
+    # FastDepth run on the whole ERP: relative depth up to scale and shift.
+    pano = load_estimator(
+        fast, kind="panoramic", output_kind="affine_depth", normalize="unit", multiple_of=32,
+        input_size=(256, 512),
+    )  # fmt: skip
+    alone = m360.estimate(rgb, pano)
+    assert alone.depth.shape == (512, 1024) and alone.model["output_shape"] == [256, 512]
+    assert np.isfinite(alone.depth).mean() > 0.99 and np.nanmin(alone.depth) > 0
+    # As the prior of mobile PyDNet's tangents: the prior reaches the stitch at its size.
+    res = m360.estimate(
+        rgb, str(pydnet), multiple_of=64, normalize="unit", output_kind="negated_affine_disparity",
+        input_size=(128, 128), prior=pano, **FAST,
+    )  # fmt: skip
+    assert stitched[0]["prior"].shape == (256, 512) and stitched[0]["prior_kind"] == "affine_depth"
+    assert res.options["prior"]["sha256"] == m360.models.sha256_of(fast)
+    assert np.isfinite(res.disparity).mean() > 0.95
