@@ -320,6 +320,26 @@ def test_batch_resume_redoes_an_image_when_the_prior_changes(
     assert "prior" not in _sidecar(out)["batch"]["fingerprint"]
 
 
+@pytest.mark.skipif(not STITCH_TAKES_PRIOR, reason="the installed m360.stitch takes no prior yet")
+def test_batch_workers_load_the_prior_themselves(
+    room: tuple, priors: dict[str, Path], tmp_path: Path
+) -> None:
+    folder = tmp_path / "photos"
+    folder.mkdir()
+    for k in range(2):
+        assert cv2.imwrite(str(folder / f"p{k}.png"), np.roll(room[0], 40 * k, axis=1)[:, :, ::-1])
+    tangent = str(g.affine_of_mean(tmp_path / "tiny.onnx", 1.0, 3.0))
+    common = {
+        "model": tangent, "input_size": (64, 64), "threads": 1, "progress": False,
+        "prior": str(priors["distance"]), "prior_kind": "distance", **FAST,
+    }  # fmt: skip
+    one = m360.batch.run([folder], tmp_path / "one", workers=1, **common)
+    two = m360.batch.run([folder], tmp_path / "two", workers=2, **common)
+    assert one.exit_code == two.exit_code == 0 and len(two.done) == 2
+    for name in ("p0.depth.npy", "p1.depth.npy"):
+        assert (tmp_path / "one" / name).read_bytes() == (tmp_path / "two" / name).read_bytes()
+
+
 def test_batch_refuses_a_broken_prior_model_before_any_image(
     photo_folder: Path, network: SimulatedEstimator, priors: dict[str, Path], tmp_path: Path
 ) -> None:
