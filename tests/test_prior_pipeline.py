@@ -196,6 +196,13 @@ def test_a_prior_model_output_that_is_not_2_to_1_becomes_an_erp_grid(
     assert given.shape == (35, 70)  # h = mean of 40 and 60 / 2
     np.testing.assert_allclose(given, 2.0)
 
+    class Blind(Square):
+        def predict(self, erp: np.ndarray) -> np.ndarray:
+            return np.full((8, 16), np.nan, np.float32)
+
+    with pytest.raises(ModelError, match="no finite value"):
+        m360.estimate(room[0], network, prior=Blind(), **FAST)
+
 
 def test_prior_options_are_checked_before_the_network_runs(
     room: tuple, network: SimulatedEstimator, priors: dict[str, Path]

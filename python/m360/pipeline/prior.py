@@ -289,7 +289,11 @@ def run_prior(estimator: Any, image: np.ndarray, what: str = "prior model") -> n
             f"{what} {name} returned {out.dtype} of shape {out.shape}; a panoramic estimator "
             "returns one float (h, w) ERP map"
         )
-    return np.asarray(out, dtype=np.float32)
+    values = np.asarray(out, dtype=np.float32)
+    if not np.isfinite(values).any():
+        name = getattr(estimator, "name", type(estimator).__name__)
+        raise ModelError(f"{what} {name} returned no finite value")
+    return values
 
 
 def _resize_masked(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
