@@ -131,16 +131,17 @@ def test_a_metric_prior_gives_the_result_its_metres_end_to_end(
     room: tuple, network: SimulatedEstimator
 ) -> None:
     rgb, distance, _ = room
-    coarse = cv2.resize(distance, (128, 64), interpolation=cv2.INTER_AREA)  # the true distance
+    # The prior says the room is twice as large as it is (the simulated network's own scale is
+    # about 1: without a prior its depth is within 10 % of the truth's median).
+    coarse = 2.0 * cv2.resize(distance, (128, 64), interpolation=cv2.INTER_AREA)
     res = m360.estimate(rgb, network, prior=coarse, prior_kind="distance")
     assert res.units == "metres"
     ok = np.isfinite(res.depth)
     # No scale or shift fitted here: the metres come from the prior through the stitch.
-    abs_rel = float(np.mean(np.abs(res.depth[ok] - distance[ok]) / distance[ok]))
+    ratio = res.depth[ok] / distance[ok]
+    assert abs(float(np.median(ratio)) - 2.0) < 0.1
+    abs_rel = float(np.mean(np.abs(res.depth[ok] / 2.0 - distance[ok]) / distance[ok]))
     assert abs_rel < 0.05, abs_rel
-    without = m360.estimate(rgb, network)  # relative: its depth is not in metres
-    ok = np.isfinite(without.depth)
-    assert float(np.mean(np.abs(without.depth[ok] - distance[ok]) / distance[ok])) > 0.1
 
 
 def test_a_large_prior_is_shrunk_to_the_working_erp(
