@@ -78,6 +78,21 @@ class Plan:
     ) -> tuple[
         npt.NDArray[np.float32], list[dict[str, Any]], list[npt.NDArray[np.float64]], str
     ]: ...
+    def align_with_prior(
+        self,
+        maps: npt.NDArray[np.float32],
+        align: dict[str, Any],
+        prior: npt.NDArray[np.float32],
+        prior_confidence: npt.NDArray[np.float32] | None = None,
+        absolute: bool = False,
+        in_place: bool = False,
+    ) -> tuple[
+        npt.NDArray[np.float32],
+        list[dict[str, Any]],
+        list[npt.NDArray[np.float64]],
+        str,
+        dict[str, Any] | None,
+    ]: ...
     def alignment_problem(
         self, maps: npt.NDArray[np.float32], grid: tuple[int, int], align: dict[str, Any]
     ) -> dict[str, Any]: ...

@@ -2,14 +2,14 @@
 
 :mod:`~m360.stitching.options` holds every stitching option (:class:`StitchOptions`);
 :mod:`~m360.stitching.align` and :mod:`~m360.stitching.blend` say what each option means;
-:mod:`~m360.stitching.stitch` runs them (:func:`m360.stitch`); :mod:`~m360.stitching.upsample`
-brings a working-resolution result to the photo's; :mod:`~m360.stitching.depth` turns disparity
-into depth.
+:mod:`~m360.stitching.stitch` runs them (:func:`m360.stitch`); :mod:`~m360.stitching.prior`
+checks a global prior map; :mod:`~m360.stitching.upsample` brings a working-resolution result to
+the photo's; :mod:`~m360.stitching.depth` turns disparity into depth.
 """
 
 from __future__ import annotations
 
-from . import align, blend, depth, options, upsample
+from . import align, blend, depth, options, prior, upsample
 from .depth import depth_of
 from .options import StitchOptions
 from .stitch import StitchResult
@@ -24,5 +24,6 @@ __all__ = [
     "depth_of",
     "guided_upsample",
     "options",
+    "prior",
     "upsample",
 ]

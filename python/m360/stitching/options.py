@@ -148,6 +148,22 @@ class StitchTuning(TypedDict, total=False):
             choices=_CHOICES["loss"],
         ),
     ]
+    prior_weight: Annotated[
+        float | None,
+        Option(
+            f"weight of the global prior's term, used with a prior (default "
+            f"{_ALIGN['prior_weight']:g})",
+            parse=float,
+        ),
+    ]
+    prior_scale_deg: Annotated[
+        float | None,
+        Option(
+            "frequency split of the prior, degrees: the tangents are compared with the prior "
+            f"averaged over this radius (default {_ALIGN['prior_scale_deg']:g})",
+            parse=float,
+        ),
+    ]
     blend_options: Annotated[
         Mapping[str, Any] | None,
         Option(
@@ -207,7 +223,15 @@ class StitchKeywords(StitchTuning, total=False):
 
 _LIMIT_ITERATIONS = int(_core.LIMITS["max_iterations"])
 #: The real-valued alignment options.
-_REAL_KEYS = ("tolerance", "sample_fraction", "pole_cap_deg", "smoothness", "scale_weight")
+_REAL_KEYS = (
+    "tolerance",
+    "sample_fraction",
+    "pole_cap_deg",
+    "smoothness",
+    "scale_weight",
+    "prior_weight",
+    "prior_scale_deg",
+)
 #: The Poisson keys of ``blend_options``, named by the core.
 _POISSON_KEYS = tuple(k for k in _core.DEFAULTS["poisson"] if k != "method")
 #: Old spellings of ``blend_options`` keys, still accepted with a DeprecationWarning.
@@ -228,6 +252,8 @@ class AlignOptions(TypedDict):
     scale_weight: float
     offsets: Offsets
     loss: Loss
+    prior_weight: float
+    prior_scale_deg: float
 
 
 class _BlendMethodOnly(TypedDict):
@@ -266,6 +292,9 @@ class StitchOptions:
     pole_cap_deg, smoothness, scale_weight, offsets, loss : optional
         Alignment options; None takes the core's default (see :mod:`m360.align`). Ignored with
         ``align="none"``.
+    prior_weight, prior_scale_deg : optional
+        The global prior's term weight and frequency split (see :mod:`m360.stitching.prior`);
+        used only when a prior is given.
     blend_options : mapping, optional
         Poisson options ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (see
         :mod:`m360.blend`); refused for another method; given without ``blend``, they select

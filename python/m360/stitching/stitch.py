@@ -25,6 +25,7 @@ from . import blend as _blend
 from .align import AlignLevelReport
 from .blend import BlendMethod, BlendReport
 from .options import AlignSpec, StitchOptions, StitchTuning, build
+from .prior import PriorKind, PriorReport, check_prior, prior_disagreement
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -62,11 +63,13 @@ class StitchReport(_StitchReportBase, total=False):
     """Solver reports of one stitch.
 
     ``blend`` always; with alignment ``align`` (per level) and ``align_fallback`` (what the
-    overlap samples allowed, see :mod:`m360.align`).
+    overlap samples allowed, see :mod:`m360.align`); with a prior ``prior``, what the alignment
+    fitted to it (:class:`m360.stitching.prior.PriorReport`; None when no level ran).
     """
 
     align: list[AlignLevelReport]
     align_fallback: str
+    prior: PriorReport | None
 
 
 @dataclass
@@ -81,7 +84,9 @@ class StitchResult:
     confidence : (H, W) float32
         Overlap disagreement: the standard deviation of the (aligned) tangents' values at each
         pixel, 0 where one tangent sees it, NaN where none does; with ``blend="consensus"`` the
-        disagreement left after the vote (:mod:`m360.blend`). Lower means more consistent.
+        disagreement left after the vote (:mod:`m360.blend`); with a prior, combined (root sum
+        of squares) with the disagreement |disparity − prior| of the prior fitted to the result
+        (NaN-free where the prior is unknown: the tangents' alone). Lower means more consistent.
     coverage : (H, W) uint8
         Number of tangents whose image contains each pixel.
     grids : list of (N, rows, cols, 2) float64
@@ -116,6 +121,9 @@ def stitch(
     blend: BlendMethod | None = ...,
     *,
     mask: np.ndarray | None = ...,
+    prior: np.ndarray | None = ...,
+    prior_kind: PriorKind = ...,
+    prior_confidence: np.ndarray | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[False] = ...,
     **keywords: Unpack[StitchTuning],
@@ -130,6 +138,9 @@ def stitch(
     blend: BlendMethod | None = ...,
     *,
     mask: np.ndarray | None = ...,
+    prior: np.ndarray | None = ...,
+    prior_kind: PriorKind = ...,
+    prior_confidence: np.ndarray | None = ...,
     options: StitchOptions | None = ...,
     return_details: Literal[True],
     **keywords: Unpack[StitchTuning],
@@ -144,6 +155,9 @@ def stitch(
     blend: BlendMethod | None = None,
     *,
     mask: np.ndarray | None = None,
+    prior: np.ndarray | None = None,
+    prior_kind: PriorKind = "affine_disparity",
+    prior_confidence: np.ndarray | None = None,
     options: StitchOptions | None = None,
     return_details: bool = False,
     **keywords: Unpack[StitchTuning],
@@ -173,6 +187,19 @@ def stitch(
     mask : (N, h, w) bool, optional
         False marks pixels with no estimate (sky, tripod). They never contribute, not even
         through a bilinear neighbour, and are left out of standardisation and overlaps.
+    prior : (Hp, 2·Hp) float array, optional
+        A global prior ERP map of any resolution (a panoramic network's output, another tool's,
+        the previous video frame), NaN = unknown: the alignment follows its low frequencies
+        while the blend keeps the tangents' detail (:mod:`m360.stitching.prior`; the weight
+        and frequency split are ``prior_weight`` and ``prior_scale_deg``). Needs alignment.
+        None (default): no prior, the result is exactly that of a stitch without one.
+    prior_kind : str
+        What the prior holds: ``"affine_disparity"`` (default; spherical disparity up to scale
+        and shift), ``"disparity"`` (1/m: the result takes its units), ``"affine_depth"``
+        (radial depth up to scale and shift) or ``"distance"`` (radial metres: the result is
+        then spherical disparity in 1/m).
+    prior_confidence : (Hp, 2·Hp) float array in [0, 1], optional
+        Per-pixel trust in the prior (e.g. lower where a video frame changed).
     options : StitchOptions, optional
         Every stitching option at once (then give none of them as a keyword).
     return_details : bool
@@ -180,7 +207,8 @@ def stitch(
     **keywords
         The other stitching options, :class:`m360.stitching.options.StitchTuning` (``energy``,
         ``solver``, ``iterations``, ``tolerance``, ``sample_fraction``, ``pole_cap_deg``,
-        ``smoothness``, ``scale_weight``, ``offsets``, ``loss``, ``blend_options``; see
+        ``smoothness``, ``scale_weight``, ``offsets``, ``loss``, ``prior_weight``,
+        ``prior_scale_deg``, ``blend_options``; see
         :mod:`m360.align` and :mod:`m360.blend`); None or absent takes the core's default. A
         Poisson solve that does not reach its tolerance raises :class:`m360.SolverError`.
 
@@ -204,6 +232,13 @@ def stitch(
     opts = build(options, align=align, blend=blend, **tuning).checked_for(layout.tangent_shape)
     valid = None if mask is None else _check_mask(mask, layout)
     flag(return_details, "return_details")
+    prior_map: np.ndarray | None = None
+    if prior is not None:
+        prior_map, prior_conf, absolute = check_prior(prior, prior_kind, prior_confidence)
+        if opts.align is None:
+            raise InputError("a prior needs alignment: give align other than 'none'")
+    elif prior_confidence is not None:
+        raise InputError("prior_confidence was given without a prior")
 
     plan = plan_for(layout)
     spherical = plan.spherical_disparity(data, valid)
@@ -211,11 +246,17 @@ def stitch(
     grids: list[np.ndarray] = []
     levels: list[AlignLevelReport] = []
     align_options = opts.align
+    fit: dict[str, Any] | None = None
     if align_options is not None:
         # In place: `spherical` is this call's own array (no second stack-sized array).
-        spherical, reports, grids, fallback = plan.align(
-            spherical, dict(align_options), in_place=True
-        )
+        if prior_map is None:
+            spherical, reports, grids, fallback = plan.align(
+                spherical, dict(align_options), in_place=True
+            )
+        else:
+            spherical, reports, grids, fallback, fit = plan.align_with_prior(
+                spherical, dict(align_options), prior_map, prior_conf, absolute, in_place=True
+            )
         levels = [_level_report(r) for r in reports]
         if fallback != "none":
             _log.warning(
@@ -238,6 +279,22 @@ def stitch(
     if align_options is not None:
         report["align"] = levels
         report["align_fallback"] = fallback
+    if prior_map is not None:
+        report["prior"] = None
+        if fit is not None:
+            affine = (float(fit["affine"][0]), float(fit["affine"][1]))
+            report["prior"] = PriorReport(
+                kind=str(prior_kind),
+                affine=affine,
+                samples=int(fit["samples"]),
+                outvoted=float(fit["outvoted"]),
+                weight=float(fit["weight"]),
+                residual=float(fit["residual"]),
+            )
+            gap = prior_disagreement(disparity, prior_map, affine)
+            known = np.isfinite(gap) & np.isfinite(confidence)
+            confidence = confidence.copy()
+            confidence[known] = np.hypot(confidence[known], gap[known])
     return StitchResult(
         disparity=disparity,
         confidence=confidence,

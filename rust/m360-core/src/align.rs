@@ -20,7 +20,9 @@ use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Mat, Side};
 use rayon::prelude::*;
 
+mod prior;
 mod transform;
+pub use prior::{Prior, PriorFit, PriorSamples};
 pub use transform::MapValues;
 use transform::{FactorTable, Transform, Transformed};
 
@@ -140,6 +142,11 @@ choice!(
 /// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
 /// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
 pub const ROBUST_ROUNDS: usize = 3;
+
+/// Residual scale floor of the prior term (standardised units: the prior's mean absolute
+/// deviation is 1): disagreements within 1 % of the prior's spread are its resampling, not
+/// an error to outvote.
+const MIN_PRIOR_SCALE: f64 = 1e-2;
 
 /// Residual scale floor (standardised units): exact tangents have residuals near rounding, and a
 /// scale of 0 would weigh every sample 0.
@@ -574,6 +581,81 @@ impl Sample {
     }
 }
 
+/// One prior sample: its residual is r = Σ_j w_j·(d·s + f·o)(node j) − (α·p + β), with w the
+/// bilinear weights of the fractions in the tangent's cell and (α, β) the prior node.
+#[derive(Debug, Clone, Copy)]
+struct PriorSample {
+    /// Top-left grid node of the cell.
+    node: u32,
+    /// Fractions (x, y) within the cell.
+    frac: [f64; 2],
+    /// Tangent disparity (low-passed) and offset factor at the pixel.
+    d: f64,
+    f: f64,
+    /// Standardised prior value.
+    p: f64,
+}
+
+impl PriorSample {
+    /// The 5 nodes: the cell's corners, then the prior node.
+    #[inline]
+    fn nodes(&self, cols: usize, prior_node: u32) -> [u32; 5] {
+        let (a, c) = (self.node, cols as u32);
+        [a, a + 1, a + c, a + c + 1, prior_node]
+    }
+
+    /// Residual coefficients on the 5 nodes' first (s, α) and second (o, β) unknowns.
+    #[inline]
+    fn coefficients(&self) -> ([f64; 5], [f64; 5]) {
+        let w = bilinear_weights(self.frac[0], self.frac[1]);
+        (
+            [
+                w[0] * self.d,
+                w[1] * self.d,
+                w[2] * self.d,
+                w[3] * self.d,
+                -self.p,
+            ],
+            [
+                w[0] * self.f,
+                w[1] * self.f,
+                w[2] * self.f,
+                w[3] * self.f,
+                -1.0,
+            ],
+        )
+    }
+}
+
+/// The prior term of a level: λ/K · Σ_k c_k·ω_k·r_k² over its K samples, with c the prior's
+/// confidence and ω the IRLS weight (Cauchy, its own residual scale).
+#[derive(Debug, Clone)]
+struct PriorTerm {
+    samples: Vec<PriorSample>,
+    /// Confidence of each sample.
+    confidence: Vec<f64>,
+    /// IRLS weight of each sample (1 until reweighted).
+    weights: Vec<f64>,
+    /// λ/K.
+    scale: f64,
+    /// Index of the (α, β) node.
+    node: u32,
+}
+
+impl PriorTerm {
+    fn residual(&self, k: usize, x: &[f64], cols: usize) -> f64 {
+        let sample = &self.samples[k];
+        let nd = sample.nodes(cols, self.node);
+        let (cs, co) = sample.coefficients();
+        (0..5)
+            .map(|j| {
+                let i = 2 * nd[j] as usize;
+                cs[j] * x[i] + co[j] * x[i + 1]
+            })
+            .sum()
+    }
+}
+
 /// One level's problem: valid samples with their nodes and coefficients, the grid edges, and
 /// the assembled quadratic part of the energy.
 ///
@@ -601,6 +683,8 @@ pub struct Problem {
     scale_weight: f64,
     /// Weight of Σ o²: fixes the global offset, which no other term sees (see `GAUGE`).
     gauge_weight: f64,
+    /// The prior term, if any: its (α, β) are the node after the tangents' nodes.
+    prior: Option<PriorTerm>,
     /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
     /// of 2×2 node blocks: row node p couples with `block_col[block_start[p]..block_start[p + 1]]`
     /// (ascending), block `[ss, so, os, oo]` row-major over (s, o) of p × (s, o) of the column.
@@ -630,15 +714,28 @@ impl Problem {
     /// [`Problem::new`] reading the maps through `maps` (a slice, or maps as a transform would
     /// leave them: only the samples' pixels are read).
     #[must_use]
-    #[expect(
-        clippy::too_many_lines,
-        reason = "sample filter, edges and weights of one problem read best together"
-    )]
     pub fn from_values<M: MapValues + ?Sized>(
         layout: &Layout,
         maps: &M,
         overlaps: &Overlaps,
         params: LevelParams,
+    ) -> Self {
+        Self::with_prior(layout, maps, overlaps, params, None)
+    }
+
+    /// [`Problem::from_values`] with the prior term of `prior` = (samples, weight λ) when
+    /// given (its (α, β) node comes after the tangents' nodes).
+    #[must_use]
+    #[expect(
+        clippy::too_many_lines,
+        reason = "sample filter, edges and weights of one problem read best together"
+    )]
+    pub fn with_prior<M: MapValues + ?Sized>(
+        layout: &Layout,
+        maps: &M,
+        overlaps: &Overlaps,
+        params: LevelParams,
+        prior: Option<(&PriorSamples, f64)>,
     ) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -732,7 +829,42 @@ impl Problem {
                 }
             }
         }
+        let prior = prior.map(|(ps, weight)| {
+            let node = (n * per) as u32;
+            let built: Vec<(PriorSample, f64)> = (0..ps.len())
+                .into_par_iter()
+                .filter_map(|k| {
+                    let d = ps.tangent_value(k, maps, tp);
+                    if !d.is_finite() {
+                        return None;
+                    }
+                    let t = ps.tangent[k] as usize;
+                    let p = ps.pixel[k] as usize;
+                    let (x, y) = ((p % w) as f64, (p / w) as f64);
+                    let (c, r, fx, fy) = grid_cell(x, y, w, h, cols, rows);
+                    Some((
+                        PriorSample {
+                            node: (t * per + r * cols + c) as u32,
+                            frac: [fx, fy],
+                            d: f64::from(d),
+                            f: offset_factor(params.offsets, &layout.cameras[t], x, y),
+                            p: ps.value[k],
+                        },
+                        ps.confidence[k],
+                    ))
+                })
+                .collect();
+            let (samples, confidence): (Vec<PriorSample>, Vec<f64>) = built.into_iter().unzip();
+            PriorTerm {
+                weights: vec![1.0; samples.len()],
+                scale: weight / samples.len().max(1) as f64,
+                samples,
+                confidence,
+                node,
+            }
+        });
         let mut problem = Self {
+            prior,
             params,
             tangents: n,
             weights: vec![1.0; samples.len()],
@@ -750,13 +882,9 @@ impl Problem {
         problem
     }
 
-    /// Assemble the Hessian H of the quadratic terms.
-    ///
-    /// Samples whose a-cell and b-cell are the same share all 8 nodes (the top-left nodes,
-    /// entries 0 and 4, identify the group), so each group's 16×16 block Σ c·cᵀ is summed
-    /// densely (in sample order, in parallel over groups) and scattered once.
-    fn assemble(&mut self) {
-        let nodes_total = self.len() / 2;
+    /// The data term's Hessian contributions: per group of samples sharing their a-cell and
+    /// b-cell, the 8 nodes and the dense 16×16 block (2/z)·Σ ω·c·cᵀ.
+    fn data_blocks(&self) -> Vec<([u32; 8], [f64; 256])> {
         let cols = self.params.cols;
         let mut order: Vec<(u64, u32)> = self
             .samples
@@ -770,7 +898,7 @@ impl Problem {
         order.par_sort_unstable();
         let two_over_z = 2.0 / self.weight_total.max(f64::MIN_POSITIVE);
         let groups: Vec<&[(u64, u32)]> = order.chunk_by(|p, q| p.0 == q.0).collect();
-        let group_blocks: Vec<([u32; 8], [f64; 256])> = groups
+        groups
             .par_iter()
             .map(|group| {
                 // Upper triangle only; mirrored below.
@@ -798,12 +926,29 @@ impl Problem {
                 }
                 (self.samples[group[0].1 as usize].nodes(cols), block)
             })
-            .collect();
+            .collect()
+    }
+
+    /// Assemble the Hessian H of the quadratic terms.
+    ///
+    /// Samples whose a-cell and b-cell are the same share all 8 nodes (the top-left nodes,
+    /// entries 0 and 4, identify the group), so each group's 16×16 block Σ c·cᵀ is summed
+    /// densely (in sample order, in parallel over groups) and scattered once.
+    fn assemble(&mut self) {
+        let nodes_total = self.len() / 2;
+        let group_blocks = self.data_blocks();
+
+        let prior_blocks = self.prior_blocks();
 
         // Node-level coupling pattern: nodes of one group, smoothness edges, the diagonal.
         let mut pairs: Vec<(u32, u32)> =
             Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
         for (nd, _) in &group_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
+        }
+        for (nd, _) in &prior_blocks {
             for &p in nd {
                 pairs.extend(nd.iter().map(|&q| (p, q)));
             }
@@ -830,17 +975,26 @@ impl Problem {
                 .binary_search(&q)
                 .unwrap_or_else(|_| unreachable!("block ({p}, {q}) is in the pattern"))
         };
-        for (nd, block) in &group_blocks {
+        // A dense block over nodes `nd` (2·len(nd) unknowns, row-major), scattered into the
+        // 2×2 node blocks.
+        let mut scatter = |nd: &[u32], block: &[f64]| {
+            let width = 2 * nd.len();
             for (u, &p) in nd.iter().enumerate() {
                 for (v, &q) in nd.iter().enumerate() {
                     let target = &mut blocks[at(p, q)];
                     let (r, c) = (2 * u, 2 * v);
-                    target[0] += block[16 * r + c];
-                    target[1] += block[16 * r + c + 1];
-                    target[2] += block[16 * (r + 1) + c];
-                    target[3] += block[16 * (r + 1) + c + 1];
+                    target[0] += block[width * r + c];
+                    target[1] += block[width * r + c + 1];
+                    target[2] += block[width * (r + 1) + c];
+                    target[3] += block[width * (r + 1) + c + 1];
                 }
             }
+        };
+        for (nd, block) in &group_blocks {
+            scatter(nd, block);
+        }
+        for (nd, block) in &prior_blocks {
+            scatter(nd, block);
         }
         for &(p, q, wgt) in &self.edges {
             for (i, j, sign) in [(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)] {
@@ -857,10 +1011,100 @@ impl Problem {
         self.blocks = blocks;
     }
 
-    /// Number of unknowns (2 per node).
+    /// The prior term's Hessian contributions: per group of samples sharing a cell, the 5 nodes
+    /// and the dense 10×10 block 2·λ/K·Σ c·ω·aaᵀ (in sample order, in parallel over groups).
+    fn prior_blocks(&self) -> Vec<([u32; 5], [f64; 100])> {
+        let Some(prior) = &self.prior else {
+            return Vec::new();
+        };
+        let cols = self.params.cols;
+        let mut order: Vec<(u32, u32)> = prior
+            .samples
+            .iter()
+            .enumerate()
+            .map(|(k, sample)| (sample.node, k as u32))
+            .collect();
+        order.par_sort_unstable();
+        let groups: Vec<&[(u32, u32)]> = order.chunk_by(|p, q| p.0 == q.0).collect();
+        groups
+            .par_iter()
+            .map(|group| {
+                let mut block = [0.0; 100];
+                for &(_, k) in *group {
+                    let k = k as usize;
+                    let (cs, co) = prior.samples[k].coefficients();
+                    let weight = 2.0 * prior.scale * prior.confidence[k] * prior.weights[k];
+                    let mut c = [0.0; 10];
+                    for j in 0..5 {
+                        c[2 * j] = cs[j];
+                        c[2 * j + 1] = co[j];
+                    }
+                    for (u, &cu) in c.iter().enumerate() {
+                        let cu = weight * cu;
+                        for (b, &cv) in block[10 * u..10 * u + 10].iter_mut().zip(&c) {
+                            *b += cu * cv;
+                        }
+                    }
+                }
+                (
+                    prior.samples[group[0].1 as usize].nodes(cols, prior.node),
+                    block,
+                )
+            })
+            .collect()
+    }
+
+    /// Number of grid nodes of the tangents (the nodes with a scale s).
+    #[must_use]
+    pub fn scale_nodes(&self) -> usize {
+        self.tangents * self.params.cols * self.params.rows
+    }
+
+    /// Number of unknowns (2 per node: the tangents' nodes, then the prior's (α, β) if any).
     #[must_use]
     pub fn len(&self) -> usize {
-        2 * self.tangents * self.params.cols * self.params.rows
+        2 * (self.scale_nodes() + usize::from(self.prior.is_some()))
+    }
+
+    /// Number of prior samples in the problem (0 without a prior).
+    #[must_use]
+    pub fn prior_samples(&self) -> usize {
+        self.prior.as_ref().map_or(0, |p| p.samples.len())
+    }
+
+    /// Residual of every prior sample at `x`, in sample order (empty without a prior).
+    #[must_use]
+    pub fn prior_residuals(&self, x: &[f64]) -> Vec<f64> {
+        let cols = self.params.cols;
+        self.prior.as_ref().map_or_else(Vec::new, |prior| {
+            (0..prior.samples.len())
+                .into_par_iter()
+                .map(|k| prior.residual(k, x, cols))
+                .collect()
+        })
+    }
+
+    /// The prior samples' IRLS weights (empty without a prior).
+    #[must_use]
+    pub fn prior_weights(&self) -> &[f64] {
+        self.prior.as_ref().map_or(&[], |p| &p.weights)
+    }
+
+    /// Set every prior sample's weight to the Cauchy IRLS weight of its residual at `x` with
+    /// its own scale σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]), and reassemble.
+    /// Returns σ (0 without a prior).
+    pub fn reweight_prior(&mut self, x: &[f64]) -> f64 {
+        let residuals = self.prior_residuals(x);
+        let Some(prior) = self.prior.as_mut() else {
+            return 0.0;
+        };
+        let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
+        prior.weights = residuals
+            .iter()
+            .map(|&r| Loss::Cauchy.weight(r, sigma))
+            .collect();
+        self.assemble();
+        sigma
     }
 
     /// Whether the problem has no unknowns.
@@ -931,14 +1175,7 @@ impl Problem {
     /// Returns σ.
     pub fn reweight(&mut self, x: &[f64], loss: Loss) -> f64 {
         let residuals = self.residuals(x);
-        let mut magnitudes: Vec<f64> = residuals.iter().map(|r| r.abs()).collect();
-        let sigma = if magnitudes.is_empty() {
-            1.0
-        } else {
-            let mid = magnitudes.len() / 2;
-            let (_, &mut median, _) = magnitudes.select_nth_unstable_by(mid, f64::total_cmp);
-            (1.4826 * median).max(MIN_ROBUST_SCALE)
-        };
+        let sigma = robust_scale(&residuals);
         self.set_weights(residuals.iter().map(|&r| loss.weight(r, sigma)).collect());
         sigma
     }
@@ -985,7 +1222,8 @@ impl Problem {
     #[must_use]
     pub fn energy(&self, x: &[f64], grad: Option<&mut [f64]>) -> f64 {
         const CHUNK: usize = 4096;
-        if x.iter().step_by(2).any(|&s| s <= 0.0) {
+        let scale_len = 2 * self.scale_nodes();
+        if x[..scale_len].iter().step_by(2).any(|&s| s <= 0.0) {
             return f64::INFINITY;
         }
         let samples = self.samples();
@@ -1003,8 +1241,27 @@ impl Problem {
             let (ds, dof) = (x[p] - x[q], x[p + 1] - x[q + 1]);
             energy += wgt * (ds * ds + dof * dof);
         }
-        for node in x.chunks_exact(2) {
+        for node in x[..scale_len].chunks_exact(2) {
             energy += self.scale_weight / node[0] + self.gauge_weight * node[1] * node[1];
+        }
+        if let Some(prior) = &self.prior {
+            let cols = self.params.cols;
+            let count = prior.samples.len();
+            let partial: Vec<f64> = (0..count.div_ceil(CHUNK))
+                .into_par_iter()
+                .map(|c| {
+                    (c * CHUNK..((c + 1) * CHUNK).min(count))
+                        .map(|k| {
+                            prior.confidence[k]
+                                * prior.weights[k]
+                                * prior.residual(k, x, cols).powi(2)
+                        })
+                        .sum()
+                })
+                .collect();
+            energy += prior.scale * partial.iter().sum::<f64>();
+            let beta = x[2 * prior.node as usize + 1];
+            energy += self.gauge_weight * beta * beta;
         }
         if let Some(g) = grad {
             self.gradient(x, g);
@@ -1015,7 +1272,11 @@ impl Problem {
     /// The gradient at `x` (all s > 0): H·x minus scale_weight/s² on the s entries.
     fn gradient(&self, x: &[f64], grad: &mut [f64]) {
         self.hessian_product(x, grad);
-        for (g, node) in grad.chunks_exact_mut(2).zip(x.chunks_exact(2)) {
+        let scale_len = 2 * self.scale_nodes();
+        for (g, node) in grad[..scale_len]
+            .chunks_exact_mut(2)
+            .zip(x[..scale_len].chunks_exact(2))
+        {
             g[0] -= self.scale_weight / (node[0] * node[0]);
         }
     }
@@ -1046,6 +1307,28 @@ impl Problem {
     }
 }
 
+/// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]; 1 without residuals).
+fn robust_scale(residuals: &[f64]) -> f64 {
+    let mut magnitudes: Vec<f64> = residuals.iter().map(|r| r.abs()).collect();
+    if magnitudes.is_empty() {
+        return 1.0;
+    }
+    let mid = magnitudes.len() / 2;
+    let (_, &mut median, _) = magnitudes.select_nth_unstable_by(mid, f64::total_cmp);
+    (1.4826 * median).max(MIN_ROBUST_SCALE)
+}
+
+/// Median of |values| (0 when empty).
+fn median_abs(values: &[f64]) -> f64 {
+    let mut magnitudes: Vec<f64> = values.iter().map(|r| r.abs()).collect();
+    if magnitudes.is_empty() {
+        return 0.0;
+    }
+    let mid = magnitudes.len() / 2;
+    let (_, &mut median, _) = magnitudes.select_nth_unstable_by(mid, f64::total_cmp);
+    median
+}
+
 /// Stopping rule shared by both solvers: the gradient's max-norm is below `tolerance` times
 /// max(1, |E|) (energies are O(1): the maps are standardised).
 fn gradient_small(grad: &[f64], energy: f64, tolerance: f64) -> bool {
@@ -1074,7 +1357,8 @@ fn line_search(problem: &Problem, x: &[f64], g: &[f64], dir: &[f64]) -> Option<(
     }
     // Largest step that keeps every scale positive (the 1/s term is a barrier at 0).
     let mut step: f64 = 1.0;
-    for i in (0..x.len()).step_by(2) {
+    let scale_len = 2 * problem.scale_nodes();
+    for i in (0..scale_len).step_by(2) {
         if dir[i] < 0.0 {
             step = step.min(0.95 * x[i] / -dir[i]);
         }
@@ -1084,9 +1368,9 @@ fn line_search(problem: &Problem, x: &[f64], g: &[f64], dir: &[f64]) -> Option<(
     let curvature = dot(dir, &hd);
     let c = problem.scale_weight;
     for _ in 0..60 {
-        let barrier: f64 = x
+        let barrier: f64 = x[..scale_len]
             .chunks_exact(2)
-            .zip(dir.chunks_exact(2))
+            .zip(dir[..scale_len].chunks_exact(2))
             .map(|(xn, dn)| {
                 let (s, ds) = (xn[0], dn[0]);
                 c * step * step * ds * ds / (s * s * (s + step * ds))
@@ -1238,7 +1522,7 @@ impl NewtonSystem {
                     for e in 0..2 {
                         let i = 2 * q as usize + e;
                         if i >= j {
-                            if i == j && d == 0 {
+                            if i == j && d == 0 && p < problem.scale_nodes() {
                                 scale_diagonal.push(row_idx.len());
                             }
                             row_idx.push(i);
@@ -1321,6 +1605,22 @@ pub struct Level {
     pub sample_origins: Vec<u32>,
     /// The residual scale σ of the last reweighting (0 with [`Loss::Squared`]).
     pub robust_scale: f64,
+    /// With a prior: the solved (α, β) (after the mean-scale normalisation), the prior samples'
+    /// IRLS weights and their median |residual| at the end.
+    pub prior: Option<LevelPrior>,
+}
+
+/// What a level solved for the prior term.
+#[derive(Debug, Clone)]
+pub struct LevelPrior {
+    /// α, β: the maps after this level match α·P + β (P the standardised prior).
+    pub affine: (f64, f64),
+    /// IRLS weight of each prior sample after the last reweighting.
+    pub weights: Vec<f64>,
+    /// Confidence of each prior sample.
+    pub confidence: Vec<f64>,
+    /// Median |residual| at the end.
+    pub residual: f64,
 }
 
 /// What an alignment could do with the overlap samples it had.
@@ -1358,6 +1658,8 @@ pub struct Alignment {
     pub levels: Vec<Level>,
     /// Whether the schedule had to be cut short for lack of overlap samples.
     pub fallback: Fallback,
+    /// What was fitted to the prior (None without a prior or when no level ran).
+    pub prior: Option<PriorFit>,
 }
 
 /// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
@@ -1395,6 +1697,12 @@ pub struct Options {
     pub offsets: Offsets,
     /// The data term's loss.
     pub loss: Loss,
+    /// Weight λ of the prior term (used only with a prior).
+    pub prior_weight: f64,
+    /// Frequency split of the prior term, in degrees: the tangents' values it compares with
+    /// the prior are averaged over a window of this radius, so the prior steers the fields and
+    /// not the tangents' finer detail (used only with a prior).
+    pub prior_scale_deg: f64,
 }
 
 impl Options {
@@ -1402,6 +1710,12 @@ impl Options {
     pub const DEFAULT_TOLERANCE: f64 = 1e-6;
     /// The paper's share of overlap pixels in the data term.
     pub const DEFAULT_SAMPLE_FRACTION: f64 = 0.01;
+    /// Default weight of the prior term (benches/bench_align.py --prior).
+    pub const DEFAULT_PRIOR_WEIGHT: f64 = 1.0;
+    /// Default frequency split of the prior term, degrees (benches/bench_align.py --prior).
+    pub const DEFAULT_PRIOR_SCALE_DEG: f64 = 1.0;
+    /// Largest frequency split, degrees.
+    pub const MAX_PRIOR_SCALE_DEG: f64 = 30.0;
 
     /// The defaults of `energy` with `solver`: its schedule, weights and offsets.
     #[must_use]
@@ -1419,6 +1733,8 @@ impl Options {
             scale_weight,
             offsets: energy.default_offsets(),
             loss: energy.default_loss(),
+            prior_weight: Self::DEFAULT_PRIOR_WEIGHT,
+            prior_scale_deg: Self::DEFAULT_PRIOR_SCALE_DEG,
         }
     }
 
@@ -1464,6 +1780,13 @@ impl Options {
             "scale_weight",
             self.scale_weight,
             "it keeps the scales from 0",
+        )?;
+        check_range("prior_weight", self.prior_weight, 0.0, f64::MAX)?;
+        check_range(
+            "prior_scale_deg",
+            self.prior_scale_deg,
+            0.0,
+            Self::MAX_PRIOR_SCALE_DEG,
         )?;
         Ok(self)
     }
@@ -1516,7 +1839,23 @@ pub fn align(
     overlaps: &Overlaps,
     options: &Options,
 ) -> Result<Alignment> {
-    let (alignment, transform) = solve_levels(layout, maps, overlaps, options)?;
+    align_with_prior(layout, maps, overlaps, options, None)
+}
+
+/// [`align`] with a global `prior` term when given (docs/method.md, "Global prior"): every
+/// level also pulls each tangent's low-passed disparity at the prior samples towards α·P + β,
+/// (α, β) solved jointly; with an absolute prior the result is in the prior's units.
+///
+/// # Errors
+/// Those of [`align`], and those of [`PriorSamples::build`].
+pub fn align_with_prior(
+    layout: &Layout,
+    maps: &mut [f32],
+    overlaps: &Overlaps,
+    options: &Options,
+    prior: Option<&Prior>,
+) -> Result<Alignment> {
+    let (alignment, transform) = solve_levels(layout, maps, overlaps, options, prior)?;
     transform.apply(maps);
     Ok(alignment)
 }
@@ -1535,8 +1874,26 @@ pub fn align_into(
     overlaps: &Overlaps,
     options: &Options,
 ) -> Result<Alignment> {
+    align_into_with_prior(layout, maps, out, overlaps, options, None)
+}
+
+/// [`align_with_prior`] from `maps` into `out` (the same size), leaving `maps` as they are.
+///
+/// # Errors
+/// Those of [`align_with_prior`].
+///
+/// # Panics
+/// If `out` is not as long as `maps`.
+pub fn align_into_with_prior(
+    layout: &Layout,
+    maps: &[f32],
+    out: &mut [f32],
+    overlaps: &Overlaps,
+    options: &Options,
+    prior: Option<&Prior>,
+) -> Result<Alignment> {
     assert_eq!(maps.len(), out.len(), "output size");
-    let (alignment, transform) = solve_levels(layout, maps, overlaps, options)?;
+    let (alignment, transform) = solve_levels(layout, maps, overlaps, options, prior)?;
     transform.apply_into(maps, out);
     Ok(alignment)
 }
@@ -1548,17 +1905,33 @@ fn solve_levels(
     maps: &[f32],
     overlaps: &Overlaps,
     options: &Options,
+    prior: Option<&Prior>,
 ) -> Result<(Alignment, Transform)> {
     let mut transform = Transform::new(layout, options.offsets);
     let stats = standardize_stats(layout, maps, transform.factors())?;
     transform.standardize(stats.clone());
+    let prior_samples = prior
+        .map(|p| {
+            PriorSamples::build(
+                layout,
+                maps,
+                p,
+                options.sample_fraction,
+                options.prior_scale_deg,
+            )
+        })
+        .transpose()?;
+    let prior_term = prior_samples.as_ref().map(|p| (p, options.prior_weight));
     let n = layout.cameras.len();
     let mut levels = Vec::with_capacity(options.levels.len());
     let mut skipped = false;
     for params in &options.level_params() {
         let t0 = std::time::Instant::now();
-        let problem = level_problem(layout, maps, &transform, overlaps, *params);
-        if problem.samples() * NODES_PER_SAMPLE < n * params.cols * params.rows {
+        let problem = level_problem(layout, maps, &transform, overlaps, *params, prior_term);
+        // Prior samples support a grid as overlap samples do (a partial panorama with little
+        // overlap can still be aligned to its prior).
+        let support = problem.samples() + problem.prior_samples();
+        if support * NODES_PER_SAMPLE < n * params.cols * params.rows {
             skipped = true;
             continue;
         }
@@ -1575,8 +1948,8 @@ fn solve_levels(
         params.cols = 2;
         params.rows = 2;
         params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
-        let problem = level_problem(layout, maps, &transform, overlaps, params);
-        if problem.samples() * NODES_PER_SAMPLE >= n * 4 {
+        let problem = level_problem(layout, maps, &transform, overlaps, params, prior_term);
+        if (problem.samples() + problem.prior_samples()) * NODES_PER_SAMPLE >= n * 4 {
             levels.push(solve_level(&mut transform, problem, options, t0)?);
             fallback = Fallback::Affine;
         } else {
@@ -1592,8 +1965,50 @@ fn solve_levels(
     } else {
         stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
     };
+    let fit = prior_samples
+        .as_ref()
+        .zip(levels.last().and_then(|l| l.prior.as_ref()))
+        .map(|(samples, level)| {
+            let (alpha, beta) = level.affine;
+            let (p_median, p_spread) = samples.stats;
+            // The maps now match α·(P − m_P)/s_P + β; as the result, v·spread + median.
+            let (mut spread, mut median) = (spread, median);
+            if samples.absolute && alpha.abs() > f64::MIN_POSITIVE {
+                // Express the result in the prior's units: v ← ((v − β)/α)·s_P + m_P.
+                spread = p_spread / alpha;
+                median = p_median - beta * p_spread / alpha;
+            }
+            let a = alpha * spread / p_spread;
+            let b = (beta - alpha * p_median / p_spread) * spread + median;
+            let pull: f64 = level.confidence.iter().sum();
+            let lost: f64 = level
+                .confidence
+                .iter()
+                .zip(&level.weights)
+                .filter(|(_, &w)| w < 0.5)
+                .map(|(c, _)| c)
+                .sum();
+            (
+                (spread, median),
+                PriorFit {
+                    affine: (a, b),
+                    samples: level.weights.len(),
+                    outvoted: if pull > 0.0 { lost / pull } else { 0.0 },
+                    weight: options.prior_weight,
+                    residual: level.residual,
+                },
+            )
+        });
+    let (spread, median) = fit.as_ref().map_or((spread, median), |f| f.0);
     transform.restore(spread, median);
-    Ok((Alignment { levels, fallback }, transform))
+    Ok((
+        Alignment {
+            levels,
+            fallback,
+            prior: fit.map(|f| f.1),
+        },
+        transform,
+    ))
 }
 
 /// The problem of a level on `maps` as `transform` leaves them.
@@ -1603,9 +2018,10 @@ fn level_problem(
     transform: &Transform,
     overlaps: &Overlaps,
     params: LevelParams,
+    prior: Option<(&PriorSamples, f64)>,
 ) -> Problem {
     let view = Transformed { maps, transform };
-    Problem::from_values(layout, &view, overlaps, params)
+    Problem::with_prior(layout, &view, overlaps, params, prior)
 }
 
 /// Solve one level's `problem` (built from `t0` on), reweighting it for a robust loss, and
@@ -1626,9 +2042,17 @@ fn solve_level(
         options.tolerance,
     )?;
     let mut robust_scale = 0.0;
-    if options.loss != Loss::Squared {
+    // The prior's samples are always reweighted (Cauchy): a prior is wrong on whole regions
+    // (windows, mirrors, sky), whatever the data term's loss.
+    let has_prior = problem.prior.is_some();
+    if options.loss != Loss::Squared || has_prior {
         for _ in 0..ROBUST_ROUNDS {
-            robust_scale = problem.reweight(&fields, options.loss);
+            if options.loss != Loss::Squared {
+                robust_scale = problem.reweight(&fields, options.loss);
+            }
+            if has_prior {
+                problem.reweight_prior(&fields);
+            }
             let (next, next_report) = solve(
                 &problem,
                 &fields,
@@ -1647,14 +2071,30 @@ fn solve_level(
     // Only the 1/s term fixes the global scale, weakly: dividing by the mean scale keeps
     // the maps in standardised units from level to level (a global factor aligns nothing).
     // The paper applies its fields as they are.
+    // With a prior the (α, β) node scales with the fields (its residuals are homogeneous in
+    // all unknowns), so the same division keeps the fit; the prior's own gauge is applied at the
+    // end (`solve_levels`), not here.
+    let scale_len = 2 * problem.scale_nodes();
     if params.energy == Energy::Normalized {
-        let mean_scale = fields.iter().step_by(2).sum::<f64>() / (fields.len() / 2) as f64;
+        let mean_scale =
+            fields[..scale_len].iter().step_by(2).sum::<f64>() / (scale_len / 2) as f64;
         for v in &mut fields {
             *v /= mean_scale;
         }
     }
+    let prior = problem.prior.as_ref().map(|term| {
+        let at = 2 * term.node as usize;
+        LevelPrior {
+            affine: (fields[at], fields[at + 1]),
+            weights: term.weights.clone(),
+            confidence: term.confidence.clone(),
+            residual: median_abs(&problem.prior_residuals(&fields)),
+        }
+    });
+    fields.truncate(scale_len);
     transform.fields(&params, fields.clone());
     Ok(Level {
+        prior,
         params,
         fields,
         report,
@@ -1996,7 +2436,7 @@ mod tests {
             transform.standardize(stats.clone());
             for level in &alignment.levels {
                 let direct = Problem::new(&layout, &passes, &overlaps, level.params);
-                let lazy = level_problem(&layout, &maps, &transform, &overlaps, level.params);
+                let lazy = level_problem(&layout, &maps, &transform, &overlaps, level.params, None);
                 assert_eq!(direct.origin, lazy.origin);
                 assert!(
                     direct.samples.len() > 500,

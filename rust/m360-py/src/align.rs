@@ -4,10 +4,12 @@ use crate::arrays::{contiguous, contiguous_mut, output_array, to_numpy, writable
 use crate::errors::{core, input_error};
 use crate::options::align_options;
 use crate::threads::on_pool;
-use m360_core::align::{self, Alignment, LevelParams, Overlaps, Problem};
+use m360_core::align::{self, Alignment, LevelParams, Overlaps, Prior, PriorFit, Problem};
 use m360_core::options::Choice;
 use m360_core::plan::{Need, Plan};
-use numpy::{PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray3, PyUntypedArrayMethods};
+use numpy::{
+    PyArray3, PyArrayDyn, PyArrayMethods, PyReadonlyArray2, PyReadonlyArray3, PyUntypedArrayMethods,
+};
 use pyo3::prelude::*;
 use pyo3::types::PyDict;
 
@@ -23,6 +25,78 @@ pub(crate) fn align<'py>(
     Vec<Bound<'py, PyDict>>,
     Vec<Bound<'py, PyArrayDyn<f64>>>,
     &'static str,
+)> {
+    let (out, reports, grids, fallback, _) =
+        align_with_prior(py, plan, maps, options, in_place, None)?;
+    Ok((out, reports, grids, fallback))
+}
+
+/// A prior from its ERP values (Hp, Wp), optional confidence and whether it is absolute.
+pub(crate) fn prior_from(
+    values: &PyReadonlyArray2<'_, f32>,
+    confidence: Option<&PyReadonlyArray2<'_, f32>>,
+    absolute: bool,
+) -> PyResult<Prior> {
+    let shape = values.shape();
+    let (height, width) = (shape[0], shape[1]);
+    let values = contiguous2(values, "prior")?.to_vec();
+    let confidence = match confidence {
+        Some(c) => {
+            if c.shape() != shape {
+                return Err(input_error(format!(
+                    "prior_confidence has shape {:?}, the prior {:?}",
+                    c.shape(),
+                    shape
+                )));
+            }
+            Some(contiguous2(c, "prior_confidence")?.to_vec())
+        }
+        None => None,
+    };
+    let prior = Prior {
+        values,
+        confidence,
+        height,
+        width,
+        absolute,
+    };
+    core(prior.validate())?;
+    Ok(prior)
+}
+
+fn contiguous2<'a>(array: &'a PyReadonlyArray2<'_, f32>, what: &str) -> PyResult<&'a [f32]> {
+    array
+        .as_slice()
+        .map_err(|_| input_error(format!("{what} must be C-contiguous")))
+}
+
+/// The prior's fit as a dict.
+fn prior_dict<'py>(py: Python<'py>, fit: &PriorFit) -> PyResult<Bound<'py, PyDict>> {
+    let d = PyDict::new(py);
+    d.set_item("affine", fit.affine)?;
+    d.set_item("samples", fit.samples)?;
+    d.set_item("outvoted", fit.outvoted)?;
+    d.set_item("weight", fit.weight)?;
+    d.set_item("residual", fit.residual)?;
+    Ok(d)
+}
+
+/// [`align`] with an optional prior; also returns the prior's fit (None without a prior or
+/// when no level ran).
+#[allow(clippy::type_complexity)]
+pub(crate) fn align_with_prior<'py>(
+    py: Python<'py>,
+    plan: &Plan,
+    maps: &Bound<'py, PyArray3<f32>>,
+    options: &Bound<'py, PyDict>,
+    in_place: bool,
+    prior: Option<&Prior>,
+) -> PyResult<(
+    Bound<'py, PyArrayDyn<f32>>,
+    Vec<Bound<'py, PyDict>>,
+    Vec<Bound<'py, PyArrayDyn<f64>>>,
+    &'static str,
+    Option<Bound<'py, PyDict>>,
 )> {
     let layout = plan.layout();
     let options = align_options(options, Some(layout.tangent_shape()))?;
@@ -59,7 +133,8 @@ pub(crate) fn align<'py>(
             .try_readwrite()
             .map_err(|e| input_error(format!("maps cannot be aligned in place: {e}")))?;
         let data = contiguous_mut(&mut rw, "maps")?;
-        let solved = run(&mut |overlaps| align::align(layout, data, overlaps, &options))?;
+        let solved =
+            run(&mut |overlaps| align::align_with_prior(layout, data, overlaps, &options, prior))?;
         (maps.to_dyn().clone(), solved)
     } else {
         let readonly = maps
@@ -69,11 +144,18 @@ pub(crate) fn align<'py>(
         let out = output_array::<f32>(py, maps.shape())?;
         let mut rw = out.readwrite();
         let dst = writable(&mut rw)?;
-        let solved = run(&mut |overlaps| align::align_into(layout, data, dst, overlaps, &options))?;
+        let solved = run(&mut |overlaps| {
+            align::align_into_with_prior(layout, data, dst, overlaps, &options, prior)
+        })?;
         drop(rw);
         (out, solved)
     };
     let fallback = solved.fallback.name();
+    let fit = solved
+        .prior
+        .as_ref()
+        .map(|f| prior_dict(py, f))
+        .transpose()?;
     let n = layout.cameras.len();
     let mut reports = Vec::with_capacity(solved.levels.len());
     let mut grids = Vec::with_capacity(solved.levels.len());
@@ -98,7 +180,7 @@ pub(crate) fn align<'py>(
         let shape = [n, level.params.rows, level.params.cols, 2];
         grids.push(to_numpy(py, level.fields, &shape)?);
     }
-    Ok((out, reports, grids, fallback))
+    Ok((out, reports, grids, fallback, fit))
 }
 
 pub(crate) fn alignment_problem<'py>(

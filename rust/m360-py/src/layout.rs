@@ -267,6 +267,35 @@ impl Plan {
         align::align(py, &self.inner, maps, align, in_place)
     }
 
+    /// `align` with a global prior (docs/method.md, "Global prior"): `prior` (Hp, 2·Hp) float32
+    /// spherical disparity (NaN = unknown), `prior_confidence` the same shape in [0, 1] or None,
+    /// `absolute` whether the result is to be expressed in the prior's units. Returns what
+    /// `align` does and the prior's fit: a dict `affine` (a, b: the prior in the result's units
+    /// is a·P + b), `samples`, `outvoted` (share of the prior's pull lost to its IRLS weights),
+    /// `weight`, `residual` (median |residual|, standardised), or None when no level ran.
+    #[pyo3(signature = (maps, align, prior, prior_confidence=None, absolute=false, in_place=false))]
+    #[allow(clippy::type_complexity, clippy::too_many_arguments)]
+    fn align_with_prior<'py>(
+        &self,
+        py: Python<'py>,
+        maps: &Bound<'py, PyArray3<f32>>,
+        align: &Bound<'py, PyDict>,
+        prior: PyReadonlyArray2<'py, f32>,
+        prior_confidence: Option<PyReadonlyArray2<'py, f32>>,
+        absolute: bool,
+        in_place: bool,
+    ) -> PyResult<(
+        Bound<'py, PyArrayDyn<f32>>,
+        Vec<Bound<'py, PyDict>>,
+        Vec<Bound<'py, PyArrayDyn<f64>>>,
+        &'static str,
+        Option<Bound<'py, PyDict>>,
+    )> {
+        self.check_tangents("maps", maps.shape())?;
+        let prior = align::prior_from(&prior, prior_confidence.as_ref(), absolute)?;
+        align::align_with_prior(py, &self.inner, maps, align, in_place, Some(&prior))
+    }
+
     /// The first-level alignment problem of `maps` (standardised as `align` does) on grid
     /// (cols, rows) with the options in `align`: a dict with `nodes` (K,8) uint32, `coef_s`,
     /// `coef_o` (K,8) float64, `edges` (E,3) float64 as (p, q, weight), `scale_weight`,

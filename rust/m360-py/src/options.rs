@@ -23,6 +23,8 @@ const ALIGN_KEYS: &[&str] = &[
     "scale_weight",
     "offsets",
     "loss",
+    "prior_weight",
+    "prior_scale_deg",
 ];
 const POISSON_KEYS: &[&str] = &["fidelity", "lam", "tolerance", "iterations", "solver"];
 
@@ -99,6 +101,12 @@ pub(crate) fn align_options(
     }
     if let Some(v) = get_choice::<Loss>(dict, "loss")? {
         options.loss = v;
+    }
+    if let Some(v) = get::<f64>(dict, "prior_weight", number)? {
+        options.prior_weight = v;
+    }
+    if let Some(v) = get::<f64>(dict, "prior_scale_deg", number)? {
+        options.prior_scale_deg = v;
     }
     core(options.validate(tangent_shape))
 }
@@ -183,6 +191,8 @@ pub(crate) fn align_dict<'py>(py: Python<'py>, o: &align::Options) -> PyResult<B
     d.set_item("scale_weight", o.scale_weight)?;
     d.set_item("offsets", o.offsets.name())?;
     d.set_item("loss", o.loss.name())?;
+    d.set_item("prior_weight", o.prior_weight)?;
+    d.set_item("prior_scale_deg", o.prior_scale_deg)?;
     Ok(d)
 }
 
@@ -250,6 +260,7 @@ pub(crate) fn limits(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("max_iterations", MAX_ITERATIONS)?;
     d.set_item("min_poisson_tolerance", MIN_POISSON_TOLERANCE)?;
     d.set_item("max_pole_cap_deg", MAX_POLE_CAP_DEG)?;
+    d.set_item("max_prior_scale_deg", align::Options::MAX_PRIOR_SCALE_DEG)?;
     d.set_item("min_erp_width", layout::MIN_ERP_WIDTH)?;
     d.set_item("max_erp_width", layout::MAX_ERP_WIDTH)?;
     d.set_item("max_padding", layout::MAX_PADDING)?;

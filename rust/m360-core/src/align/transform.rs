@@ -303,13 +303,18 @@ impl Transform {
 
     /// The value at flat index `index` (tangent·h·w + y·w + x) of `maps` after every step.
     fn value(&self, maps: &[f32], index: usize) -> f32 {
+        self.value_of(index, maps[index])
+    }
+
+    /// Raw value `raw` at flat index `index` after every step (the steps are per pixel).
+    fn value_of(&self, index: usize, raw: f32) -> f32 {
         let (h, w) = (self.height, self.width);
         let (t, p) = (index / (h * w), index % (h * w));
         let (y, x) = (p / w, p % w);
         let f = self.factors.at(t, y, x);
         self.steps
             .iter()
-            .fold(maps[index], |v, step| step.apply_pixel(t, y, x, f, v))
+            .fold(raw, |v, step| step.apply_pixel(t, y, x, f, v))
     }
 }
 
@@ -318,6 +323,13 @@ impl Transform {
 pub trait MapValues: Sync {
     /// The value at flat index `index` (tangent·h·w + y·w + x).
     fn value(&self, index: usize) -> f32;
+
+    /// A raw value `raw` standing at flat index `index`, read the same way (the identity for
+    /// plain maps; through the steps of a transform).
+    fn through(&self, index: usize, raw: f32) -> f32 {
+        let _ = index;
+        raw
+    }
 }
 
 impl MapValues for [f32] {
@@ -336,5 +348,9 @@ pub(super) struct Transformed<'a> {
 impl MapValues for Transformed<'_> {
     fn value(&self, index: usize) -> f32 {
         self.transform.value(self.maps, index)
+    }
+
+    fn through(&self, index: usize, raw: f32) -> f32 {
+        self.transform.value_of(index, raw)
     }
 }

@@ -1,0 +1,156 @@
+"""A global prior for :func:`m360.stitch`: an ERP map (any resolution) that the alignment follows.
+
+A panoramic network (or another tool, a LiDAR map, the previous video frame) gives a globally
+consistent but coarse ERP map; the tangents give the detail. With ``prior=`` the alignment gets
+one more term (docs/method.md, "Global prior"): at deterministic sample pixels of every tangent
+its aligned disparity, averaged over ``prior_scale_deg`` degrees (the frequency split: finer
+detail stays the tangents'), is pulled towards α·P + β, with (α, β) solved jointly with the
+fields; each prior sample has its own robust (Cauchy) weight times its ``prior_confidence``, so
+prior regions that the tangents all contradict (windows, mirrors, sky) lose their pull, and
+``prior_weight`` sets the term's weight against the overlaps'.
+
+Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estimators.kinds`):
+
+- ``"affine_disparity"`` (default): spherical disparity up to an unknown scale and shift;
+- ``"disparity"``: spherical disparity 1/distance in 1/m; the result is in its units;
+- ``"affine_depth"``: radial depth up to scale and shift; shifted so its robust minimum (1st
+  percentile) sits at ``AFFINE_DEPTH_FLOOR`` of its robust range, then inverted (as the
+  estimators do), then as ``"affine_disparity"``;
+- ``"distance"``: radial distance in metres; inverted, then as ``"disparity"``.
+"""
+
+from __future__ import annotations
+
+from typing import Any, Literal, TypedDict
+
+import numpy as np
+
+from .._validate import as_array
+from ..errors import InputError
+from ..estimators.kinds import AFFINE_DEPTH_FLOOR
+
+__all__ = [
+    "PRIOR_KINDS",
+    "PriorKind",
+    "PriorReport",
+    "check_prior",
+    "prior_disagreement",
+]
+
+#: What a prior map holds.
+PriorKind = Literal["affine_disparity", "disparity", "affine_depth", "distance"]
+PRIOR_KINDS: tuple[str, ...] = ("affine_disparity", "disparity", "affine_depth", "distance")
+#: The kinds whose units the result takes.
+_ABSOLUTE = ("disparity", "distance")
+
+
+class PriorReport(TypedDict):
+    """What the alignment fitted to the prior (``StitchResult.report["prior"]``)."""
+
+    #: The prior's kind.
+    kind: str
+    #: (a, b): the prior (as spherical disparity) in the result's units is a·P + b; (1, 0) for
+    #: an absolute kind (the result is in its units).
+    affine: tuple[float, float]
+    #: Prior samples the last level used.
+    samples: int
+    #: Share of the prior's (confidence-weighted) pull its robust weights took away (samples
+    #: with weight below ½): the regions where the tangents outvoted it.
+    outvoted: float
+    #: The prior term's weight (``prior_weight``).
+    weight: float
+    #: Median |residual| at the prior samples, in standardised units (1 = the prior's mean
+    #: absolute deviation).
+    residual: float
+
+
+def _erp(value: Any, name: str) -> np.ndarray:
+    array = as_array(value, name)
+    if array.ndim != 2:
+        raise InputError(f"{name} must be an (H, W) ERP map, got shape {array.shape}")
+    height, width = array.shape
+    if height < 2 or width != 2 * height:
+        raise InputError(
+            f"{name} must be an ERP map with width = 2 x height (at least 2 x 4), got shape "
+            f"{array.shape}"
+        )
+    if array.dtype.kind not in "fiu" or array.dtype.kind == "b":
+        raise InputError(f"{name} must be a float array, got dtype {array.dtype}")
+    return array
+
+
+def check_prior(
+    prior: Any, kind: Any, confidence: Any = None
+) -> tuple[np.ndarray, np.ndarray | None, bool]:
+    """Check a prior and convert it to spherical disparity for the core.
+
+    Parameters
+    ----------
+    prior : (Hp, 2·Hp) float array
+        The prior ERP map, any resolution; NaN = unknown.
+    kind : str
+        One of :data:`PRIOR_KINDS`.
+    confidence : (Hp, 2·Hp) float array in [0, 1], optional
+        Per-pixel trust in the prior (0 = ignore there).
+
+    Returns
+    -------
+    (values, confidence, absolute)
+        float32 C-contiguous spherical disparity (NaN where unknown or unusable), the
+        confidence as float32 or None, and whether the result takes the prior's units.
+
+    Raises
+    ------
+    m360.InputError
+        Naming the problem: shape, aspect, dtype, a kind not in :data:`PRIOR_KINDS`, a prior
+        without a usable value, a confidence of another shape or outside [0, 1].
+    """
+    if not isinstance(kind, str) or kind not in PRIOR_KINDS:
+        choices = ", ".join(repr(k) for k in PRIOR_KINDS)
+        raise InputError(f"prior_kind={kind!r} is not supported; choose one of {choices}")
+    array = _erp(prior, "prior")
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        values = np.asarray(array, np.float64)
+        values = np.where(np.isfinite(values), values, np.nan)
+        if kind in ("disparity", "distance", "affine_depth") and np.any(values < 0):
+            values = np.where(values < 0, np.nan, values)
+        if kind == "distance":
+            values = np.where(values > 0, 1.0 / values, np.nan)
+        elif kind == "affine_depth":
+            finite = values[np.isfinite(values)]
+            if finite.size:
+                lo, hi = np.percentile(finite, (1.0, 99.0))
+                span = max(float(hi - lo), 1e-12 * max(abs(float(hi)), 1.0))
+                shifted = np.maximum(values, lo) - lo + AFFINE_DEPTH_FLOOR * span
+                values = 1.0 / shifted
+        out = values.astype(np.float32)
+    out[~np.isfinite(out)] = np.nan
+    if not np.isfinite(out).any():
+        raise InputError(f"prior has no usable value for prior_kind={kind!r} (all NaN or invalid)")
+    conf = None
+    if confidence is not None:
+        c = as_array(confidence, "prior_confidence")
+        if c.shape != array.shape:
+            raise InputError(
+                f"prior_confidence has shape {c.shape}, the prior {array.shape}: they must match"
+            )
+        conf = np.ascontiguousarray(c, dtype=np.float32)
+        if not np.all((conf >= 0) & (conf <= 1)):
+            raise InputError("prior_confidence must lie in [0, 1] everywhere (no NaN)")
+    return np.ascontiguousarray(out), conf, kind in _ABSOLUTE
+
+
+def prior_disagreement(
+    disparity: np.ndarray, prior: np.ndarray, affine: tuple[float, float]
+) -> np.ndarray:
+    """|disparity − (a·P + b)| with the prior P resized (bilinear) to the result's grid.
+
+    NaN where either is unknown.
+    """
+    import cv2  # the stitching stage's resampler (as m360.stitching.upsample)
+
+    height, width = disparity.shape
+    resized = cv2.resize(prior, (width, height), interpolation=cv2.INTER_LINEAR)
+    a, b = affine
+    gap: np.ndarray = np.abs(disparity - (a * np.asarray(resized) + b)).astype(np.float32)
+    return gap

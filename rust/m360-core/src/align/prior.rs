@@ -1,0 +1,502 @@
+//! The global prior term of the alignment (docs/method.md, "Global prior").
+//!
+//! A prior is an ERP map of spherical disparity (any resolution, NaN = unknown, optionally with a
+//! per-pixel confidence in [0, 1]), absolute or known only up to its own affine map. It is read
+//! at deterministic sample pixels of every tangent and pulls the tangent's aligned disparity
+//! s·D + o·f there towards α·P + β, with (α, β) one extra node of unknowns solved jointly with
+//! the fields. Each prior sample has its own Cauchy IRLS weight (times its confidence), so prior
+//! regions that all tangents contradict lose their pull.
+
+use super::{splitmix64, MapValues, SAMPLE_BUDGET_PIXELS};
+use crate::error::{CoreError, Result};
+use crate::layout::Layout;
+use crate::sphere::direction_to_pixel;
+use rayon::prelude::*;
+
+/// A prior map over the whole sphere in spherical disparity: relative (`absolute = false`:
+/// only α·P + β is compared) or absolute (the aligned result is expressed in its units).
+#[derive(Debug, Clone)]
+pub struct Prior {
+    /// ERP values, row-major `height`×`width` (NaN = unknown).
+    pub values: Vec<f32>,
+    /// Per-pixel confidence in [0, 1] (same shape), or None for all 1.
+    pub confidence: Option<Vec<f32>>,
+    /// ERP rows.
+    pub height: usize,
+    /// ERP columns (2·height).
+    pub width: usize,
+    /// Whether the prior's units are the result's (disparity in 1/m): the alignment's result is
+    /// then mapped into them.
+    pub absolute: bool,
+}
+
+impl Prior {
+    /// Check shapes and values.
+    ///
+    /// # Errors
+    /// [`CoreError::ShapeMismatch`] for a wrong length or aspect, [`CoreError::Degenerate`] for a
+    /// prior without a finite value or a confidence outside [0, 1].
+    pub fn validate(&self) -> Result<()> {
+        if self.height < 2 || self.width != 2 * self.height {
+            return Err(CoreError::ShapeMismatch {
+                what: "prior (an ERP map: width = 2 x height, at least 2 x 4)",
+                expected: vec![self.height.max(2), 2 * self.height.max(2)],
+                actual: vec![self.height, self.width],
+            });
+        }
+        let n = self.height * self.width;
+        if self.values.len() != n {
+            return Err(CoreError::ShapeMismatch {
+                what: "prior values",
+                expected: vec![n],
+                actual: vec![self.values.len()],
+            });
+        }
+        if !self.values.iter().any(|v| v.is_finite()) {
+            return Err(CoreError::Degenerate(
+                "the prior has no finite value (all NaN or infinite)".into(),
+            ));
+        }
+        if let Some(c) = &self.confidence {
+            if c.len() != n {
+                return Err(CoreError::ShapeMismatch {
+                    what: "prior confidence",
+                    expected: vec![self.height, self.width],
+                    actual: vec![c.len()],
+                });
+            }
+            if c.iter().any(|v| !(0.0..=1.0).contains(v)) {
+                return Err(CoreError::Degenerate(
+                    "prior confidence must lie in [0, 1] (NaN not allowed)".into(),
+                ));
+            }
+        }
+        Ok(())
+    }
+
+    /// Bilinear value and confidence at continuous ERP position (col, row): longitude wraps,
+    /// rows clamp; None when a contributing value is not finite or the confidence is 0.
+    fn sample(&self, col: f64, row: f64) -> Option<(f64, f64)> {
+        let (h, w) = (self.height, self.width);
+        let row = row.clamp(0.0, (h - 1) as f64);
+        let r0 = (row as usize).min(h - 2);
+        let fy = row - r0 as f64;
+        let col = col.rem_euclid(w as f64);
+        let c0 = (col as usize).min(w - 1);
+        let fx = col - c0 as f64;
+        let c1 = (c0 + 1) % w;
+        let idx = [
+            r0 * w + c0,
+            r0 * w + c1,
+            (r0 + 1) * w + c0,
+            (r0 + 1) * w + c1,
+        ];
+        let wts = [
+            (1.0 - fx) * (1.0 - fy),
+            fx * (1.0 - fy),
+            (1.0 - fx) * fy,
+            fx * fy,
+        ];
+        let mut value = 0.0;
+        let mut conf = 0.0;
+        for (&i, &wt) in idx.iter().zip(&wts) {
+            let v = self.values[i];
+            if !v.is_finite() {
+                return None;
+            }
+            value += wt * f64::from(v);
+            conf += wt * self.confidence.as_ref().map_or(1.0, |c| f64::from(c[i]));
+        }
+        (conf > 0.0).then_some((value, conf))
+    }
+}
+
+/// The prior read at deterministic pixels of every tangent, with the tangents' values there
+/// (low-passed over the frequency split's radius, before any alignment step).
+#[derive(Debug, Clone, Default)]
+pub struct PriorSamples {
+    /// Tangent of each sample.
+    pub(super) tangent: Vec<u16>,
+    /// Pixel index y·w + x in the tangent.
+    pub(super) pixel: Vec<u32>,
+    /// The prior there, standardised: (P − median)/spread over the samples.
+    pub(super) value: Vec<f64>,
+    /// The prior's confidence there (bilinear).
+    pub(super) confidence: Vec<f64>,
+    /// The tangent's raw value there, averaged over the low-pass window.
+    pub(super) raw: Vec<f32>,
+    /// (median, spread) that standardised the prior values.
+    pub(super) stats: (f64, f64),
+    /// Whether the prior is absolute.
+    pub(super) absolute: bool,
+}
+
+/// One tangent's samples: (tangent, pixel, prior value, confidence, raw window mean).
+type Part = Vec<(u16, u32, f64, f64, f32)>;
+
+/// Salt of the prior samples' hash, so they are not the overlap samples' pixels.
+const PRIOR_SALT: u64 = 0x5052_494F_5200_0000;
+
+/// Taps per side of the low-pass window (2·K + 1 taps, spaced to span its radius).
+const WINDOW_TAPS: usize = 2;
+
+impl PriorSamples {
+    /// Read `prior` at a `fraction` of the pixels of every tangent of `layout` (the overlap
+    /// samples' budget rule: large tangents keep that fraction of [`SAMPLE_BUDGET_PIXELS`]), with
+    /// the raw tangent values of `maps` averaged over a window of `radius_deg` degrees.
+    ///
+    /// # Errors
+    /// [`CoreError::Degenerate`] when no tangent pixel sees a finite prior value.
+    pub fn build(
+        layout: &Layout,
+        maps: &[f32],
+        prior: &Prior,
+        fraction: f64,
+        radius_deg: f64,
+    ) -> Result<Self> {
+        prior.validate()?;
+        let (h, w) = layout.tangent_shape();
+        let budget = (SAMPLE_BUDGET_PIXELS as f64 / (h * w) as f64).min(1.0);
+        let threshold = (fraction.clamp(0.0, 1.0) * budget * u64::MAX as f64) as u64;
+        let parts: Vec<Part> = (0..layout.cameras.len())
+            .into_par_iter()
+            .map(|t| {
+                let cam = &layout.cameras[t];
+                // Pixels per degree at the tangent's centre; the window's taps span the radius.
+                let radius_px = radius_deg.to_radians() * cam.fx;
+                let stride = ((radius_px / WINDOW_TAPS as f64).round() as usize).max(1);
+                let reach = if radius_px >= 0.5 { WINDOW_TAPS } else { 0 };
+                let map = &maps[t * h * w..(t + 1) * h * w];
+                let mut out = Vec::new();
+                for p in 0..h * w {
+                    if splitmix64(PRIOR_SALT ^ ((t as u64) << 32) ^ p as u64) > threshold {
+                        continue;
+                    }
+                    if !map[p].is_finite() {
+                        continue;
+                    }
+                    let (x, y) = (p % w, p / w);
+                    let d = cam.pixel_direction(x as f64, y as f64);
+                    let (col, row) = direction_to_pixel(&d, prior.height, prior.width);
+                    let Some((value, conf)) = prior.sample(col, row) else {
+                        continue;
+                    };
+                    let Some(raw) = window_mean(map, w, h, x, y, reach, stride) else {
+                        continue;
+                    };
+                    out.push((t as u16, p as u32, value, conf, raw));
+                }
+                out
+            })
+            .collect();
+        let mut samples = Self {
+            absolute: prior.absolute,
+            ..Self::default()
+        };
+        for part in parts {
+            for (t, p, v, c, raw) in part {
+                samples.tangent.push(t);
+                samples.pixel.push(p);
+                samples.value.push(v);
+                samples.confidence.push(c);
+                samples.raw.push(raw);
+            }
+        }
+        if samples.tangent.is_empty() {
+            return Err(CoreError::Degenerate(
+                "no tangent pixel sees a finite prior value".into(),
+            ));
+        }
+        let values: Vec<f32> = samples.value.iter().map(|&v| v as f32).collect();
+        let (median, spread) = super::median_and_spread(&values).unwrap_or((0.0, 1.0));
+        let spread = if spread > 0.0 { spread } else { 1.0 };
+        for v in &mut samples.value {
+            *v = (*v - median) / spread;
+        }
+        samples.stats = (median, spread);
+        Ok(samples)
+    }
+
+    /// Number of samples.
+    #[must_use]
+    pub fn len(&self) -> usize {
+        self.tangent.len()
+    }
+
+    /// Whether there are none.
+    #[must_use]
+    pub fn is_empty(&self) -> bool {
+        self.tangent.is_empty()
+    }
+
+    /// The tangent's value at sample k through `maps` (its raw window mean taken through the
+    /// alignment steps so far), given the tangent shape.
+    pub(super) fn tangent_value<M: MapValues + ?Sized>(
+        &self,
+        k: usize,
+        maps: &M,
+        tangent_pixels: usize,
+    ) -> f32 {
+        let index = self.tangent[k] as usize * tangent_pixels + self.pixel[k] as usize;
+        maps.through(index, self.raw[k])
+    }
+}
+
+/// Mean of the finite values of `map` (h×w) on a (2·reach + 1)² window of taps `stride` apart
+/// around (x, y), clamped to the image; None when fewer than half the taps are finite.
+fn window_mean(
+    map: &[f32],
+    w: usize,
+    h: usize,
+    x: usize,
+    y: usize,
+    reach: usize,
+    stride: usize,
+) -> Option<f32> {
+    if reach == 0 {
+        return Some(map[y * w + x]);
+    }
+    let span = (reach * stride) as isize;
+    let (mut sum, mut count, mut taps) = (0.0f64, 0usize, 0usize);
+    for dy in (-span..=span).step_by(stride) {
+        let yy = (y as isize + dy).clamp(0, h as isize - 1) as usize;
+        for dx in (-span..=span).step_by(stride) {
+            let xx = (x as isize + dx).clamp(0, w as isize - 1) as usize;
+            taps += 1;
+            let v = map[yy * w + xx];
+            if v.is_finite() {
+                sum += f64::from(v);
+                count += 1;
+            }
+        }
+    }
+    (2 * count >= taps).then(|| (sum / count as f64) as f32)
+}
+
+/// What an alignment fitted to the prior.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PriorFit {
+    /// (a, b): the prior P maps into the result's units as a·P + b (for an absolute prior
+    /// (1, 0) up to rounding: the result is in its units).
+    pub affine: (f64, f64),
+    /// Prior samples used.
+    pub samples: usize,
+    /// Fraction of their confidence-weighted pull the IRLS weights took away: samples whose
+    /// weight fell below ½ count as outvoted.
+    pub outvoted: f64,
+    /// The prior term's weight.
+    pub weight: f64,
+    /// Median |residual| of the prior samples at the end, in standardised units.
+    pub residual: f64,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::super::*;
+    use super::*;
+    use crate::sphere::ErpGrid;
+    use nalgebra::Vector3;
+
+    /// The true spherical disparity of the test scene in direction `d` (smooth, positive).
+    fn truth(d: &Vector3<f64>) -> f64 {
+        1.0 / (2.0 + 0.6 * d.x + 0.4 * d.y * d.z - 0.3 * d.z)
+    }
+
+    /// Tangent maps of `layout`: the truth through a per-tangent affine map in perspective
+    /// disparity (a·D + b·f), the error a network makes.
+    fn tangents(layout: &Layout) -> Vec<f32> {
+        let (h, w) = layout.tangent_shape();
+        let mut maps = Vec::with_capacity(layout.cameras.len() * h * w);
+        for (t, cam) in layout.cameras.iter().enumerate() {
+            let (a, b) = (0.6 + 0.1 * (t % 7) as f64, 0.05 * (t % 5) as f64 - 0.1);
+            for y in 0..h {
+                for x in 0..w {
+                    let d = cam.pixel_direction(x as f64, y as f64);
+                    let f = cam.spherical_factor(x as f64, y as f64);
+                    maps.push((a * truth(&d) + b * f) as f32);
+                }
+            }
+        }
+        maps
+    }
+
+    /// The truth on an ERP grid of `height` rows, times `wrong(d)`.
+    fn prior_map(height: usize, absolute: bool, wrong: impl Fn(&Vector3<f64>) -> f64) -> Prior {
+        let grid = ErpGrid::new(height, 2 * height);
+        let mut values = Vec::with_capacity(2 * height * height);
+        for r in 0..height {
+            for c in 0..2 * height {
+                let d = grid.direction(r, c);
+                values.push((truth(&d) * wrong(&d)) as f32);
+            }
+        }
+        Prior {
+            values,
+            confidence: None,
+            height,
+            width: 2 * height,
+            absolute,
+        }
+    }
+
+    fn setup(energy: Energy) -> (Layout, Vec<f32>, Options) {
+        let layout = Layout::icosahedron(256, 0.3, None).expect("layout");
+        let maps = tangents(&layout);
+        let mut options = Options::new(energy, Solver::Newton);
+        options.sample_fraction = 0.05;
+        (layout, maps, options)
+    }
+
+    /// Relative errors of aligned `maps` against the truth, after the best global affine map
+    /// when `relative`.
+    fn errors(layout: &Layout, maps: &[f32], relative: bool) -> Vec<(Vector3<f64>, f64)> {
+        let (h, w) = layout.tangent_shape();
+        let mut pairs = Vec::new();
+        for (t, cam) in layout.cameras.iter().enumerate() {
+            for y in (0..h).step_by(3) {
+                for x in (0..w).step_by(3) {
+                    let d = cam.pixel_direction(x as f64, y as f64);
+                    pairs.push((d, truth(&d), f64::from(maps[t * h * w + y * w + x])));
+                }
+            }
+        }
+        let (a, b) = if relative {
+            // Least squares v ≈ a·truth + b.
+            let n = pairs.len() as f64;
+            let (sx, sy) = pairs
+                .iter()
+                .fold((0.0, 0.0), |(sx, sy), p| (sx + p.1, sy + p.2));
+            let (mx, my) = (sx / n, sy / n);
+            let (sxx, sxy) = pairs.iter().fold((0.0, 0.0), |(a, b), p| {
+                (a + (p.1 - mx).powi(2), b + (p.1 - mx) * (p.2 - my))
+            });
+            let a = sxy / sxx;
+            (a, my - a * mx)
+        } else {
+            (1.0, 0.0)
+        };
+        pairs
+            .into_iter()
+            .map(|(d, g, v)| (d, ((v - b) / a - g).abs() / g))
+            .collect()
+    }
+
+    fn median(mut v: Vec<f64>) -> f64 {
+        let mid = v.len() / 2;
+        *v.select_nth_unstable_by(mid, f64::total_cmp).1
+    }
+
+    #[test]
+    fn gradient_with_prior_matches_finite_differences() {
+        for energy in [Energy::Paper, Energy::Normalized] {
+            let (layout, mut maps, options) = setup(energy);
+            standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
+            let mut prior = prior_map(32, false, |d| 1.0 + 0.2 * d.x);
+            prior.confidence = Some(
+                (0..prior.values.len())
+                    .map(|i| 0.2 + 0.8 * ((i * 7919) % 101) as f32 / 100.0)
+                    .collect(),
+            );
+            let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.0).expect("prior");
+            let overlaps = Overlaps::build(&layout, 0.05, 0.0);
+            let mut params = options.level_params()[0];
+            params.offsets = Offsets::Perspective;
+            let mut problem = Problem::with_prior(
+                &layout,
+                maps.as_slice(),
+                &overlaps,
+                params,
+                Some((&samples, 0.7)),
+            );
+            assert!(problem.prior_samples() > 100);
+            let x: Vec<f64> = (0..problem.len())
+                .map(|i| {
+                    let u = ((i * 2_654_435_761) % 1000) as f64 / 1000.0;
+                    if i % 2 == 0 {
+                        0.7 + 0.6 * u
+                    } else {
+                        u - 0.5
+                    }
+                })
+                .collect();
+            // IRLS weights that are not all 1.
+            problem.reweight_prior(&x);
+            let mut g = vec![0.0; x.len()];
+            let _ = problem.energy(&x, Some(&mut g));
+            let last = x.len() - 2;
+            for i in (0..x.len()).step_by(5).chain([last, last + 1]) {
+                let h = 1e-6;
+                let (mut xp, mut xm) = (x.clone(), x.clone());
+                xp[i] += h;
+                xm[i] -= h;
+                let fd = (problem.energy(&xp, None) - problem.energy(&xm, None)) / (2.0 * h);
+                let rel = (fd - g[i]).abs() / g[i].abs().max(1e-3);
+                assert!(rel < 1e-5, "{energy:?} unknown {i}: {} vs fd {fd}", g[i]);
+            }
+        }
+    }
+
+    /// Exact tangents up to per-tangent affine maps and an exact absolute prior: the result is
+    /// the truth in the prior's units, to the floor of the prior's resampling.
+    #[test]
+    fn perfect_prior_and_tangents_give_the_floor() {
+        for (energy, solver) in [
+            (Energy::Normalized, Solver::Newton),
+            (Energy::Normalized, Solver::Lbfgs),
+            (Energy::Paper, Solver::Newton),
+        ] {
+            let (layout, mut maps, mut options) = setup(energy);
+            options.solver = solver;
+            if solver == Solver::Lbfgs {
+                options.iterations = 2000;
+            }
+            let prior = prior_map(64, true, |_| 1.0);
+            let overlaps = Overlaps::build(&layout, options.sample_fraction, 0.0);
+            let fit = align_with_prior(&layout, &mut maps, &overlaps, &options, Some(&prior))
+                .expect("align")
+                .prior
+                .expect("a prior fit");
+            let errs: Vec<f64> = errors(&layout, &maps, false)
+                .into_iter()
+                .map(|e| e.1)
+                .collect();
+            let med = median(errs.clone());
+            assert!(
+                med < 2e-3,
+                "{energy:?} {solver:?}: median relative error {med}"
+            );
+            assert!((fit.affine.0 - 1.0).abs() < 1e-2, "{fit:?}");
+            if energy == Energy::Normalized {
+                assert!(fit.outvoted < 0.05, "{fit:?}");
+            }
+        }
+    }
+
+    /// A relative prior 30 % wrong on a cap of about a fifth of the sphere: the tangents agree
+    /// with each other there, so the prior's samples lose their pull and the result stays at
+    /// the truth (up to the global affine map).
+    #[test]
+    fn a_prior_with_a_regional_error_is_outvoted() {
+        let (layout, maps, options) = setup(Energy::Normalized);
+        let inside = |d: &Vector3<f64>| d.x > 0.6;
+        let prior = prior_map(64, false, |d| if inside(d) { 1.3 } else { 1.0 });
+        let overlaps = Overlaps::build(&layout, options.sample_fraction, 0.0);
+        let mut with = maps.clone();
+        let fit = align_with_prior(&layout, &mut with, &overlaps, &options, Some(&prior))
+            .expect("align")
+            .prior
+            .expect("a prior fit");
+        let errs = errors(&layout, &with, true);
+        let region: Vec<f64> = errs.iter().filter(|e| inside(&e.0)).map(|e| e.1).collect();
+        let med = median(region);
+        assert!(
+            med < 0.01,
+            "median relative error in the wrong region {med}"
+        );
+        assert!(
+            (0.1..0.4).contains(&fit.outvoted),
+            "outvoted fraction {}",
+            fit.outvoted
+        );
+    }
+}

@@ -1,0 +1,180 @@
+"""The global prior of m360.stitch (docs/method.md, "Global prior")."""
+
+from __future__ import annotations
+
+import re
+
+import m360
+import m360.synthetic as syn
+import numpy as np
+import pytest
+from m360.geometry import sphere as sph
+
+WIDTH = 512
+
+
+@pytest.fixture(scope="module")
+def room() -> tuple[m360.Layout, np.ndarray, np.ndarray, syn.Scene]:
+    layout = m360.Layout.icosahedron(WIDTH, padding=0.3)
+    scene = syn.room(3)
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    tiles = syn.distort(exact, 7, scale=(0.5, 2.0), shift=0.3, field=0.0, noise=0.0)
+    depth = scene.distance(sph.erp_directions(WIDTH // 2, WIDTH))
+    return layout, tiles, depth, scene
+
+
+def _distance(scene: syn.Scene, height: int) -> np.ndarray:
+    return scene.distance(sph.erp_directions(height, 2 * height))
+
+
+def test_without_a_prior_the_result_is_bit_identical(room: tuple) -> None:
+    layout, tiles, _, _ = room
+    plain = m360.stitch(tiles, layout)
+    again = m360.stitch(tiles, layout, prior=None)
+    assert np.array_equal(plain, again, equal_nan=True)
+
+
+@pytest.mark.parametrize("kind", ["disparity", "distance"])
+def test_an_absolute_prior_gives_its_units(room: tuple, kind: str) -> None:
+    """A coarse exact prior (64 x 128) of a 512-wide stitch: the result is in 1/m."""
+    layout, tiles, depth, scene = room
+    distance = _distance(scene, 64)
+    prior = 1.0 / distance if kind == "disparity" else distance
+    res = m360.stitch(tiles, layout, prior=prior, prior_kind=kind, return_details=True)
+    ratio = np.nanmedian(res.disparity * depth)
+    assert abs(ratio - 1.0) < 0.01, ratio
+    report = res.report["prior"]
+    assert report is not None and report["kind"] == kind
+    assert report["affine"] == pytest.approx((1.0, 0.0), abs=1e-9)
+    assert report["samples"] > 1000
+
+
+def test_a_relative_prior_reports_its_affine_map(room: tuple) -> None:
+    """affine_disparity 3/d + 1: the reported map sends it onto the result."""
+    layout, tiles, _, scene = room
+    prior = 3.0 / _distance(scene, 64) + 1.0
+    res = m360.stitch(tiles, layout, prior=prior, return_details=True)
+    report = res.report["prior"]
+    assert report is not None
+    a, b = report["affine"]
+    coarse = res.disparity[::4, ::4]
+    fitted = a * prior + b
+    rel = np.nanmedian(np.abs(coarse - fitted) / np.abs(coarse))
+    assert rel < 0.02, rel
+    # Disagreement with the prior is part of the confidence, never below the tangents' own.
+    plain = m360.stitch(tiles, layout, return_details=True)
+    assert np.all(res.confidence[np.isfinite(res.confidence)] >= 0)
+    assert np.nanmean(res.confidence) >= np.nanmean(plain.confidence) * 0.5
+
+
+def test_the_prior_fixes_what_the_tangents_cannot(room: tuple) -> None:
+    """Content errors: the tangents alone leave an error a coarse exact prior removes."""
+    layout, _, depth, scene = room
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    wrong = syn.content_errors(exact, 11, regions=(2, 3), amplitude=(0.2, 0.3))
+    tiles = syn.distort(wrong, 7, scale=(0.5, 2.0), shift=0.3, field=0.1, noise=0.0)
+    prior = 1.0 / _distance(scene, 64)
+    plain = m360.eval.depth_metrics(m360.stitch(tiles, layout), depth)["abs_rel"]
+    with_prior = m360.stitch(tiles, layout, prior=prior, prior_kind="disparity")
+    err = m360.eval.depth_metrics(with_prior, depth)["abs_rel"]
+    assert err < plain, (err, plain)
+
+
+@pytest.mark.xfail(reason="in progress: prior weights against the tangents' consensus")
+def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
+    """A prior 30 % wrong on a fifth of the sphere: most of the wrong region's samples lose
+    their pull, and the result stays as good as without a prior."""
+    layout, tiles, depth, scene = room
+    h = 64
+    prior = 1.0 / _distance(scene, h)
+    dirs = sph.erp_directions(h, 2 * h)
+    region = dirs[..., 0] > 0.6  # a cap of ~20 % of the sphere
+    prior = np.where(region, prior * 1.3, prior)
+    plain = m360.eval.depth_metrics(m360.stitch(tiles, layout), depth)["abs_rel"]
+    res = m360.stitch(tiles, layout, prior=prior, return_details=True)
+    err = m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
+    assert err < plain + 0.002, (err, plain)
+    report = res.report["prior"]
+    assert report is not None and 0.1 < report["outvoted"] < 0.4, report
+
+
+@pytest.mark.parametrize(
+    ("options", "kind"),
+    [
+        ({"energy": "paper"}, "affine_disparity"),
+        ({"solver": "lbfgs"}, "affine_depth"),
+        ({"loss": "squared", "blend": "poisson"}, "affine_disparity"),
+    ],
+)
+def test_every_energy_solver_and_kind_runs(room: tuple, options: dict, kind: str) -> None:
+    layout, tiles, depth, scene = room
+    distance = _distance(scene, 32)
+    prior = distance if kind == "affine_depth" else 1.0 / distance
+    res = m360.stitch(tiles, layout, prior=prior, prior_kind=kind, return_details=True, **options)
+    assert res.report["prior"] is not None
+    assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
+
+
+def test_masks_unknown_prior_regions_and_confidence(room: tuple) -> None:
+    """NaN in the prior and masked tangent pixels are left out; confidence 0 ignores."""
+    layout, tiles, depth, scene = room
+    prior = 1.0 / _distance(scene, 64)
+    prior[:20] = np.nan
+    confidence = np.ones_like(prior)
+    confidence[:, :40] = 0.0
+    mask = np.ones(tiles.shape, bool)
+    mask[:, :10] = False
+    res = m360.stitch(
+        tiles, layout, mask=mask, prior=prior, prior_confidence=confidence, return_details=True
+    )
+    assert res.report["prior"] is not None
+    assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
+
+
+def test_a_partial_panorama_aligns_to_its_prior(room: tuple) -> None:
+    """A panorama missing a cap (masked): the prior, known everywhere, still aligns the rest."""
+    layout, tiles, depth, scene = room
+    mask = np.ones(tiles.shape, bool)
+    h = tiles.shape[1]
+    mask[:, : h // 2] = False  # the top half of every tangent: a partial panorama
+    prior = 1.0 / _distance(scene, 64)
+    res = m360.stitch(tiles, layout, mask=mask, prior=prior, prior_kind="disparity",
+                      return_details=True)  # fmt: skip
+    assert res.report["prior"] is not None
+    assert np.isnan(res.disparity).any()
+    assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
+
+
+@pytest.mark.parametrize(
+    ("prior", "kwargs", "message"),
+    [
+        (np.ones((10, 10), np.float32), {}, "width = 2 x height"),
+        (np.ones((4, 8, 1), np.float32), {}, "(H, W) ERP map"),
+        (np.ones((8, 16), bool), {}, "dtype"),
+        (np.full((8, 16), np.nan, np.float32), {}, "no usable value"),
+        (np.ones((8, 16), np.float32), {"prior_kind": "depth"}, "choose one of"),
+        (
+            np.ones((8, 16), np.float32),
+            {"prior_confidence": np.full((8, 16), 2.0)},
+            "[0, 1]",
+        ),
+        (np.ones((8, 16), np.float32), {"prior_confidence": np.ones((4, 8))}, "must match"),
+        (np.ones((8, 16), np.float32), {"align": "none"}, "needs alignment"),
+        (-np.ones((8, 16), np.float32), {"prior_kind": "distance"}, "no usable value"),
+    ],
+)
+def test_bad_priors_are_input_errors(
+    room: tuple, prior: np.ndarray, kwargs: dict, message: str
+) -> None:
+    layout, tiles, _, _ = room
+    with pytest.raises(m360.InputError, match=re.escape(message)):
+        m360.stitch(tiles, layout, prior=prior, **kwargs)
+
+
+def test_prior_options_are_checked() -> None:
+    with pytest.raises(m360.InputError, match="prior_weight"):
+        m360.StitchOptions(prior_weight=-1.0)
+    with pytest.raises(m360.InputError, match="prior_scale_deg"):
+        m360.StitchOptions(prior_scale_deg=100.0)
+    opts = m360.StitchOptions(prior_weight=2.0)
+    assert opts.align is not None and opts.align["prior_weight"] == 2.0
