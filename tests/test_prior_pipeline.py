@@ -326,7 +326,7 @@ def test_batch_resume_redoes_an_image_when_the_prior_changes(
 
     first = run(prior=str(priors["distance"]), prior_kind="distance")
     assert len(first.done) == 1 and first.exit_code == 0
-    assert stitched[-1]["prior_kind"] == "distance"
+    assert stitched[0]["prior_kind"] == "distance"
     record = _sidecar(out)["options"]["prior"]
     assert record["sha256"] == hashlib.sha256(priors["distance"].read_bytes()).hexdigest()
     assert _sidecar(out)["batch"]["fingerprint"]["prior"]["kind"] == "distance"
@@ -388,7 +388,7 @@ def test_cli_run_with_a_prior_model(
     ]  # fmt: skip
     code = main([*base, "--prior", str(priors["distance"]), "--prior-kind", "distance"])
     assert code == 0, capsys.readouterr().err
-    assert stitched[-1]["prior_kind"] == "distance"
+    assert stitched[0]["prior_kind"] == "distance"
     assert _sidecar(tmp_path / "out")["options"]["prior"]["name"] == "distance.onnx"
     code = main([*base, "--prior", str(priors["broken"])])
     assert code == 1

@@ -18,6 +18,7 @@ import numpy as np
 from ..geometry import sphere
 from ..geometry.layout import Layout
 from ..stitching.options import StitchOptions
+from ..stitching.prior import check_prior
 from ..stitching.stitch import StitchResult, stitch
 
 __all__ = ["stitch_checked"]
@@ -65,8 +66,13 @@ def _result_problems(
     layout: Layout,
     mask: np.ndarray | None,
     anchor: tuple[float, float] | None,
+    reference: np.ndarray | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
-    """Measure a stitched result (as ``anchor`` maps it) and list what is out of bounds."""
+    """Measure a stitched result (as ``anchor`` maps it) and list what is out of bounds.
+
+    The dynamic range is compared with the tangents', or with ``reference``'s (the spherical
+    disparity of a prior in metres, whose units an unanchored result is in).
+    """
     disparity = details.disparity
     finite = np.isfinite(disparity)
     # Pixels some tangent contains that came out NaN, beyond the share of tangent pixels
@@ -84,7 +90,8 @@ def _result_problems(
     if anchor is not None:
         values = values * np.float32(anchor[0]) + np.float32(anchor[1])
     negative = float((values <= 0).mean()) if values.size else 1.0
-    dynamic = _dynamic_range(values) / _dynamic_range(sample)
+    own = _dynamic_range(sample if reference is None else reference)
+    dynamic = _dynamic_range(values) / own
     spread = 1.0
     for grid in details.grids:
         scales = np.abs(grid[..., 0])
@@ -107,8 +114,9 @@ def _result_problems(
     if negative > RESULT_MAX_NEGATIVE:
         problems.append(f"{negative:.1%} of the disparity is <= 0")
     if not dynamic <= RESULT_MAX_RANGE:
+        whose = "the tangents'" if reference is None else "the prior's"
         problems.append(
-            f"disparity range (99th/1st percentile) {dynamic:.3g} times the tangents' "
+            f"disparity range (99th/1st percentile) {dynamic:.3g} times {whose} "
             f"> {RESULT_MAX_RANGE:g}"
         )
     if not spread <= RESULT_MAX_SCALE_SPREAD:
@@ -202,6 +210,12 @@ def stitch_checked(
     metres sets its scale) instead of anchoring it on the tangents' own values.
     """
     prior_args = dict(prior or {})
+    reference = None
+    if prior_args and not anchor:
+        # The result is in the prior's units: its range is what the result's is measured by.
+        reference, _, _ = check_prior(
+            prior_args["prior"], prior_args["prior_kind"], prior_args.get("prior_confidence")
+        )
     tries = _fallbacks(opts)
     report: list[dict[str, Any]] = []
     details: StitchResult | None = None
@@ -223,7 +237,12 @@ def stitch_checked(
             if fit is not None:
                 anchored = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
         measured, problems = _result_problems(
-            details, perspective, layout, mask, None if fit is None else fit[:2]
+            details,
+            perspective,
+            layout,
+            mask,
+            None if fit is None else fit[:2],
+            reference if with_prior else None,
         )
         report.append(
             {
