@@ -346,6 +346,11 @@ def test_batch_resume_redoes_an_image_when_the_prior_changes(
     assert len(run(prior=a, prior_kind="distance").done) == 1
     assert len(run(prior=a.copy(), prior_kind="distance").skipped) == 1
     assert len(run(prior=a * 2, prior_kind="distance").done) == 1
+    # A map file: its values are what counts (the same values: skipped; rewritten: redone).
+    np.save(tmp_path / "map.npy", a * 2)
+    assert len(run(prior=str(tmp_path / "map.npy"), prior_kind="distance").skipped) == 1
+    np.save(tmp_path / "map.npy", a * 3)
+    assert len(run(prior=str(tmp_path / "map.npy"), prior_kind="distance").done) == 1
     # No prior at all: redone, and its fingerprint has no prior (as before the prior existed).
     assert len(run().done) == 1
     assert "prior" not in _sidecar(out)["batch"]["fingerprint"]

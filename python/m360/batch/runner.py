@@ -523,9 +523,13 @@ def run(
         masks=masks,
         confidence=confidence,
         max_vertices=max_vertices,
-        prior=prior_given.get("prior"),
+        # A map travels as the array read here (a file named once is read once, and a Ray
+        # node need not see it); a model as it was given, loaded by each worker.
+        prior=prior.array
+        if prior is not None and prior.array is not None
+        else prior_given.get("prior"),
         prior_kind=prior_given.get("prior_kind"),
-        prior_confidence=prior_given.get("prior_confidence"),
+        prior_confidence=None if prior is None else prior.confidence,
         prior_pixels=_prior_pixels(prior),
         panoramic=panoramic,
     )
