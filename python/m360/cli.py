@@ -22,7 +22,7 @@ import numpy as np
 
 from . import batch
 from ._core import __version__
-from ._keywords import add_flags, from_args, plain_text
+from ._keywords import add_flags, definition, from_args, plain_text
 from .errors import InputError, M360Error, ModelError
 from .estimators import ModelKeywords, ModelOptions, SimulatedEstimator
 from .estimators import registry as models
@@ -45,7 +45,7 @@ from .io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
 from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
-from .pipeline.options import JobKeywords
+from .pipeline.options import JobKeywords, PriorKeywords
 from .stitching.options import StitchKeywords, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -198,6 +198,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(run.add_argument_group("model (ONNX models given by name or path)"), ModelKeywords)
     add_flags(run.add_argument_group("job"), JobKeywords)
+    add_flags(
+        run.add_argument_group(
+            "global prior (a panoramic model or an ERP map the alignment pulls the tangents' "
+            "low frequencies toward; tangent models only)"
+        ),
+        PriorKeywords,
+    )
     _stitch_options(run)
 
     ev = commands.add_parser(
@@ -427,6 +434,7 @@ def _run(args: argparse.Namespace) -> int:
         cpus_per_stitch=args.cpus_per_stitch,
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
+        **from_args(args, PriorKeywords),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code
@@ -497,11 +505,13 @@ def _models_check(args: argparse.Namespace) -> int:
 
 
 def _flag_text(flags: dict[str, object]) -> str:
-    """``{"multiple_of": 32}`` → ``--multiple-of 32``."""
+    """``{"multiple_of": 32}`` → ``--multiple-of 32`` (each model option's own flag)."""
+    entries = definition(ModelKeywords)
     parts = []
     for key, value in flags.items():
         shown = " ".join(str(v) for v in value) if isinstance(value, list) else str(value)
-        parts.append(f"--{key.replace('_', '-')} {shown}")
+        flag = entries[key].flag_name(key) if key in entries else f"--{key.replace('_', '-')}"
+        parts.append(f"{flag} {shown}")
     return " ".join(parts)
 
 
@@ -513,17 +523,27 @@ def _check_report(info: dict[str, Any]) -> list[str]:
     registry = f"{info['registry']} (matched by sha256)" if info["registry"] else "not registered"
     nh, nw = info["network_size"]
     runs = info["network_size_runs"]
+    panoramic = info.get("kind") == "panoramic"
+    seen = (
+        f"a {info['erp_width']}-px ERP (panoramic: the whole panorama at once)"
+        if panoramic
+        else f"the default layout (icosahedron of a {info['erp_width']}-px ERP, tangents "
+        f"{info['tangent_shape'][0]}x{info['tangent_shape'][1]})"
+    )
     lines = [
         f"file:          {info['path']} ({info['size_bytes']} bytes, sha256 {info['sha256']})",
         f"registry:      {registry}",
         f"input:         {inp['name']!r} ({shape}), {inp['layout']}, {size}",
-        f"network size:  {nh}x{nw} for the default layout (icosahedron of a "
-        f"{info['erp_width']}-px ERP, tangents {info['tangent_shape'][0]}x"
-        f"{info['tangent_shape'][1]})" + ("" if runs is None else f": FAILS ({runs})"),
+        f"network size:  {nh}x{nw} for {seen}" + ("" if runs is None else f": FAILS ({runs})"),
     ]
+    target = "the photo (upsampled along its edges)" if panoramic else "the tangent"
     rule = info["size_rule"]
     if inp["static"]:
-        lines.append("sizes:         fixed: m360 resizes each tangent to it")
+        lines.append(
+            "sizes:         fixed: m360 resizes "
+            + ("the panorama" if panoramic else "each tangent")
+            + " to it"
+        )
     elif rule is None:
         lines.append(f"sizes:         runs at none of the sizes tried near {nh}x{nw}")
     else:
@@ -559,9 +579,9 @@ def _check_report(info: dict[str, Any]) -> list[str]:
         if (sh, sw) == (1.0, 1.0):
             scale = "the input's size"
         elif sh == sw and (1 / sh).is_integer():
-            scale = f"1/{int(1 / sh)} of the input's size: m360 resizes it to the tangent"
+            scale = f"1/{int(1 / sh)} of the input's size: m360 resizes it to {target}"
         else:
-            scale = "another size than the input: m360 resizes it to the tangent"
+            scale = f"another size than the input: m360 resizes it to {target}"
         lines.append(f"output:        {oh}x{ow} for a {wh}x{ww} input ({scale})")
     if info["output_range"] is not None:
         lo, mid, hi = info["output_range"]
@@ -590,6 +610,22 @@ def _check_report(info: dict[str, Any]) -> list[str]:
     flags = info["flags"]
     if not info["usable"]:
         lines.append(f"usable:        no: {info['problem']}")
+    elif panoramic:
+        options = ", ".join(f"{k}={v!r}" for k, v in info["options"].items())
+        prior_flags = {k: v for k, v in info["options"].items() if k != "kind"}
+        as_prior = f"--prior {info['path']}" + (
+            f" --prior-kind {prior_flags.pop('output_kind')}"
+            if "output_kind" in prior_flags
+            else ""
+        )
+        lines += [
+            "usable:        yes" + (", with the flags below" if flags else ""),
+            f"use:           m360 run IN -o OUT --model {info['path']} "
+            + _flag_text(info["options"]),
+            f"as a prior:    m360 run IN -o OUT --model TANGENT_MODEL {as_prior}"
+            + ("" if not prior_flags else " (other options: load it in Python)"),
+            f"python:        m360.ModelOptions({options})",
+        ]
     elif not flags:
         lines.append("usable:        yes")
     else:
