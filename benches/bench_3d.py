@@ -21,6 +21,12 @@ writers. Compared in the same run with
 The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
 not depend on the content beyond the share of cut triangles.
 
+Normals and Gaussian splats (``SURFACE_OPS``): ``normals`` (m360.normals, the (H, W, 3)
+array), ``normals_files`` (STEM.normals.exr + .png, file MB of both), ``to_splats`` and
+``stream_splat`` (the splat PLY m360.save writes, default vertex budget) and
+``splat_whole`` (every pixel), against ``normals_numpy``: np.gradient of the point
+grid and a cross product, the plain numpy a user would write (no seam, pole or jump handling).
+
     .venv/bin/python benches/bench_3d.py [--widths 2048 4096 8192] [--repeat 3]
 """
 
@@ -52,6 +58,18 @@ OPS = (
     "o3d_from_depth",
     "o3d_from_numpy",
 )
+#: Normals and Gaussian splats (m360.normals, m360.to_splats and their files), with the numpy
+#: baseline a user would write for normals (central differences of the point grid, no seam,
+#: pole or depth-jump handling).
+SURFACE_OPS = (
+    "normals_numpy",
+    "normals",
+    "normals_files",
+    "to_splats",
+    "stream_splat",
+    "splat_whole",
+)
+OPS += SURFACE_OPS
 
 
 def depth_map(width: int, cache: Path) -> Path:
@@ -80,6 +98,51 @@ def numpy_floor(depth: np.ndarray) -> np.ndarray:
     return xyz[np.isfinite(depth)]
 
 
+def normals_numpy(depth: np.ndarray) -> np.ndarray:
+    h, w = depth.shape
+    lat = np.pi / 2 - np.pi * (np.arange(h, dtype=np.float32) + 0.5) / h
+    lon = 2 * np.pi * (np.arange(w, dtype=np.float32) + 0.5) / w - np.pi
+    c = np.cos(lat)[:, None]
+    xyz = np.stack(
+        [c * np.sin(lon), np.broadcast_to(-np.sin(lat)[:, None], (h, w)), c * np.cos(lon)], -1
+    )
+    xyz *= depth[..., None]
+    d_row, d_col = np.gradient(xyz, axis=(0, 1))
+    n = np.cross(d_col, d_row)
+    n /= np.linalg.norm(n, axis=-1, keepdims=True)
+    return n  # type: ignore[no-any-return]
+
+
+def surface_op(op: str, depth: np.ndarray, k: int, out_dir: str) -> int:
+    """Run one normals/splat operation; returns the size of the file(s) it wrote (bytes)."""
+    import m360
+    from m360.io import normals, splat
+
+    rgb = np.full((*depth.shape, 3), 128, np.uint8)
+    if op == "normals_numpy":
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normals_numpy(depth)
+    elif op == "normals":
+        m360.normals(depth)
+    elif op == "normals_files":
+        paths = normals.write_normals(Path(out_dir) / f"n{k}", depth)
+        size = sum(p.stat().st_size for p in paths.values())
+        for p in paths.values():
+            p.unlink()
+        return size
+    elif op == "to_splats":
+        m360.to_splats(depth, rgb)  # the default vertex budget (8K: every 2nd pixel)
+    elif op in ("stream_splat", "splat_whole"):
+        # what m360.save writes: the default budget, or every pixel
+        budget = {"max_vertices": None} if op == "splat_whole" else {}
+        target = Path(out_dir) / f"g{k}.splat.ply"
+        splat.write_splat_ply(target, depth, rgb=rgb, **budget)
+        size = target.stat().st_size
+        target.unlink()
+        return size
+    return 0
+
+
 def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
     if not op.startswith("o3d"):
         import m360
@@ -90,7 +153,9 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
     size = 0
     for k in range(repeat):
         t0 = time.perf_counter()
-        if op == "numpy_floor":
+        if op in SURFACE_OPS:
+            size = surface_op(op, depth, k, out_dir)
+        elif op == "numpy_floor":
             numpy_floor(depth)
         elif op == "to_points":
             m360.to_points(depth, max_vertices=None)

@@ -154,3 +154,39 @@ def conv_net(
         initializer=inits,
     )
     return _save(graph, path)
+
+
+def erp_oracle(path: Path, transform: str, size: tuple[int, int] = (32, 64)) -> Path:
+    """A fixed-size panoramic graph: ``transform`` of the probe corridor's true ERP distance.
+
+    Input (1, 3, h, w), output (1, h, w) at ``size``; the image is ignored (0 x its mean is added
+    so that the input is used): what a perfect panoramic network outputs on the corridor.
+    ``transform``: ``distance``, ``disparity`` (1/distance), ``scaled_distance`` (40 d + 100,
+    an affine depth) or ``scaled_disparity`` (3/d + 0.5, an affine disparity).
+    """
+    from m360.estimators import _probe
+
+    d = _probe.erp_views(size)[0][1].astype(np.float64)
+    value = {
+        "distance": d,
+        "disparity": 1 / d,
+        "scaled_distance": 40.0 * d + 100.0,
+        "scaled_disparity": 3.0 / d + 0.5,
+    }[transform].astype(np.float32)
+    inits = [
+        numpy_helper.from_array(value[None], "value"),
+        numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
+    ]
+    nodes = [
+        helper.make_node("ReduceMean", ["x"], ["m"], keepdims=0),
+        helper.make_node("Mul", ["m", "zero"], ["m0"]),
+        helper.make_node("Add", ["value", "m0"], ["y"]),
+    ]
+    graph = helper.make_graph(
+        nodes,
+        "erp_oracle",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, *size])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, *size])],
+        initializer=inits,
+    )
+    return _save(graph, path)

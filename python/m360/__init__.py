@@ -35,8 +35,10 @@ from .estimators import registry as models
 from .evaluation import metrics as eval
 from .evaluation import synthetic
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
-from .io import SavedResult, decode, load, mesh, save, viewer
+from .io import SavedResult, decode, load, mesh, save, splat, viewer
 from .io.mesh import Mesh, PointCloud, to_mesh, to_points
+from .io.normals import normals
+from .io.splat import Splats, to_splats
 from .pipeline import masks, memory, scale
 from .pipeline.estimate import EstimateResult, estimate
 from .stitching import align, blend, options, upsample
@@ -83,6 +85,7 @@ __all__ = [
     "SavedResult",
     "ScaleError",
     "SolverError",
+    "Splats",
     "StitchOptions",
     "StitchResult",
     "TangentCamera",
@@ -105,17 +108,20 @@ __all__ = [
     "memory",
     "mesh",
     "models",
+    "normals",
     "options",
     "pipeline",
     "save",
     "scale",
     "set_num_threads",
+    "splat",
     "stitch",
     "stitching",
     "synthetic",
     "tangents_to_erp",
     "to_mesh",
     "to_points",
+    "to_splats",
     "upsample",
     "video",
 ]

@@ -23,7 +23,7 @@ import numpy as np
 
 from . import batch
 from ._core import __version__
-from ._keywords import add_flags, from_args, plain_text
+from ._keywords import add_flags, definition, from_args, plain_text
 from .errors import InputError, M360Error, ModelError
 from .estimators import ModelKeywords, ModelOptions, SimulatedEstimator
 from .estimators import registry as models
@@ -32,6 +32,8 @@ from .evaluation.metrics import depth_metrics, format_metrics
 from .geometry.layout import default_layout
 from .io import (
     GEOMETRY_FORMATS,
+    KNOWN_FORMATS,
+    NORMALS_FORMATS,
     SAVE_FORMATS,
     load,
     output_stem,
@@ -44,7 +46,7 @@ from .io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
 from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
-from .pipeline.options import JobKeywords
+from .pipeline.options import JobKeywords, PriorKeywords
 from .stitching.options import StitchKeywords, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -113,7 +115,8 @@ def build_parser() -> argparse.ArgumentParser:
         type=_formats,
         default=("npy",),
         help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
-        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
+        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh, splat: Gaussian splats; "
+        f"extra m360[3d]); {', '.join(NORMALS_FORMATS)} (surface normals, exr and png)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument(
@@ -126,8 +129,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_max_vertices,
         default=DEFAULT_MAX_VERTICES,
         metavar="N",
-        help=f"most vertices of each 3D file (ply, glb): larger images are strided to fit "
-        f"(default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar records the stride",
+        help=f"most vertices (splats) of each 3D file (ply, glb, splat): larger images are "
+        f"strided to fit (default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar "
+        "records the stride",
     )
     run.add_argument(
         "--workers",
@@ -195,6 +199,13 @@ def build_parser() -> argparse.ArgumentParser:
     )
     add_flags(run.add_argument_group("model (ONNX models given by name or path)"), ModelKeywords)
     add_flags(run.add_argument_group("job"), JobKeywords)
+    add_flags(
+        run.add_argument_group(
+            "global prior (a panoramic model or an ERP map the alignment pulls the tangents' "
+            "low frequencies toward; tangent models only)"
+        ),
+        PriorKeywords,
+    )
     _stitch_options(run)
     _add_video_parser(commands)
 
@@ -257,17 +268,24 @@ def build_parser() -> argparse.ArgumentParser:
 
     view = commands.add_parser(
         "view",
-        help="show a result's point cloud or mesh in the browser (extra m360[3d])",
+        help="show a result's point cloud, mesh or splats in the browser (extra m360[3d])",
         description=(
             "Serve a local page (viser) on 127.0.0.1 showing the point cloud of an output "
             "(STEM.points.ply with the panorama's colours, else the depth map's points coloured "
-            "by distance) or, with --mesh, its mesh. Prints the address and opens it in the "
-            "browser when there is one. Large clouds are subsampled for display only."
+            "by distance) or, with --mesh, its mesh, with --splats its Gaussian splats. Prints "
+            "the address and opens it in the browser when there is one. Large clouds are "
+            "subsampled for display only."
         ),
     )
     view.add_argument("path", type=Path, help="output stem (or one of its files), .ply or .glb")
     view.add_argument("--port", type=int, default=8080, help="port (the next free one if taken)")
-    view.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    shown = view.add_mutually_exclusive_group()
+    shown.add_argument("--mesh", action="store_true", help="show the mesh instead of the points")
+    shown.add_argument(
+        "--splats",
+        action="store_true",
+        help="show the Gaussian splats (STEM.splat.ply, else made from the depth map)",
+    )
     view.add_argument("--colour", choices=("rgb", "depth"), default="rgb", help="point colours")
     view.add_argument("--max-points", type=int, default=2_000_000, help="most points displayed")
     view.add_argument("--no-browser", action="store_true", help="do not open a browser")
@@ -314,7 +332,7 @@ def _max_vertices(text: str) -> int | None:
 
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
-    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    known = KNOWN_FORMATS
     unknown = [f for f in chosen if f not in known]
     if unknown or not chosen:
         raise argparse.ArgumentTypeError(
@@ -368,6 +386,7 @@ def _view(args: argparse.Namespace) -> int:
         args.path,
         port=args.port,
         mesh=args.mesh,
+        splats=args.splats,
         colour=args.colour,
         max_points=args.max_points,
         open_browser=not args.no_browser,
@@ -419,6 +438,7 @@ def _run(args: argparse.Namespace) -> int:
         cpus_per_stitch=args.cpus_per_stitch,
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
+        **from_args(args, PriorKeywords),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code
@@ -489,11 +509,13 @@ def _models_check(args: argparse.Namespace) -> int:
 
 
 def _flag_text(flags: dict[str, object]) -> str:
-    """``{"multiple_of": 32}`` → ``--multiple-of 32``."""
+    """``{"multiple_of": 32}`` → ``--multiple-of 32`` (each model option's own flag)."""
+    entries = definition(ModelKeywords)
     parts = []
     for key, value in flags.items():
         shown = " ".join(str(v) for v in value) if isinstance(value, list) else str(value)
-        parts.append(f"--{key.replace('_', '-')} {shown}")
+        flag = entries[key].flag_name(key) if key in entries else f"--{key.replace('_', '-')}"
+        parts.append(f"{flag} {shown}")
     return " ".join(parts)
 
 
@@ -505,17 +527,27 @@ def _check_report(info: dict[str, Any]) -> list[str]:
     registry = f"{info['registry']} (matched by sha256)" if info["registry"] else "not registered"
     nh, nw = info["network_size"]
     runs = info["network_size_runs"]
+    panoramic = info.get("kind") == "panoramic"
+    seen = (
+        f"a {info['erp_width']}-px ERP (panoramic: the whole panorama at once)"
+        if panoramic
+        else f"the default layout (icosahedron of a {info['erp_width']}-px ERP, tangents "
+        f"{info['tangent_shape'][0]}x{info['tangent_shape'][1]})"
+    )
     lines = [
         f"file:          {info['path']} ({info['size_bytes']} bytes, sha256 {info['sha256']})",
         f"registry:      {registry}",
         f"input:         {inp['name']!r} ({shape}), {inp['layout']}, {size}",
-        f"network size:  {nh}x{nw} for the default layout (icosahedron of a "
-        f"{info['erp_width']}-px ERP, tangents {info['tangent_shape'][0]}x"
-        f"{info['tangent_shape'][1]})" + ("" if runs is None else f": FAILS ({runs})"),
+        f"network size:  {nh}x{nw} for {seen}" + ("" if runs is None else f": FAILS ({runs})"),
     ]
+    target = "the photo (upsampled along its edges)" if panoramic else "the tangent"
     rule = info["size_rule"]
     if inp["static"]:
-        lines.append("sizes:         fixed: m360 resizes each tangent to it")
+        lines.append(
+            "sizes:         fixed: m360 resizes "
+            + ("the panorama" if panoramic else "each tangent")
+            + " to it"
+        )
     elif rule is None:
         lines.append(f"sizes:         runs at none of the sizes tried near {nh}x{nw}")
     else:
@@ -551,9 +583,9 @@ def _check_report(info: dict[str, Any]) -> list[str]:
         if (sh, sw) == (1.0, 1.0):
             scale = "the input's size"
         elif sh == sw and (1 / sh).is_integer():
-            scale = f"1/{int(1 / sh)} of the input's size: m360 resizes it to the tangent"
+            scale = f"1/{int(1 / sh)} of the input's size: m360 resizes it to {target}"
         else:
-            scale = "another size than the input: m360 resizes it to the tangent"
+            scale = f"another size than the input: m360 resizes it to {target}"
         lines.append(f"output:        {oh}x{ow} for a {wh}x{ww} input ({scale})")
     if info["output_range"] is not None:
         lo, mid, hi = info["output_range"]
@@ -582,6 +614,22 @@ def _check_report(info: dict[str, Any]) -> list[str]:
     flags = info["flags"]
     if not info["usable"]:
         lines.append(f"usable:        no: {info['problem']}")
+    elif panoramic:
+        options = ", ".join(f"{k}={v!r}" for k, v in info["options"].items())
+        prior_flags = {k: v for k, v in info["options"].items() if k != "kind"}
+        as_prior = f"--prior {info['path']}" + (
+            f" --prior-kind {prior_flags.pop('output_kind')}"
+            if "output_kind" in prior_flags
+            else ""
+        )
+        lines += [
+            "usable:        yes" + (", with the flags below" if flags else ""),
+            f"use:           m360 run IN -o OUT --model {info['path']} "
+            + _flag_text(info["options"]),
+            f"as a prior:    m360 run IN -o OUT --model TANGENT_MODEL {as_prior}"
+            + ("" if not prior_flags else " (other options: load it in Python)"),
+            f"python:        m360.ModelOptions({options})",
+        ]
     elif not flags:
         lines.append("usable:        yes")
     else:

@@ -9,7 +9,8 @@ can give the network GPUs and the geometry CPUs:
 1. **read + project** (CPU task): read, decode, check the panorama, sample the tangents. Only
    the uint8 tangents go on (about 1.3x the ERP's bytes), never the ERP itself.
 2. **network** (an actor pool, one ONNX Runtime session per actor, ``num_gpus`` when asked):
-   the raw network output of the tangents.
+   the raw network output of the tangents; with a prior model, also its output on the
+   working-resolution photo (stage 1 ships it); a panoramic model runs on the photo instead.
 3. **convert + align + blend + write** (CPU task with ``cpus_per_stitch`` cores): the rest of
    :func:`m360.estimate` and the atomic write, sidecar last.
 
@@ -94,18 +95,22 @@ def _use_threads(threads: int) -> None:
 
 
 def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any]:
-    """Stage 1: (meta, tangents).
+    """Stage 1: (meta, payload).
 
     meta is a failed ImageOutcome or (read, ERP shape, working width, timings); ``read.rgb`` is
     kept only when the 3D formats need its colours or a working width smaller than the image's
-    needs it as the upsampling guide: otherwise only the tangents travel on. The working width
-    is chosen as :func:`m360.estimate` chooses it, so both engines make the same bytes.
+    needs it as the upsampling guide (or a panoramic model's output does): otherwise only the
+    payload travels on. The payload is (tangents, image): the image is what a model actor runs
+    a panoramic network on (the photo for a panoramic model, the working-resolution photo for a
+    prior model; None otherwise). The working width is chosen as :func:`m360.estimate` chooses
+    it, so both engines make the same bytes.
     """
     import cv2
 
     from ..geometry.layout import erp_to_tangents
     from ..pipeline.estimate import _check_erp_rgb
     from ..pipeline.memory import working_width_for
+    from ..pipeline.prior import is_model
 
     _use_threads(threads)
     try:
@@ -113,6 +118,11 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
         read = _image._read_job(job, settings)
         rgb = _check_erp_rgb(read.rgb)
         height, width = rgb.shape[:2]
+        if settings.panoramic:  # one pass on the whole photo: no tangents
+            t_read = time.perf_counter()
+            read.rgb = rgb  # the upsampling's guide
+            timings = {"read": t_read - t0, "project": 0.0}
+            return (read, (height, width), width, timings), (None, rgb)
         work_width = working_width_for(settings.job["working_width"], width)
         working = rgb
         if work_width != width:
@@ -126,37 +136,57 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     timings = {"read": t_read - t0, "project": t_project - t_read}
     keep = _image._needs_rgb(settings) or work_width != width
     read.rgb = rgb if keep else None
-    return (read, (height, width), work_width, timings), tangents
+    image = working if is_model(settings.prior) else None
+    return (read, (height, width), work_width, timings), (tangents, image)
 
 
 class _Network:
-    """Stage 2: one estimator (ONNX Runtime session) per actor, loaded once."""
+    """Stage 2: one estimator (ONNX Runtime session) per actor, loaded once; and the prior's."""
 
     def __init__(self, settings: _Settings, threads: int | None) -> None:
         from ..estimators import ModelOptions, load_estimator
+        from ..pipeline.prior import is_model
 
         # The actor's threads (its reserved CPUs unless the run names them) win.
         given = {**settings.model_options.keywords(), "threads": threads}
         self.estimator = load_estimator(settings.model, model_options=ModelOptions(**given))
         self.padding = settings.job["padding"]
+        self.prior = settings.load_prior(threads) if is_model(settings.prior) else None
 
     def ready(self) -> bool:
         """Tell the driver the model loaded (a failure is the constructor's exception)."""
         return True
 
-    def predict(self, tangents: Any, width: int) -> tuple[Any, Any]:
-        """(meta, raw): meta is (model info, seconds) or the exception the network raised."""
-        from ..pipeline.estimate import _model_info, _predict
+    def predict(self, payload: Any, width: int) -> tuple[Any, Any]:
+        """(meta, raw): meta is (model info, kind, seconds, extra) or the exception raised.
 
-        layout = _layout(width, self.padding)
+        ``extra`` holds the prior model's output (``prior``) and seconds (``prior_seconds``).
+        """
+        from ..pipeline.estimate import _model_info, _predict
+        from ..pipeline.prior import prior_input, run_prior
+
+        tangents, image = payload
         t0 = time.perf_counter()
+        extra: dict[str, Any] = {}
         try:
-            raw = _predict(self.estimator, tangents, layout)
+            if tangents is None:  # a panoramic model on the whole photo
+                network_input = prior_input(self.estimator, image)
+                raw = run_prior(self.estimator, network_input, "panoramic model")
+                info = _model_info(self.estimator, None, network_input.shape[:2])
+                seconds = time.perf_counter() - t0
+            else:
+                layout = _layout(width, self.padding)
+                raw = _predict(self.estimator, tangents, layout)
+                seconds = time.perf_counter() - t0
+                info = _model_info(self.estimator, layout)
+                if self.prior is not None:
+                    t1 = time.perf_counter()
+                    est = self.prior.estimator
+                    extra["prior"] = run_prior(est, prior_input(est, image))
+                    extra["prior_seconds"] = time.perf_counter() - t1
         except Exception as exc:
             return exc, None
-        seconds = time.perf_counter() - t0
-        info = _model_info(self.estimator, layout)
-        return (info, self.estimator.output_kind, seconds), raw
+        return (info, self.estimator.output_kind, seconds, extra), raw
 
 
 def _stitch_write(
@@ -168,33 +198,64 @@ def _stitch_write(
     raw: Any,
 ) -> ImageOutcome:
     """Stage 3: the rest of m360.estimate, then the atomic write (the driver holds the claim)."""
-    from ..pipeline.estimate import _from_network, _split_mask
+    from ..pipeline import masks as _masks
+    from ..pipeline.estimate import (
+        PriorMap,
+        _from_network,
+        _from_panoramic,
+        _prior_map,
+        _split_mask,
+    )
 
     _use_threads(threads)
     if isinstance(network_meta, Exception):
         return _image._error_outcome(job, network_meta)
     read, erp_shape, work_width, timings = read_meta
-    info, kind, network_seconds = network_meta
+    info, kind, network_seconds, extra = network_meta
     try:
-        layout = _layout(work_width, settings.job["padding"])
-        mask, erp_valid = _split_mask(_image._image_mask(read, settings), layout, erp_shape)
         # The sidecar's timings are m360.estimate's stages, as the local engine writes them.
         before = {"load": 0.0, "project": timings["project"], "network": network_seconds}
-        result = _from_network(
-            raw,
-            kind,
-            layout,
-            settings.options,
-            erp_shape,
-            info,
-            before,
-            mask=mask,
-            erp_valid=erp_valid,
-            sky_mode=settings.job["sky"],
-            scale=settings.scale,
-            guide=read.rgb if work_width != erp_shape[1] else None,
-            upsample=settings.job["upsample"],
-        )
+        if settings.panoramic:
+            masks = _image._image_mask(read, settings)
+            result = _from_panoramic(
+                raw,
+                kind,
+                erp_shape,
+                info,
+                before,
+                guide=read.rgb,
+                erp_valid=None if masks is None else _masks.erp_mask(masks, *erp_shape),
+                sky_mode=settings.job["sky"],
+                scale=settings.scale,
+                upsample=settings.job["upsample"],
+            )
+        else:
+            layout = _layout(work_width, settings.job["padding"])
+            mask, erp_valid = _split_mask(_image._image_mask(read, settings), layout, erp_shape)
+            prior = None
+            if "prior" in extra:  # the model actor ran the prior model
+                record = settings.fingerprint["prior"]
+                prior = PriorMap(extra["prior"], record["kind"], None, record)
+                before["prior"] = extra["prior_seconds"]
+            elif settings.prior is not None:  # a map: cheap to load here
+                prior = _prior_map(settings.load_prior(), None, prior_input=None)
+                before["prior"] = 0.0
+            result = _from_network(
+                raw,
+                kind,
+                layout,
+                settings.options,
+                erp_shape,
+                info,
+                before,
+                mask=mask,
+                erp_valid=erp_valid,
+                sky_mode=settings.job["sky"],
+                scale=settings.scale,
+                guide=read.rgb if work_width != erp_shape[1] else None,
+                upsample=settings.job["upsample"],
+                prior=prior,
+            )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting
         t_write = time.perf_counter()
         # An earlier attempt at this image lost its worker mid-write; the claim is still ours.
@@ -378,8 +439,8 @@ class _Driver:
             self._submit_read(_Image(job, claim))
 
     def _submit_read(self, image: _Image) -> None:
-        meta, tangents = self.read_task.remote(image.job, self.shared_settings, self.stitch_threads)
-        image.tangents = tangents
+        meta, payload = self.read_task.remote(image.job, self.shared_settings, self.stitch_threads)
+        image.tangents = payload
         self.pending[meta] = ("read", image, None)
 
     def _dispatch_network(self) -> None:

@@ -27,6 +27,7 @@ from ..io import (
     FORMAT_SUFFIXES,
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
+    NORMALS_FILES,
     QUANTITIES,
     SAVE_FORMATS,
     listed_files,
@@ -101,6 +102,13 @@ class _Settings:
     masks: tuple[Any, ...] = ()  # Caps and (H, W) bool arrays (m360.masks), for every image
     confidence: bool = False
     max_vertices: int | None = DEFAULT_MAX_VERTICES  # the 3D files' vertex budget
+    # The global prior as given (m360.pipeline.options.PriorKeywords): a path or name, a
+    # panoramic estimator or an ERP map; loaded once per worker (load_prior).
+    prior: Any = None
+    prior_kind: str | None = None
+    prior_confidence: Any = None
+    prior_pixels: int = 0  # the prior map's pixels, for the memory check
+    panoramic: bool = False  # the model is panoramic (one pass on the whole ERP)
 
     @property
     def threads(self) -> int | None:
@@ -108,17 +116,35 @@ class _Settings:
         threads: int | None = self.model_options.threads
         return threads
 
+    def load_prior(self, threads: int | None = None) -> Any:
+        """Load the run's prior (a model once per process); None without one.
+
+        ``threads`` replaces the model options' threads (a Ray actor's own).
+        """
+        from ..pipeline.prior import load_prior
+
+        return load_prior(
+            self.prior,
+            self.prior_kind,
+            self.prior_confidence,
+            providers=self.model_options.providers,
+            threads=self.threads if threads is None else threads,
+        )
+
 
 class _Worker:
     """Per-process state: the estimator is loaded once; the plan cache lives in the process."""
 
-    def __init__(self, settings: _Settings, estimator: Any | None = None) -> None:
+    def __init__(
+        self, settings: _Settings, estimator: Any | None = None, prior: Any | None = None
+    ) -> None:
         from ..estimators import load_estimator
 
         self.settings = settings
         self.estimator = estimator or load_estimator(
             settings.model, model_options=settings.model_options
         )
+        self.prior = prior if prior is not None else settings.load_prior()
 
     def process(self, job: Job) -> ImageOutcome:
         """Claim, read, estimate and write one image; its outcome (never raises but Ctrl-C).
@@ -136,6 +162,7 @@ class _Worker:
 
     def _process(self, job: Job) -> ImageOutcome:
         from ..pipeline.estimate import estimate
+        from ..pipeline.prior import as_keywords
 
         s = self.settings
         unusable = _make_job_folder(job)
@@ -162,6 +189,7 @@ class _Worker:
                     scale=s.scale,
                     mask=_image_mask(read, s),
                     **s.job,
+                    **as_keywords(self.prior),
                 )
                 t_estimate = time.perf_counter()
                 _write_job(job, result, read.records, s, read.rgb)
@@ -297,6 +325,7 @@ def _check_run_memory(
         max_vertices=s.max_vertices,
         header=header,
         file_bytes=file_bytes,
+        prior_pixels=s.prior_pixels,
     )
     check_memory(
         needed,
@@ -432,6 +461,7 @@ def output_names(
     ]
     names += [f"{stem}.preview.png"] * bool(preview)
     names += [stem + GEOMETRY_FILES[fmt][1] for fmt in formats if fmt in GEOMETRY_FILES]
+    names += [stem + tail for tail in NORMALS_FILES.values()] * ("normals" in formats)
     return [*names, f"{stem}.json"]
 
 
@@ -499,7 +529,7 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
         names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
     except M360Error:
         return False
-    for extra in ("preview", *(kind for kind, _ in GEOMETRY_FILES.values())):
+    for extra in ("preview", "normals", *(kind for kind, _ in GEOMETRY_FILES.values())):
         entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
         for name in entry.values() if isinstance(entry, dict) else [entry]:
             if isinstance(name, str) and Path(name).name == name:

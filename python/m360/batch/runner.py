@@ -59,10 +59,10 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any
 
-from .._keywords import definition, resolved, split
+from .._keywords import checked, definition, resolved, split
 from .._validate import MAX_THREADS, flag, integer
 from ..errors import InputError, ReadError
-from ..estimators import OnnxEstimator
+from ..estimators import OnnxEstimator, estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
@@ -72,7 +72,9 @@ from ..io import (
 )
 from ..io.decode import IMAGE_SUFFIXES
 from ..io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
-from ..pipeline.options import EstimateKeywords, JobKeywords
+from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
+from ..pipeline.prior import describe as describe_prior
+from ..pipeline.prior import load_prior
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ._inputs import read_manifest, scan
 from ._interrupt import MainThreadInterrupts, install_for_process
@@ -99,7 +101,7 @@ FAILURES_FILE = "failures.jsonl"
 #: Where :func:`run` runs images: local processes (default) or a Ray cluster (``m360[ray]``).
 ENGINES = ("local", "ray")
 #: Stages reported per image: reading the file, m360.estimate's stages, writing the outputs.
-STAGES = ("read", "load", "project", "network", "convert", "align", "blend", "write")
+STAGES = ("read", "load", "project", "network", "prior", "convert", "align", "blend", "write")
 #: Exit code of a run that left images to another run still writing them (none failed).
 EXIT_BUSY = 3
 
@@ -431,9 +433,14 @@ def run(
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones, for every image: one list,
         :class:`m360.pipeline.options.EstimateKeywords` (the stitching options, the model
-        options, ``working_width``, ``upsample``, ``padding``, ``sky``). ``threads`` is also
-        the core's threads per worker with ``workers > 1`` (default: the CPU count divided
-        among the workers).
+        options, ``working_width``, ``upsample``, ``padding``, ``sky``, and the global prior
+        ``prior``, ``prior_kind``, ``prior_confidence``). ``threads`` is also the core's
+        threads per worker with ``workers > 1`` (default: the CPU count divided among the
+        workers). A prior model (a path or registry name, loaded with ``kind="panoramic"``) is
+        loaded once before any image (a :class:`m360.ModelError` if it cannot be) and runs on
+        each photo; a prior map applies to every image. The resume fingerprint holds the prior
+        (a model's name, sha256, output kind and preprocessing; a map's sha256), so a rerun with
+        another prior redoes the images.
 
     Returns
     -------
@@ -450,8 +457,8 @@ def run(
         raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
-    stitch_keywords, model_keywords, job_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="run"
+    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where="run"
     )
     model_opts = ModelOptions.build(model_options, **model_keywords)
     job_options = resolved(job_keywords, JobKeywords)
@@ -478,6 +485,22 @@ def run(
 
     # Resolve (download, verify) the model once, here: a bad model fails the run, not each image.
     estimator = load_estimator(model, model_options=model_opts)
+    panoramic = estimator_kind(estimator) == "panoramic"
+    prior_given = checked(prior_keywords, PriorKeywords)
+    if panoramic and prior_given:
+        raise InputError("a prior goes with a tangent model; a panoramic model is used alone")
+    if prior_given.get("prior") is not None and opts.align is None:
+        raise InputError("a prior acts through the alignment: give align other than 'none'")
+    if panoramic and job_options["padding"] is not None:
+        raise InputError("a panoramic model runs once on the whole ERP: padding does not apply")
+    # The prior too: a prior model that cannot be loaded is one ModelError before any image.
+    prior = load_prior(
+        prior_given.get("prior"),
+        prior_given.get("prior_kind"),
+        prior_given.get("prior_confidence"),
+        providers=model_opts.providers,
+        threads=model_opts.threads,
+    )
     settings = _Settings(
         model=model,
         model_options=model_opts,
@@ -500,7 +523,20 @@ def run(
         masks=masks,
         confidence=confidence,
         max_vertices=max_vertices,
+        # A map travels as the array read here (a file named once is read once, and a Ray
+        # node need not see it); a model as it was given, loaded by each worker.
+        prior=prior.array
+        if prior is not None and prior.array is not None
+        else prior_given.get("prior"),
+        prior_kind=prior_given.get("prior_kind"),
+        prior_confidence=None if prior is None else prior.confidence,
+        prior_pixels=_prior_pixels(prior),
+        panoramic=panoramic,
     )
+    # A rerun with another prior (model bytes, its options, its kind; a map's values) redoes
+    # the image; absent without one, so the fingerprints of earlier runs stay valid.
+    if prior is not None:
+        settings.fingerprint["prior"] = describe_prior(prior)
     # A rerun with another vertex budget must not be skipped (absent when default, as below).
     if max_vertices != DEFAULT_MAX_VERTICES and any(f in GEOMETRY_FORMATS for f in chosen):
         settings.fingerprint["max_vertices"] = max_vertices
@@ -563,16 +599,16 @@ def run(
         if ray_resources is not None:
             from ._ray_engine import run_jobs
 
-            del estimator  # each model actor loads its own
+            del estimator, prior  # each model actor loads its own
             with MainThreadInterrupts(_keyboard_interrupt_once()):  # the driver has many threads
                 run_jobs(jobs, settings, lambda job, o: record(o, order[job]), ray_resources)
         elif workers == 1 or len(jobs) <= 1:
-            worker = _Worker(settings, estimator)
+            worker = _Worker(settings, estimator, prior)
             with MainThreadInterrupts(_keyboard_interrupt_once()):
                 for job in jobs:
                     record(worker.process(job), order[job])
         else:
-            del estimator  # each worker loads its own
+            del estimator, prior  # each worker loads its own
             interrupted = _run_pool(jobs, settings, workers, lambda job, o: record(o, order[job]))
     except KeyboardInterrupt:
         interrupted = True
@@ -592,6 +628,18 @@ def run(
         notes=notes,
     )
     return report
+
+
+def _prior_pixels(prior: Any) -> int:
+    """Pixels of a prior's map for the memory check (a model's: its input for a 2:1 photo)."""
+    if prior is None:
+        return 0
+    if prior.array is not None:
+        return int(prior.array.size)
+    if isinstance(prior.estimator, OnnxEstimator):
+        h, w = prior.estimator.network_size((1024, 2048))
+        return h * w
+    return 0
 
 
 class _ModelUnusable(Exception):
@@ -701,6 +749,8 @@ def fingerprint(
         "sha256": getattr(estimator, "sha256", None),
         "output_kind": estimator.output_kind,
     }
+    if estimator_kind(estimator) == "panoramic":  # absent for tangent models, as before
+        model["kind"] = "panoramic"
     if isinstance(estimator, OnnxEstimator):
         # What reaches the network: a rerun with another input size must not be skipped.
         model.update(

@@ -5,7 +5,9 @@ boxes, lights) is ray cast through a few pinhole cameras at the origin; the netw
 view and its output is rank-correlated with the true z-depth. Any depth network, however weak,
 gets a corridor's strong perspective roughly right: its output grows with depth (a depth) or
 falls with it (a disparity). The same views run under each named normalisation tell which one
-the network was trained with (the right one gives the clearest depth).
+the network was trained with (the right one gives the clearest depth). A panoramic network sees
+the corridor as one ERP panorama (:func:`erp_views`), its output compared with the radial
+distance.
 """
 
 from __future__ import annotations
@@ -18,9 +20,9 @@ import cv2
 import numpy as np
 
 from ..evaluation import synthetic
-from ..geometry.sphere import camera_pixel_directions
+from ..geometry.sphere import camera_pixel_directions, erp_directions
 
-__all__ = ["KindGuess", "guess_kind", "rank_correlation", "views"]
+__all__ = ["KindGuess", "erp_views", "guess_kind", "rank_correlation", "views"]
 
 #: |rank correlation| with depth below which the output is taken not to follow depth at all.
 FOLLOWS_DEPTH = 0.3
@@ -109,6 +111,23 @@ def views(shape: tuple[int, int]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
     return tuple(out)
 
 
+@functools.lru_cache(maxsize=4)
+def erp_views(shape: tuple[int, int]) -> tuple[tuple[np.ndarray, np.ndarray], ...]:
+    """The probe panorama at ``shape`` (h, w): one ((h, w, 3) uint8 RGB, (h, w) distance) pair.
+
+    The corridor seen from the origin as an ERP (docs/conventions.md), with the true radial
+    distance |P| of each pixel: what a panoramic network is probed on.
+    """
+    h, w = shape
+    dirs = erp_directions(h, w)
+    scene = corridor()
+    rgb = scene.shade(dirs)
+    distance = scene.distance(dirs).astype(np.float32)
+    rgb.flags.writeable = False
+    distance.flags.writeable = False
+    return ((rgb, distance),)
+
+
 def rank_correlation(a: np.ndarray, b: np.ndarray) -> float:
     """Spearman's rank correlation of two arrays over their finite pairs (0.0 if undefined)."""
     x, y = np.asarray(a, np.float64).ravel(), np.asarray(b, np.float64).ravel()
@@ -178,12 +197,16 @@ class KindGuess:
         }
 
 
-def guess_kind(outputs: list[np.ndarray], depths: list[np.ndarray]) -> KindGuess:
+def guess_kind(
+    outputs: list[np.ndarray], depths: list[np.ndarray], *, panoramic: bool = False
+) -> KindGuess:
     """Guess what the ``outputs`` (one per view) are from the views' true z-``depths``.
 
     Grows with depth and reads like metres (all > 0, median within a factor 3 of the true
     median): ``metric_depth``; grows with depth otherwise: ``affine_depth``; falls with depth:
-    ``affine_disparity``; neither (|rank correlation| < 0.3): None.
+    ``affine_disparity``; neither (|rank correlation| < 0.3): None. With ``panoramic`` the
+    depths are radial distances, and metres are ``distance``; an output falling with depth
+    whose inverse reads like metres is ``disparity`` (1/metres).
     """
     pairs = [
         (np.asarray(o, np.float64), depth_at(z, np.shape(o)))
@@ -209,6 +232,16 @@ def guess_kind(outputs: list[np.ndarray], depths: list[np.ndarray]) -> KindGuess
             f"the output does not follow the scene's depth (rank correlation {rho:+.2f})",
         )
     if rho < 0:
+        inverse = 1.0 / ratio / float(np.median(truth)) ** 2 if positive else float("nan")
+        if panoramic and positive and 1 / METRIC_FACTOR <= inverse <= METRIC_FACTOR:
+            return KindGuess(
+                "disparity",
+                confidence,
+                rho,
+                ratio,
+                f"falls as distance grows (rank correlation {rho:+.2f}), positive, its inverse "
+                f"about {inverse:.2f}x the true distance: 1/metres",
+            )
         return KindGuess(
             "affine_disparity",
             confidence,
@@ -218,7 +251,7 @@ def guess_kind(outputs: list[np.ndarray], depths: list[np.ndarray]) -> KindGuess
         )
     if positive and 1 / METRIC_FACTOR <= ratio <= METRIC_FACTOR:
         return KindGuess(
-            "metric_depth",
+            "distance" if panoramic else "metric_depth",
             confidence,
             rho,
             ratio,

@@ -14,6 +14,13 @@ An estimator declares one ``output_kind`` (docs/architecture.md, estimators):
 - ``"negated_affine_disparity"``: an affine disparity with the sign flipped (an output that
   grows with depth); negated, then as ``"affine_disparity"``.
 
+A *panoramic* estimator (ERP in, ERP out: :data:`ESTIMATOR_KINDS`) declares one of
+:data:`PANORAMIC_OUTPUT_KINDS`, all of them about the ERP pixel's ray: ``"affine_disparity"``
+(spherical disparity 1/|P| up to scale and shift), ``"disparity"`` (1/|P| in 1/metres),
+``"affine_depth"`` (|P| up to scale and shift) and ``"distance"`` (|P| in metres);
+:func:`to_spherical_disparity` converts them. A z-depth (``"metric_depth"``) has no meaning for
+an ERP output (there is no optical axis) and is refused.
+
 After the conversion :func:`sanitise` checks each tangent (docs/method.md, "Checking the
 network's output").
 """
@@ -33,17 +40,25 @@ from ..geometry.layout import Layout, plan_for
 
 __all__ = [
     "AFFINE_DEPTH_FLOOR",
+    "ALL_OUTPUT_KINDS",
     "DEPTH_KINDS",
+    "ESTIMATOR_KINDS",
     "MIN_TANGENT_SHARE",
     "MIN_VALID_FRACTION",
     "OUTLIER_RATIO",
     "OUTPUT_KINDS",
+    "PANORAMIC_METRIC_KINDS",
+    "PANORAMIC_OUTPUT_KINDS",
     "OutputKind",
     "TangentDrop",
+    "check_any_output_kind",
+    "check_estimator_kind",
     "check_output_kind",
+    "check_panoramic_output_kind",
     "ray_norms",
     "sanitise",
     "to_perspective_disparity",
+    "to_spherical_disparity",
 ]
 
 _log = logging.getLogger("m360")
@@ -61,6 +76,20 @@ OUTPUT_KINDS: tuple[str, ...] = (
 )
 #: The kinds in metres whose values must be > 0 (the result keeps their scale).
 DEPTH_KINDS: tuple[str, ...] = ("metric_depth", "distance")
+#: The roles of an estimator: ``tangent`` (perspective tangent images in, one map per tangent
+#: out: the paper's networks) or ``panoramic`` (the whole ERP in, one ERP map out).
+ESTIMATOR_KINDS: tuple[str, ...] = ("tangent", "panoramic")
+#: What a panoramic estimator may declare it outputs (per ERP pixel, along its ray).
+PANORAMIC_OUTPUT_KINDS: tuple[str, ...] = (
+    "affine_disparity",
+    "disparity",
+    "affine_depth",
+    "distance",
+)
+#: The panoramic kinds in metres (or 1/metres): their values must be > 0.
+PANORAMIC_METRIC_KINDS: tuple[str, ...] = ("disparity", "distance")
+#: Every output kind an option may name (tangent and panoramic).
+ALL_OUTPUT_KINDS: tuple[str, ...] = (*OUTPUT_KINDS, "disparity")
 #: ``affine_depth``: the robust minimum of a tangent's depth is shifted to this fraction of its
 #: robust range (1st to 99th percentile) before 1/z (docs/method.md, "affine_depth").
 AFFINE_DEPTH_FLOOR = 0.1
@@ -95,8 +124,93 @@ def check_output_kind(kind: Any, name: str = "output_kind") -> OutputKind:
     """
     if not isinstance(kind, str) or kind not in OUTPUT_KINDS:
         options = ", ".join(repr(k) for k in OUTPUT_KINDS)
-        raise InputError(f"{name}={kind!r} is not supported; choose one of {options}")
+        also = (
+            " ('disparity' is for panoramic models, kind='panoramic')"
+            if kind == "disparity"
+            else ""
+        )
+        raise InputError(f"{name}={kind!r} is not supported; choose one of {options}{also}")
     return kind  # type: ignore[return-value]
+
+
+def check_any_output_kind(kind: Any, name: str = "output_kind") -> str:
+    """``kind`` if some estimator role takes it (:data:`ALL_OUTPUT_KINDS`), else InputError."""
+    if not isinstance(kind, str) or kind not in ALL_OUTPUT_KINDS:
+        options = ", ".join(repr(k) for k in ALL_OUTPUT_KINDS)
+        raise InputError(f"{name}={kind!r} is not supported; choose one of {options}")
+    return kind
+
+
+def check_estimator_kind(kind: Any, name: str = "kind") -> str:
+    """``kind`` if it is one of :data:`ESTIMATOR_KINDS`, else :class:`m360.InputError`."""
+    if not isinstance(kind, str) or kind not in ESTIMATOR_KINDS:
+        options = ", ".join(repr(k) for k in ESTIMATOR_KINDS)
+        raise InputError(
+            f"{name}={kind!r} is not an estimator kind; choose one of {options} (tangent: "
+            "perspective tiles in, panoramic: the whole ERP in and out)"
+        )
+    return kind
+
+
+def check_panoramic_output_kind(kind: Any, name: str = "output_kind") -> str:
+    """``kind`` if a panoramic estimator may output it (:data:`PANORAMIC_OUTPUT_KINDS`).
+
+    ``"metric_depth"`` gets its own message: a z-depth needs an optical axis, which an ERP map
+    has not; a metric panoramic network outputs ``"distance"`` (radial metres).
+    """
+    if kind == "metric_depth":
+        raise InputError(
+            f"{name}='metric_depth' (z-depth) has no meaning for a panoramic (ERP) output: an ERP "
+            "pixel has no optical axis to measure z along. A metric panoramic network outputs "
+            "the radial distance: use output_kind='distance' (metres) or 'disparity' (1/metres)"
+        )
+    if not isinstance(kind, str) or kind not in PANORAMIC_OUTPUT_KINDS:
+        options = ", ".join(repr(k) for k in PANORAMIC_OUTPUT_KINDS)
+        raise InputError(
+            f"{name}={kind!r} is not supported for a panoramic model; choose one of {options}"
+        )
+    return kind
+
+
+def to_spherical_disparity(values: np.ndarray, kind: str) -> np.ndarray:
+    """Convert a panoramic estimator's ERP output of ``kind`` to spherical disparity 1/|P|.
+
+    Parameters
+    ----------
+    values : (h, w) float array
+        The ERP map at the network's own resolution; NaN = no estimate.
+    kind : str
+        One of :data:`PANORAMIC_OUTPUT_KINDS`: ``"affine_disparity"`` and ``"disparity"`` pass
+        through; ``"distance"`` is inverted; ``"affine_depth"`` is shifted as a tangent's is
+        (its robust minimum to :data:`AFFINE_DEPTH_FLOOR` of its robust range), then inverted.
+
+    Returns
+    -------
+    (h, w) float32
+        Spherical disparity; NaN where the input is not finite and, for ``"disparity"`` and the
+        depths, where the value (shifted) is not > 0 or its inverse overflows float32.
+    """
+    check_panoramic_output_kind(kind)
+    array = as_array(values, "panoramic output")
+    if array.ndim != 2 or min(array.shape) < 1:
+        raise InputError(f"a panoramic output must be one (h, w) map, got shape {array.shape}")
+    with np.errstate(over="ignore", invalid="ignore"):
+        out = np.array(array, dtype=np.float32)
+    out[~np.isfinite(out)] = np.nan
+    if kind == "affine_disparity":
+        return out
+    if kind == "disparity":
+        with np.errstate(invalid="ignore"):
+            out[~(out > 0)] = np.nan
+        return out
+    depth = out.astype(np.float64)
+    if kind == "affine_depth":
+        lo, hi = _percentiles(depth[None], (1.0, 99.0))
+        depth = np.maximum(depth - lo[0], 0.0) + AFFINE_DEPTH_FLOOR * (hi[0] - lo[0])
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        result = np.where(depth > 0, 1.0 / depth, np.nan).astype(np.float32)
+    result[np.isinf(result)] = np.nan
+    return result
 
 
 @functools.lru_cache(maxsize=8)

@@ -3,6 +3,9 @@
 :class:`OnnxEstimator` runs an ONNX graph with ONNX Runtime, one tangent at a time by default
 (on a few CPU cores batching gains nothing and multiplies the activation memory), with the
 model's own resize and normalisation, and resizes the prediction back to the tangent size.
+:class:`PanoramicOnnxEstimator` runs a panoramic network (the whole ERP in, one ERP map out)
+once, with the same size rules, normalisation and checks, and returns the map at the network's
+own resolution (its callers upsample it).
 """
 
 from __future__ import annotations
@@ -26,12 +29,18 @@ from .._validate import as_array, integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError, ModelError
 from . import onnx_file
-from .kinds import DEPTH_KINDS, check_output_kind
+from .kinds import (
+    DEPTH_KINDS,
+    PANORAMIC_METRIC_KINDS,
+    check_output_kind,
+    check_panoramic_output_kind,
+)
 
 __all__ = [
     "MAX_NETWORK_SIZE",
     "RESIZE_MODES",
     "OnnxEstimator",
+    "PanoramicOnnxEstimator",
     "is_file",
     "network_size",
     "resize_valid",
@@ -170,7 +179,7 @@ def network_size(
 
 
 class OnnxEstimator:
-    """A depth network in an ONNX file, run with ONNX Runtime.
+    """A depth network in an ONNX file, run with ONNX Runtime, one tangent image at a time.
 
     Parameters
     ----------
@@ -244,9 +253,9 @@ class OnnxEstimator:
         if not isinstance(path, (str, os.PathLike)):
             raise InputError(f"path must be a str or os.PathLike, got {type(path).__name__}")
         self.path = Path(path)
+        self.output_kind: str = self._check_output_kind(output_kind)
         if not is_file(self.path):
             raise ModelError(f"model file {self.path} does not exist (or is not a file)")
-        self.output_kind = check_output_kind(output_kind)
         self.input_size = (
             None if input_size is None else size_pair(input_size, "input_size", MAX_NETWORK_SIZE)
         )
@@ -324,6 +333,15 @@ class OnnxEstimator:
                 "(or a dynamic batch dimension)"
             )
 
+    #: The estimator's role (:data:`m360.estimators.kinds.ESTIMATOR_KINDS`).
+    kind = "tangent"
+    #: The network (height, width) of a dynamic-size file when no ``input_size`` is given.
+    default_input_size: tuple[int, int] = (384, 384)
+
+    @staticmethod
+    def _check_output_kind(output_kind: Any) -> str:
+        return check_output_kind(output_kind)
+
     def _inspect_input(self) -> _InputSpec:
         inputs = self.session.get_inputs()
         first = inputs[0]
@@ -388,7 +406,7 @@ class OnnxEstimator:
         """Network input (height, width) used for tangents of ``tangent_shape``."""
         if self._input.size is not None:
             return self._input.size
-        target = self.input_size or (384, 384)
+        target = self.input_size or self.default_input_size
         return network_size(tangent_shape, target, multiple_of=self.multiple_of, resize=self.resize)
 
     @renamed(tiles="tangents")
@@ -527,9 +545,59 @@ class OnnxEstimator:
 
     def __repr__(self) -> str:
         return (
-            f"OnnxEstimator({self.name!r}, output_kind={self.output_kind!r}, "
+            f"{type(self).__name__}({self.name!r}, output_kind={self.output_kind!r}, "
             f"providers={list(self.providers)}, threads={self.threads})"
         )
+
+
+class PanoramicOnnxEstimator(OnnxEstimator):
+    """A panoramic depth network in an ONNX file: the whole ERP in, one ERP map out.
+
+    Takes the parameters of :class:`OnnxEstimator` (the same size rules, normalisation
+    detection and checks); ``output_kind`` is one of
+    :data:`m360.estimators.kinds.PANORAMIC_OUTPUT_KINDS` (``"metric_depth"`` is refused: an ERP
+    map has no optical axis). A dynamic-size file runs at ``input_size`` (default 512 x 1024,
+    the size panoramic networks are trained at) fitted to the ERP's 2:1 aspect by ``resize``
+    and rounded to ``multiple_of``.
+
+    :meth:`predict` runs the network once on an (H, W, 3) ERP and returns its output at the
+    network's own resolution (callers upsample: :func:`m360.estimate` along the photo's edges).
+    The input is the ERP as m360 lays it out (docs/conventions.md: column 0 at longitude −π,
+    row 0 the zenith); networks trained on ERP images take that layout as it is.
+    """
+
+    kind = "panoramic"
+    default_input_size = (512, 1024)
+
+    @staticmethod
+    def _check_output_kind(output_kind: Any) -> str:
+        return check_panoramic_output_kind(output_kind)
+
+    def predict(self, erp: np.ndarray) -> np.ndarray:
+        """Run the network once on one ERP panorama.
+
+        Parameters
+        ----------
+        erp : (H, W, 3) uint8 RGB (or float RGB in [0, 1])
+            The panorama; resized to :meth:`network_size` of its shape.
+
+        Returns
+        -------
+        (h, w) float32
+            The network's output of ``output_kind`` at its own resolution; NaN where it is not
+            finite (and, for ``"distance"`` and ``"disparity"``, where it is not > 0).
+        """
+        array = as_array(erp, "erp")
+        if array.ndim != 3 or array.shape[2] != 3 or min(array.shape[:2]) < 1:
+            raise InputError(f"erp must have shape (H, W, 3) RGB with H, W > 0, got {array.shape}")
+        pred = self._run(self.preprocess(array[None]))[0]
+        out = np.array(pred, dtype=np.float32)
+        with np.errstate(invalid="ignore"):
+            invalid = ~np.isfinite(out)
+            if self.output_kind in PANORAMIC_METRIC_KINDS:
+                invalid |= ~(out > 0)
+        out[invalid] = np.nan
+        return out
 
 
 def resize_valid(values: np.ndarray, shape: tuple[int, int], *, positive: bool) -> np.ndarray:

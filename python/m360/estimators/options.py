@@ -15,7 +15,7 @@ from .._keywords import Option, checked, document, split
 from .._validate import integer, size_pair
 from .._validate import threads as check_threads
 from ..errors import InputError
-from .kinds import OUTPUT_KINDS, OutputKind, check_output_kind
+from .kinds import ALL_OUTPUT_KINDS, ESTIMATOR_KINDS, check_any_output_kind, check_estimator_kind
 from .onnx import MAX_NETWORK_SIZE, RESIZE_POLICIES, check_triple
 from .onnx_file import NORMALIZE_PRESETS
 
@@ -88,12 +88,26 @@ class ModelKeywords(TypedDict, total=False):
             metavar=("H", "W"),
         ),
     ]
-    output_kind: Annotated[
-        OutputKind | None,
+    kind: Annotated[
+        str | None,
         Option(
-            "what the model outputs (default: the registry's, or affine_disparity)",
-            check=check_output_kind,
-            choices=OUTPUT_KINDS,
+            "the model's role: tangent (perspective tiles in, a map per tile out: the default) "
+            "or panoramic (the whole ERP in, one ERP map out, run once at the network's size "
+            "and upsampled along the photo's edges)",
+            check=check_estimator_kind,
+            choices=ESTIMATOR_KINDS,
+            flag="--model-kind",
+        ),
+    ]
+    output_kind: Annotated[
+        str | None,
+        Option(
+            "what the model outputs (default: the registry's, or affine_disparity); tangent "
+            "models: affine_disparity, metric_depth (z), distance, affine_depth, "
+            "negated_affine_disparity; panoramic models: affine_disparity, disparity "
+            "(1/metres), affine_depth, distance (radial metres)",
+            check=check_any_output_kind,
+            choices=ALL_OUTPUT_KINDS,
         ),
     ]
     resize: Annotated[
@@ -154,7 +168,7 @@ class ModelOptions:
     """Frozen, checked model options: how an ONNX model is run.
 
     Built from the keywords of :class:`ModelKeywords` (``providers``, ``threads``,
-    ``input_size``, ``output_kind``, ``resize``, ``multiple_of``, ``normalize``, ``mean``,
+    ``input_size``, ``kind``, ``output_kind``, ``resize``, ``multiple_of``, ``normalize``, ``mean``,
     ``std``); those not given are the model's defaults. ``normalize`` and ``mean``/``std`` are
     exclusive. Equal options compare equal and have the same :meth:`as_dict`.
 

@@ -43,7 +43,7 @@ import numpy as np
 from .._home import home_dir
 from ..errors import InputError, ModelError
 from ..geometry.layout import Layout
-from .onnx import OnnxEstimator, is_file
+from .onnx import OnnxEstimator, PanoramicOnnxEstimator, is_file
 from .onnx_file import (
     IMAGENET_MEAN,
     IMAGENET_STD,
@@ -128,6 +128,10 @@ class ModelEntry:
         One line for ``m360 models``.
     notes : str
         Provenance and caveats.
+    kind : str
+        ``"tangent"`` (perspective tiles in; every entry so far) or ``"panoramic"`` (the whole
+        ERP in and out; ``output_kind`` then one of
+        :data:`m360.estimators.kinds.PANORAMIC_OUTPUT_KINDS`).
     """
 
     name: str
@@ -145,6 +149,7 @@ class ModelEntry:
     output_kind: str
     description: str
     notes: str = ""
+    kind: str = "tangent"
 
 
 _SENTIS = (
@@ -542,14 +547,17 @@ def check(
     settings when its sha256 matches one, then the options given), and probed:
 
     - sizes: one run at the network size m360 uses for the tangents of
-      ``Layout.icosahedron(erp_width)``; for a dynamic input size, runs near it at odd multiples
+      ``Layout.icosahedron(erp_width)`` (a panoramic model, ``kind="panoramic"``: for the
+      ERP of that width); for a dynamic input size, runs near it at odd multiples
       of 1, 2, 4 … 128 (then 14, 28) give the multiple the size must be
       (:meth:`OnnxEstimator.size_rule`);
     - normalisation: what the graph holds (:func:`input_normalization`) and, when the graph does
       not normalise, which named normalisation (``imagenet``, ``unit``, ``none``) makes the
       output follow the depth of a synthetic corridor best;
     - output: its shape for the network size, its value range on the corridor and a guess of its
-      kind (:func:`m360.estimators._probe.guess_kind`) with how sure it is.
+      kind (:func:`m360.estimators._probe.guess_kind`) with how sure it is. A panoramic model
+      sees the corridor as one ERP panorama and its output is compared with the true radial
+      distance (kinds ``affine_disparity``, ``disparity``, ``affine_depth``, ``distance``).
 
     Nothing here raises for a network that merely fails at run time: ``usable`` is False and
     ``problem`` says why.
@@ -571,7 +579,8 @@ def check(
     -------
     dict
         ``path``, ``size_bytes``, ``sha256``, ``registry`` (matching entry name or None),
-        ``input`` (name, shape, layout, static, size), ``erp_width``, ``tangent_shape``,
+        ``kind`` (``"tangent"`` or ``"panoramic"``), ``input`` (name, shape, layout, static,
+        size), ``erp_width``, ``tangent_shape`` (a panoramic model: the ERP's shape),
         ``network_size`` (what m360 uses with the options given), ``network_size_runs`` (None
         or ONNX Runtime's reason), ``size_rule`` (the multiple a dynamic size needs; None for a
         fixed size or when no size runs), ``working_size`` (the size probed further),
@@ -603,6 +612,7 @@ def check(
     digest = sha256_of(p)
     entry = next((e for e in REGISTRY.values() if e.sha256 == digest), None)
     kind = given.get("output_kind")
+    role = given.get("kind") or (entry.kind if entry is not None else "tangent")
     settings: dict[str, Any] = {}
     if entry is not None:
         settings = {
@@ -611,8 +621,9 @@ def check(
             "resize": entry.resize,
             "name": entry.name,
         }
-    settings.update({k: v for k, v in given.items() if k != "output_kind"})
-    est = OnnxEstimator(
+    settings.update({k: v for k, v in given.items() if k not in ("output_kind", "kind")})
+    onnx_class = PanoramicOnnxEstimator if role == "panoramic" else OnnxEstimator
+    est = onnx_class(
         p,
         output_kind=kind or (entry.output_kind if entry else "affine_disparity"),
         sha256=digest,
@@ -623,13 +634,17 @@ def check(
         # not a request that a fixed-size file would have to refuse.
         est.input_size = entry.input_size
     first = est.session.get_inputs()[0]
-    tangent = Layout.icosahedron(erp_width).tangent_shape
+    if role == "panoramic":
+        tangent = (erp_width // 2, erp_width)  # the whole ERP is the network's image
+    else:
+        tangent = Layout.icosahedron(erp_width).tangent_shape
     size = est.network_size(tangent)
     info: dict[str, Any] = {
         "path": str(p),
         "size_bytes": p.stat().st_size,
         "sha256": digest,
         "registry": entry.name if entry else None,
+        "kind": role,
         "input": {
             "name": first.name,
             "shape": [d if isinstance(d, int) else str(d) for d in first.shape],
@@ -685,8 +700,12 @@ def _probe_scene(
     from . import _probe
 
     h, w = tangent
-    grow = max(1.0, _PROBE_MIN_HEIGHT / h)
-    views = _probe.views((round(h * grow), round(w * grow)))
+    panoramic = est.kind == "panoramic"
+    if panoramic:  # the corridor as one ERP at the network's size (its true radial distance)
+        views = _probe.erp_views(est.network_size(tangent))
+    else:
+        grow = max(1.0, _PROBE_MIN_HEIGHT / h)
+        views = _probe.views((round(h * grow), round(w * grow)))
     rgb = np.stack([v[0] for v in views])
     depths = [v[1] for v in views]
     current = (tuple(float(v) for v in est.mean), tuple(float(v) for v in est.std))
@@ -710,7 +729,7 @@ def _probe_scene(
         )
         outputs["as given"] = outputs[preset]
     scores = {
-        name: _probe.guess_kind(out, depths).correlation
+        name: _probe.guess_kind(out, depths, panoramic=panoramic).correlation
         for name, out in outputs.items()
         if not isinstance(out, str)
     }
@@ -747,7 +766,7 @@ def _probe_scene(
     )
     if finite.size == 0:
         info.update(usable=False, problem="the network's output is never finite")
-    kind_guess = _probe.guess_kind(out, depths)
+    kind_guess = _probe.guess_kind(out, depths, panoramic=panoramic)
     info["kind_guess"] = kind_guess.as_dict()
     if info["output_kind"] is None and kind_guess.kind is not None:
         flags["output_kind"] = kind_guess.kind
@@ -761,6 +780,8 @@ def _finish(info: dict[str, Any], flags: dict[str, Any], given: dict[str, Any]) 
     info.setdefault("normalize_scores", {})
     info.setdefault("output_finite", None)
     options = {**given, **flags}
+    if info.get("kind") == "panoramic":
+        options["kind"] = "panoramic"  # what `m360 run --model-kind panoramic` needs
     options.pop("providers", None)
     options.pop("threads", None)
     info["options"] = {k: list(v) if isinstance(v, tuple) else v for k, v in options.items()}
@@ -780,6 +801,7 @@ def list_models() -> list[dict[str, Any]]:
                 "licence": entry.licence,
                 "input_size": entry.input_size,
                 "output_kind": entry.output_kind,
+                "kind": entry.kind,
                 "sha256": entry.sha256,
                 "cached": path is not None,
                 "path": str(path if path is not None else cache_dir() / entry.filename),

@@ -3,12 +3,13 @@
 :mod:`~m360.io.decode` reads input panoramas; :mod:`~m360.io.files` writes one file atomically
 in each array format; :mod:`~m360.io.writing` saves a whole result (:func:`save`, sidecar last)
 and :mod:`~m360.io.reading` loads it back (:func:`load`); :mod:`~m360.io.mesh` makes point
-clouds and meshes and their PLY/GLB files; :mod:`~m360.io.viewer` shows them in a browser.
+clouds and meshes and their PLY/GLB files, :mod:`~m360.io.normals` surface normals and
+:mod:`~m360.io.splat` 3D Gaussian splats; :mod:`~m360.io.viewer` shows them in a browser.
 """
 
 from __future__ import annotations
 
-from . import decode, files, mesh, reading, writing
+from . import decode, files, mesh, normals, reading, splat, writing
 from .decode import (
     IMAGE_SUFFIXES,
     decode_image,
@@ -22,6 +23,9 @@ from .files import (
     FORMAT_SUFFIXES,
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
+    KNOWN_FORMATS,
+    NORMALS_FILES,
+    NORMALS_FORMATS,
     QUANTITIES,
     SAVE_FORMATS,
     atomic_path,
@@ -44,6 +48,9 @@ __all__ = [
     "GEOMETRY_FILES",
     "GEOMETRY_FORMATS",
     "IMAGE_SUFFIXES",
+    "KNOWN_FORMATS",
+    "NORMALS_FILES",
+    "NORMALS_FORMATS",
     "QUANTITIES",
     "SAVE_FORMATS",
     "SavedResult",
@@ -58,6 +65,7 @@ __all__ = [
     "load",
     "load_image",
     "mesh",
+    "normals",
     "output_stem",
     "read_array",
     "read_image",
@@ -69,6 +77,7 @@ __all__ = [
     "save_json",
     "save_npy",
     "save_png",
+    "splat",
     "write_array",
     "writing",
 ]

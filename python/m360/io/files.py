@@ -27,9 +27,20 @@ from .decode import read_bytes, read_exr
 #: Array formats :func:`save` writes (and :func:`load` reads back, in this order of preference).
 SAVE_FORMATS = ("npy", "pfm", "exr", "png16")
 #: 3D formats :func:`save` writes (optional extra ``m360[3d]``): ``ply`` the coloured point cloud
-#: ``STEM.points.ply`` (m360 frame), ``glb`` the mesh ``STEM.mesh.glb`` (glTF frame, y up).
-GEOMETRY_FORMATS = ("ply", "glb")
-GEOMETRY_FILES = {"ply": ("points", ".points.ply"), "glb": ("mesh", ".mesh.glb")}
+#: ``STEM.points.ply`` (m360 frame), ``glb`` the mesh ``STEM.mesh.glb`` (glTF frame, y up),
+#: ``splat`` the 3D Gaussian splats ``STEM.splat.ply`` (m360 frame, :mod:`m360.io.splat`).
+GEOMETRY_FORMATS = ("ply", "glb", "splat")
+GEOMETRY_FILES = {
+    "ply": ("points", ".points.ply"),
+    "glb": ("mesh", ".mesh.glb"),
+    "splat": ("splat", ".splat.ply"),
+}
+#: Surface normals (:func:`m360.normals`): ``normals`` writes ``STEM.normals.exr`` (float32,
+#: channels R, G, B = x, y, z, NaN = none) and ``STEM.normals.png`` (8-bit, (n + 1) / 2).
+NORMALS_FORMATS = ("normals",)
+NORMALS_FILES = {"exr": ".normals.exr", "png": ".normals.png"}
+#: Every format name :func:`save` takes.
+KNOWN_FORMATS = SAVE_FORMATS + GEOMETRY_FORMATS + NORMALS_FORMATS
 #: The quantities :func:`save` writes per format.
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
@@ -259,13 +270,19 @@ def _png16_values(codes: np.ndarray, png16: Mapping[str, float] | None) -> np.nd
 
 
 def _write_exr(path: str | os.PathLike[str], values: np.ndarray) -> Path:
+    return write_exr_channels(path, {"Y": values})
+
+
+def write_exr_channels(path: str | os.PathLike[str], channels: Mapping[str, np.ndarray]) -> Path:
+    """Write (H, W) float32 channels (name → map) as one ZIP-compressed EXR, atomically."""
     # OpenCV 5 wheels have no EXR codec; the OpenEXR package (ASWF) is the maintained one.
     import OpenEXR
 
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    data = {name: np.ascontiguousarray(v, np.float32) for name, v in channels.items()}
     target = Path(path)
     with atomic_path(target) as tmp:
-        OpenEXR.File(header, {"Y": values}).write(str(tmp))
+        OpenEXR.File(header, data).write(str(tmp))
     return target
 
 
@@ -302,7 +319,7 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
         return p.with_name(name.removesuffix(".json").removesuffix(".preview.png"))
-    for _, tail in GEOMETRY_FILES.values():
+    for tail in [*(tail for _, tail in GEOMETRY_FILES.values()), *NORMALS_FILES.values()]:
         if name.endswith(tail):
             return p.with_name(name.removesuffix(tail))
     for quantity in QUANTITIES:
@@ -321,7 +338,7 @@ def check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
         chosen = tuple(formats)
     else:
         raise InputError(f"formats must be a format name or a list of them, got {formats!r}")
-    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    known = KNOWN_FORMATS
     for fmt in chosen:
         if not isinstance(fmt, str) or fmt not in known:
             raise InputError(f"format {fmt!r} is not supported; choose from {known}")
@@ -353,6 +370,7 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     names = [f"{base.name}.{q}{suffix}" for q in quantities for suffix in FORMAT_SUFFIXES.values()]
     names += [f"{base.name}.preview.png", f"{base.name}.json"]
     names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
+    names += [base.name + tail for tail in NORMALS_FILES.values()]
     removed = []
     for name in names:
         for tmp in base.parent.glob(f"{glob.escape(temporary_prefix(name))}{'?' * 8}.tmp"):

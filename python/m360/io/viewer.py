@@ -1,10 +1,15 @@
-"""``m360 view``: a local web page showing a result's point cloud or mesh (``viser``, extra 3d).
+"""``m360 view``: a page showing a result's point cloud, mesh or splats (``viser``, extra 3d).
 
 The page is served on 127.0.0.1 only; the address is printed, and a browser is opened when the
 machine has one (``open_browser``). Large clouds are subsampled for display (a regular stride
 over the points, at most ``max_points``); the files on disk are never changed. The scene is in
 m360's frame (x right, y down, z forward): the viewer is told that up is −y and starts at the
 camera position (the origin) looking forward (+z), so the first view is the panorama's centre.
+
+Gaussian splats (``--splats``) are drawn by viser's splat renderer, which stores covariances as
+float16: the scene is scaled about the camera for display so that the median distance is
+:data:`SPLAT_DISPLAY_DISTANCE` (a tiny or thin covariance would round to zero otherwise); the
+view from the centre is the same.
 """
 
 from __future__ import annotations
@@ -25,16 +30,23 @@ __all__ = ["DEFAULT_MAX_POINTS", "Scene3D", "load_scene", "serve"]
 
 #: Most points sent to the browser (a regular subsample beyond that).
 DEFAULT_MAX_POINTS = 2_000_000
+#: Median distance of the splats as displayed (scene units; see the module docstring).
+SPLAT_DISPLAY_DISTANCE = 50.0
 
 
 @dataclass(frozen=True)
 class Scene3D:
-    """What the viewer shows: points (N, 3) in the m360 frame, colours, optional faces."""
+    """What the viewer shows: points (N, 3) in the m360 frame, colours, optional faces.
+
+    Splats also have ``covariances`` (N, 3, 3) and ``opacity`` (N,) in [0, 1].
+    """
 
     xyz: np.ndarray
     rgb: np.ndarray
     faces: np.ndarray | None
     source: str
+    covariances: np.ndarray | None = None
+    opacity: np.ndarray | None = None
 
 
 def _depth_colours(xyz: np.ndarray) -> np.ndarray:
@@ -46,12 +58,20 @@ def _depth_colours(xyz: np.ndarray) -> np.ndarray:
     return np.ascontiguousarray(bgr[:, ::-1])
 
 
-def load_scene(path: str | os.PathLike[str], *, mesh: bool = False, colour: str = "rgb") -> Scene3D:
+def load_scene(
+    path: str | os.PathLike[str],
+    *,
+    mesh: bool = False,
+    colour: str = "rgb",
+    splats: bool = False,
+) -> Scene3D:
     """Read what ``m360 view`` shows from a PLY/GLB file or an output stem.
 
     A stem shows its ``STEM.points.ply`` (colours of the panorama) when present, else the
-    points of its depth map; with ``mesh`` its ``STEM.mesh.glb`` or the mesh of its depth map.
-    ``colour="depth"`` colours by distance (near warm, far cool) instead of the panorama.
+    points of its depth map; with ``mesh`` its ``STEM.mesh.glb`` or the mesh of its depth map;
+    with ``splats`` its ``STEM.splat.ply`` (or any 3D Gaussian Splatting ``.ply`` given) or the
+    splats of its depth map. ``colour="depth"`` colours by distance (near warm, far cool)
+    instead of the panorama.
 
     Raises
     ------
@@ -64,6 +84,8 @@ def load_scene(path: str | os.PathLike[str], *, mesh: bool = False, colour: str 
 
     colour = one_of(colour, "colour", ("rgb", "depth"))
     p = Path(path)
+    if splats:
+        return _splat_scene(p, colour)
     if p.suffix.lower() in (".ply", ".glb") and p.is_file():
         files = [p]
     else:
@@ -85,6 +107,41 @@ def load_scene(path: str | os.PathLike[str], *, mesh: bool = False, colour: str 
     if rgb is None or colour == "depth":
         rgb = _depth_colours(xyz)
     return Scene3D(np.ascontiguousarray(xyz, np.float32), rgb, faces, source)
+
+
+def _splat_scene(path: Path, colour: str) -> Scene3D:
+    from . import splat as splat_mod
+    from .files import GEOMETRY_FILES, output_stem
+    from .reading import load
+
+    if path.suffix.lower() == ".ply" and path.is_file():
+        chosen: Path | None = path
+    else:
+        base = output_stem(path)
+        candidate = base.with_name(base.name + GEOMETRY_FILES["splat"][1])
+        chosen = candidate if candidate.is_file() else None
+        path = base
+    if chosen is not None:
+        splats = splat_mod.read_splats(chosen)
+        source = str(chosen)
+    else:
+        splats = splat_mod.to_splats(load(path))
+        source = f"{path} (depth)"
+        colour = "depth"  # no panorama: colour by distance
+    rgb = (
+        _depth_colours(splats.xyz)
+        if colour == "depth"
+        else np.rint(splats.colours() * 255).astype(np.uint8)
+    )
+    opacity = 1.0 / (1.0 + np.exp(-splats.opacity.astype(np.float64)))
+    return Scene3D(
+        np.ascontiguousarray(splats.xyz, np.float32),
+        rgb,
+        None,
+        source,
+        covariances=splats.covariances().astype(np.float32),
+        opacity=opacity.astype(np.float32),
+    )
 
 
 def _read_3d(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
@@ -119,12 +176,17 @@ def _read_3d(path: Path) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | No
 
 
 def subsample(scene: Scene3D, max_points: int) -> Scene3D:
-    """At most ``max_points`` points for display (a regular stride; meshes are shown whole)."""
+    """At most ``max_points`` points for display (a regular stride; meshes are shown whole).
+
+    Splats kept are widened by sqrt(stride) so that they still cover the surface.
+    """
     n = scene.xyz.shape[0]
     if scene.faces is not None or n <= max_points:
         return scene
     step = -(-n // max_points)
-    return Scene3D(scene.xyz[::step], scene.rgb[::step], None, scene.source)
+    covariances = None if scene.covariances is None else scene.covariances[::step] * step
+    opacity = None if scene.opacity is None else scene.opacity[::step]
+    return Scene3D(scene.xyz[::step], scene.rgb[::step], None, scene.source, covariances, opacity)
 
 
 def serve(
@@ -132,6 +194,7 @@ def serve(
     *,
     port: int = 8080,
     mesh: bool = False,
+    splats: bool = False,
     colour: str = "rgb",
     max_points: int = DEFAULT_MAX_POINTS,
     open_browser: bool = True,
@@ -148,6 +211,8 @@ def serve(
         Port to serve on (the next free one if taken; 0 is not special to viser).
     mesh : bool
         Show the mesh instead of the points.
+    splats : bool
+        Show the Gaussian splats instead of the points (not with ``mesh``).
     colour : {"rgb", "depth"}
         Colours of the panorama (when the file has them) or by distance.
     max_points : int
@@ -170,7 +235,9 @@ def serve(
     except ImportError as exc:
         raise InputError("m360 view needs the optional extra: pip install 'm360[3d]'") from exc
     limit = integer(max_points, "max_points", low=1)
-    shown = subsample(load_scene(path, mesh=mesh, colour=colour), limit)
+    if mesh and splats:
+        raise InputError("show the mesh or the splats, not both")
+    shown = subsample(load_scene(path, mesh=mesh, colour=colour, splats=splats), limit)
     server = viser.ViserServer(
         host="127.0.0.1", port=integer(port, "port", high=65535), verbose=False
     )
@@ -179,7 +246,17 @@ def serve(
     server.initial_camera.look_at = (0.0, 0.0, 1.0)
     server.initial_camera.up = (0.0, -1.0, 0.0)
     scale = float(np.median(np.linalg.norm(shown.xyz, axis=1))) if len(shown.xyz) else 1.0
-    if shown.faces is None:
+    if shown.covariances is not None and shown.opacity is not None:
+        factor = SPLAT_DISPLAY_DISTANCE / scale if scale > 0 else 1.0
+        server.initial_camera.far = 1000.0 * SPLAT_DISPLAY_DISTANCE
+        server.scene.add_gaussian_splats(
+            "/m360/splats",
+            centers=shown.xyz * np.float32(factor),
+            covariances=shown.covariances * np.float32(factor * factor),
+            rgbs=shown.rgb.astype(np.float32) / 255.0,
+            opacities=shown.opacity[:, None],
+        )
+    elif shown.faces is None:
         server.scene.add_point_cloud(
             "/m360/points",
             points=shown.xyz,
@@ -196,7 +273,11 @@ def serve(
         )
         server.scene.add_mesh_trimesh("/m360/mesh", tm)
     url = f"http://127.0.0.1:{server.get_port()}"
-    what = f"{len(shown.xyz)} points" if shown.faces is None else f"{len(shown.faces)} triangles"
+    what = (
+        f"{len(shown.faces)} triangles"
+        if shown.faces is not None
+        else f"{len(shown.xyz)} {'points' if shown.covariances is None else 'splats'}"
+    )
     announce(f"m360 view: {url} ({what} of {shown.source}); Ctrl-C to stop")
     if open_browser and _has_browser():
         webbrowser.open(url)

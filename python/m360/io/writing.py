@@ -18,12 +18,13 @@ import numpy as np
 
 from .._validate import flag
 from ..errors import InputError
-from . import mesh
+from . import mesh, normals, splat
 from .files import (
     ERP_CONVENTION,
     FORMAT_SUFFIXES,
     GEOMETRY_FILES,
     GEOMETRY_FORMATS,
+    NORMALS_FORMATS,
     QUANTITIES,
     SAVE_FORMATS,
     _check_map,
@@ -66,8 +67,11 @@ def save(
     formats : sequence of str
         Any of ``"npy"`` (default), ``"pfm"``, ``"exr"``, ``"png16"``, and the 3D formats
         (extra ``m360[3d]``) ``"ply"`` (``STEM.points.ply``: the point cloud, m360 frame) and
-        ``"glb"`` (``STEM.mesh.glb``: the mesh of :func:`m360.to_mesh`, glTF frame, y up); the
-        sidecar's ``frame`` says which frame each 3D file is in.
+        ``"glb"`` (``STEM.mesh.glb``: the mesh of :func:`m360.to_mesh`, glTF frame, y up),
+        ``"splat"`` (``STEM.splat.ply``: the 3D Gaussian splats of :func:`m360.to_splats`,
+        m360 frame), and ``"normals"`` (``STEM.normals.exr`` float32 and ``STEM.normals.png``
+        8-bit: :func:`m360.normals`, m360 frame); the sidecar's ``frame`` says which frame
+        each 3D file is in.
     preview : bool
         Also write the colour preview PNG.
     extra : mapping, optional
@@ -161,7 +165,7 @@ def _save_geometry(
     files: dict[str, Any],
     max_vertices: int | None,
 ) -> tuple[dict[str, str], dict[str, Any]]:
-    """Write the 3D formats among ``chosen``, streamed.
+    """Write the 3D formats among ``chosen`` (streamed) and the normals.
 
     Returns file name → frame and file name → stride, budget and counts, for the sidecar.
     """
@@ -174,12 +178,21 @@ def _save_geometry(
             info: dict[str, Any] = mesh.write_points_ply(
                 path, result, rgb=rgb, max_vertices=max_vertices
             )
+        elif fmt == "splat":
+            info = splat.write_splat_ply(path, result, rgb=rgb, max_vertices=max_vertices)
         else:
             info = mesh.write_mesh_glb(path, result, rgb=rgb, max_vertices=max_vertices)
         written[f"{kind}.{fmt}"] = path
         files[kind] = {fmt: path.name}
-        frames[path.name] = mesh.FRAMES[fmt]
+        frames[path.name] = splat.FRAME if fmt == "splat" else mesh.FRAMES[fmt]
         geometry[path.name] = {**info, "max_vertices": max_vertices}
+    if any(f in NORMALS_FORMATS for f in chosen):
+        paths = normals.write_normals(base, result)
+        files["normals"] = {}
+        for fmt, path in paths.items():
+            written[f"normals.{fmt}"] = path
+            files["normals"][fmt] = path.name
+            frames[path.name] = normals.NORMALS_FRAME
     return frames, geometry
 
 
@@ -236,6 +249,13 @@ def _sidecar(
             "units": "disparity units",
             "dtype": "float32",
             "invalid": "NaN (png16: 0)",
+        }
+    if "normals" in files:
+        sidecar["quantities"]["normals"] = {
+            "meaning": "unit surface normal facing the camera, from 3D chords of the depth",
+            "frame": normals.NORMALS_FRAME,
+            "dtype": "float32 (exr), uint8 (png)",
+            "invalid": "NaN (png: 0 0 0)",
         }
     report = getattr(getattr(result, "stitch", None), "report", None)
     if isinstance(report, Mapping) and "align_fallback" in report:

@@ -9,6 +9,7 @@ none, recording every try (docs/method.md, "Checking the result", "Anchoring the
 from __future__ import annotations
 
 import logging
+from collections.abc import Mapping
 from typing import Any
 
 import cv2
@@ -17,6 +18,7 @@ import numpy as np
 from ..geometry import sphere
 from ..geometry.layout import Layout
 from ..stitching.options import StitchOptions
+from ..stitching.prior import check_prior
 from ..stitching.stitch import StitchResult, stitch
 
 __all__ = ["stitch_checked"]
@@ -64,8 +66,13 @@ def _result_problems(
     layout: Layout,
     mask: np.ndarray | None,
     anchor: tuple[float, float] | None,
+    reference: np.ndarray | None = None,
 ) -> tuple[dict[str, Any], list[str]]:
-    """Measure a stitched result (as ``anchor`` maps it) and list what is out of bounds."""
+    """Measure a stitched result (as ``anchor`` maps it) and list what is out of bounds.
+
+    The dynamic range is compared with the tangents', or with ``reference``'s (the spherical
+    disparity of a prior in metres, whose units an unanchored result is in).
+    """
     disparity = details.disparity
     finite = np.isfinite(disparity)
     # Pixels some tangent contains that came out NaN, beyond the share of tangent pixels
@@ -83,7 +90,8 @@ def _result_problems(
     if anchor is not None:
         values = values * np.float32(anchor[0]) + np.float32(anchor[1])
     negative = float((values <= 0).mean()) if values.size else 1.0
-    dynamic = _dynamic_range(values) / _dynamic_range(sample)
+    own = _dynamic_range(sample if reference is None else reference)
+    dynamic = _dynamic_range(values) / own
     spread = 1.0
     for grid in details.grids:
         scales = np.abs(grid[..., 0])
@@ -106,8 +114,9 @@ def _result_problems(
     if negative > RESULT_MAX_NEGATIVE:
         problems.append(f"{negative:.1%} of the disparity is <= 0")
     if not dynamic <= RESULT_MAX_RANGE:
+        whose = "the tangents'" if reference is None else "the prior's"
         problems.append(
-            f"disparity range (99th/1st percentile) {dynamic:.3g} times the tangents' "
+            f"disparity range (99th/1st percentile) {dynamic:.3g} times {whose} "
             f"> {RESULT_MAX_RANGE:g}"
         )
     if not spread <= RESULT_MAX_SCALE_SPREAD:
@@ -184,30 +193,64 @@ def _sample_at_tangent_pixels(erp: np.ndarray, layout: Layout, stride: int) -> n
 
 
 def stitch_checked(
-    perspective: np.ndarray, layout: Layout, mask: np.ndarray | None, opts: StitchOptions
+    perspective: np.ndarray,
+    layout: Layout,
+    mask: np.ndarray | None,
+    opts: StitchOptions,
+    *,
+    prior: Mapping[str, Any] | None = None,
+    anchor: bool = True,
 ) -> tuple[StitchResult, dict[str, Any]]:
-    """Stitch, check the result, and fall back (coarser alignment, then none) while it fails."""
+    """Stitch, check the result, and fall back (coarser alignment, then none) while it fails.
+
+    ``prior`` holds the prior's keywords of :func:`m360.stitch` (``prior``, ``prior_kind``,
+    ``prior_confidence``), given to every try that aligns (a prior acts through the alignment;
+    the last fallback, no alignment, stitches without it and its try records ``"prior":
+    "dropped"``). ``anchor`` False leaves an aligned result where the stitch put it (a prior in
+    metres sets its scale) instead of anchoring it on the tangents' own values.
+    """
+    prior_args = dict(prior or {})
+    reference = None
+    if prior_args and not anchor:
+        # The result is in the prior's units: its range is what the result's is measured by.
+        reference, _, _ = check_prior(
+            prior_args["prior"], prior_args["prior_kind"], prior_args.get("prior_confidence")
+        )
     tries = _fallbacks(opts)
     report: list[dict[str, Any]] = []
     details: StitchResult | None = None
     taken = "none"
     for k, (name, candidate) in enumerate(tries):
-        details = stitch(perspective, layout, mask=mask, options=candidate, return_details=True)
-        anchor = None
+        with_prior = prior_args if candidate.align is not None else {}
+        details = stitch(
+            perspective,
+            layout,
+            mask=mask,
+            options=candidate,
+            return_details=True,
+            **with_prior,
+        )
+        anchored = None
         fit = None
-        if candidate.align is not None:
+        if candidate.align is not None and anchor:
             fit = _anchor(details.disparity, perspective, layout)
             if fit is not None:
-                anchor = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
+                anchored = {"scale": fit[0], "offset": fit[1], "pixels": fit[2]}
         measured, problems = _result_problems(
-            details, perspective, layout, mask, None if fit is None else fit[:2]
+            details,
+            perspective,
+            layout,
+            mask,
+            None if fit is None else fit[:2],
+            reference if with_prior else None,
         )
         report.append(
             {
                 "options": name if k else "as asked",
-                "anchor": anchor,
+                "anchor": anchored,
                 **measured,
                 "problems": problems,
+                **({"prior": "dropped"} if prior_args and not with_prior else {}),
             }
         )
         taken = name

@@ -2,8 +2,10 @@
 
 :func:`estimate` projects the panorama onto the layout's tangents, runs an estimator
 (:mod:`m360.estimators`), converts its output to perspective disparity and stitches
-(:func:`m360.stitch`). The estimators lived here before; their old names still import from
-here, with a DeprecationWarning pointing to :mod:`m360.estimators`.
+(:func:`m360.stitch`), with a global prior when one is given (:mod:`m360.pipeline.prior`). A
+panoramic estimator instead runs once on the whole ERP at its own size, and its map is
+upsampled along the photo's edges. The estimators lived here before; their old names still
+import from here, with a DeprecationWarning pointing to :mod:`m360.estimators`.
 """
 
 from __future__ import annotations
@@ -19,7 +21,7 @@ import numpy as np
 
 from .. import estimators as _estimators
 from .._compat import moved
-from .._keywords import resolved, split
+from .._keywords import checked, resolved, split
 from .._validate import as_array, check_erp_shape
 from ..errors import InputError, M360Error, ModelError
 from ..estimators import kinds as _kinds
@@ -31,8 +33,9 @@ from ..stitching.stitch import StitchResult
 from ..stitching.upsample import guided_upsample
 from . import masks as _masks
 from . import memory as _memory
+from . import prior as _prior
 from .checks import stitch_checked
-from .options import EstimateKeywords, JobKeywords
+from .options import EstimateKeywords, JobKeywords, PriorKeywords
 from .scale import depth_of, scale_disparity
 
 if TYPE_CHECKING:
@@ -76,23 +79,29 @@ class EstimateResult:
     depth : (H, W) float32
         Radial depth 1/disparity where disparity > 0, NaN elsewhere (relative unless metric).
     confidence : (H, W) float32
-        Overlap disagreement from :func:`m360.stitch` (lower = more consistent).
-    tangents : (N, h, w) float32
-        Per-tangent perspective disparity given to the stitcher (after kind conversion).
+        Overlap disagreement from :func:`m360.stitch` (lower = more consistent); a panoramic
+        model's single pass has none: 0 where the disparity is valid.
+    tangents : (N, h, w) float32 or None
+        Per-tangent perspective disparity given to the stitcher (after kind conversion); None
+        for a panoramic model.
     timings : dict
-        Seconds per stage: ``load`` (model), ``project``, ``network``, ``convert``, ``align``,
-        ``blend``, ``check`` (anchoring, result checks, fallback stitches), ``upsample``,
-        ``total``.
+        Seconds per stage: ``load`` (model), ``project``, ``network``, ``prior`` (the prior
+        model's pass, with a prior), ``convert``, ``align``, ``blend``, ``check`` (anchoring,
+        result checks, fallback stitches), ``upsample``, ``total``. A panoramic model: ``load``,
+        ``project`` (resizing to the network), ``network``, ``convert``, ``upsample``.
     model : dict
         ``name``, ``sha256``, ``output_kind``, ``providers``, ``threads`` (what ran).
     units : str
         ``"relative"`` or ``"metres"`` (for depth; disparity is in 1/units).
     options : dict
         The stitching options used (:meth:`StitchOptions.as_dict`: ``align``, ``blend``), the
-        ``layout`` and the ``erp_shape``.
-    layout : Layout
-    stitch : StitchResult
-        The stitcher's full report.
+        ``layout`` and the ``erp_shape``; with a prior, ``prior``: its kind, its source
+        (``"model"`` with name and sha256, or ``"array"`` with shape and sha256) and the
+        ``shape`` it was given to the stitch at.
+    layout : Layout or None
+        None for a panoramic model.
+    stitch : StitchResult or None
+        The stitcher's full report; None for a panoramic model.
     scale : dict or None
         Where the metric scale came from: :meth:`m360.scale.ScaleFit.as_dict` when ``scale=``
         was given; for a ``metric_depth`` or ``distance`` network ``{"method": "network",
@@ -114,13 +123,13 @@ class EstimateResult:
     disparity: np.ndarray
     depth: np.ndarray
     confidence: np.ndarray
-    tangents: np.ndarray
+    tangents: np.ndarray | None
     timings: dict[str, float]
     model: dict[str, Any]
     units: str
     options: dict[str, Any]
-    layout: Layout
-    stitch: StitchResult = field(repr=False)
+    layout: Layout | None
+    stitch: StitchResult | None = field(repr=False)
     scale: dict[str, Any] | None = None
     checks: dict[str, Any] = field(default_factory=dict)
 
@@ -166,7 +175,7 @@ def estimate(
     model : str, path or estimator
         A registry name (default ``"midas-v21-small"``, downloaded and verified on first use;
         see ``m360 models``), a path to an ``.onnx`` file, or any object with
-        ``predict(tangents) -> (N, h, w)`` and ``output_kind``.
+        ``predict(tangents) -> (N, h, w)`` and ``output_kind`` (or a panoramic one, see below).
     options : StitchOptions, optional
         Every stitching option at once (then give none of them as a keyword).
     model_options : ModelOptions, optional
@@ -206,7 +215,26 @@ def estimate(
           (docs/method.md). ``padding="paper"`` is the paper's layout;
         - ``sky``: ``"nan"`` makes pixels whose disparity is at or below
           ``m360.masks.SKY_THRESHOLD`` times its 90th percentile (the sky, or beyond) NaN
-          instead of a huge fake distance; default ``"keep"``.
+          instead of a huge fake distance; default ``"keep"``;
+        - the global prior (:class:`m360.pipeline.options.PriorKeywords`, tangent models
+          only): ``prior``, an ERP map (Hp, 2 Hp) of any resolution (NaN = unknown: another
+          tool's output, a LiDAR map, the previous video frame) or a panoramic model (a
+          :class:`m360.estimators.PanoramicEstimator`, or a path or registry name loaded with
+          ``kind="panoramic"`` and the model options' ``providers`` and ``threads``, run once on
+          the working-resolution photo at its own size); ``prior_kind``, what it holds
+          (``affine_disparity``, ``disparity``, ``affine_depth``, ``distance``; required for a
+          map, a model's output kind otherwise); ``prior_confidence``, a map's per-pixel trust
+          in [0, 1]. The prior is fitted to the job (an ERP grid no larger than the working
+          ERP, NaN under the masks) and given to :func:`m360.stitch`, whose alignment follows
+          it (``align="none"`` is refused with a prior); a prior in metres
+          (``disparity``, ``distance``) gives the result its metres. ``options["prior"]``
+          records it (kind, model name and sha256, or ``"array"``).
+
+        With a panoramic model (``kind="panoramic"``, or a panoramic estimator object) the
+        network runs once on the whole photo at its own size and its map is upsampled to the
+        photo's resolution (``upsample``); ERP masks, ``sky`` and ``scale`` apply as above,
+        while ``layout``, ``padding``, a tangent mask and a prior do not (the stitching
+        options and ``working_width`` are ignored).
 
     Returns
     -------
@@ -215,16 +243,29 @@ def estimate(
         ``confidence``, ``tangents``, ``timings`` per stage and what ran.
     """
     t_start = time.perf_counter()
-    stitch_keywords, model_keywords, job_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="estimate"
+    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where="estimate"
     )
     rgb = _check_erp_rgb(erp)
     height, width = rgb.shape[:2]
     job = resolved(job_keywords, JobKeywords)
+    prior_given = checked(prior_keywords, PriorKeywords)
+    model_opts = ModelOptions.build(model_options, **model_keywords)
+    if _role(model, model_opts) == "panoramic":
+        if layout is not None or job["padding"] is not None:
+            raise InputError(
+                "a panoramic model runs once on the whole ERP: layout and padding do not apply"
+            )
+        if prior_given:
+            raise InputError(
+                "a prior goes with a tangent model (the tangents give the detail, the prior the "
+                "low frequencies); a panoramic model is used alone: model=<panoramic model>, or "
+                "model=<tangent model>, prior=<panoramic model>"
+            )
+        return _estimate_panoramic(rgb, model, model_opts, t_start, mask=mask, scale=scale, job=job)
     working_width, padding = job["working_width"], job["padding"]
     work_width = _memory.working_width_for(working_width, width)
     opts = build(options, **stitch_keywords)
-    model_opts = ModelOptions.build(model_options, **model_keywords)
     if layout is None:
         layout = default_layout(work_width, padding)
     elif padding is not None:
@@ -237,8 +278,19 @@ def estimate(
         )
     else:
         work_width = layout.erp_shape[1]
+    if prior_given.get("prior") is not None and opts.align is None:
+        raise InputError("a prior acts through the alignment: give align other than 'none'")
+    prior = _prior.load_prior(
+        prior_given.get("prior"),
+        prior_given.get("prior_kind"),
+        prior_given.get("prior_confidence"),
+        providers=model_opts.providers,
+        threads=model_opts.threads,
+    )
     _memory.check_memory(
-        _memory.estimate_memory(width, work_width, opts.method, layout),
+        _memory.estimate_memory(
+            width, work_width, opts.method, layout, prior_pixels=_prior_pixels(prior, rgb)
+        ),
         f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
     )
     sky_mode = job["sky"]
@@ -259,6 +311,12 @@ def estimate(
         "project": t_project - t_load,
         "network": t_network - t_project,
     }
+    prior_map = None
+    if prior is not None:
+        # The prior model sees the working-resolution photo (as the Ray engine ships it to
+        # its model actors), resized to the network's size.
+        prior_map = _prior_map(prior, rgb, prior_input=None)
+        timings["prior"] = time.perf_counter() - t_network
     result = _from_network(
         raw,
         estimator.output_kind,
@@ -273,9 +331,202 @@ def estimate(
         scale=scale,
         guide=guide,
         upsample=job["upsample"],
+        prior=prior_map,
     )
     result.timings["total"] = time.perf_counter() - t_start
     return result
+
+
+def _role(model: Any, model_opts: ModelOptions) -> str:
+    """Tell whether ``model`` is a tangent or a panoramic model, without loading it."""
+    if model_opts.kind is not None:
+        return str(model_opts.kind)
+    if isinstance(model, (str, os.PathLike)):
+        entry = _models.REGISTRY.get(os.fspath(model))
+        return entry.kind if entry is not None else "tangent"
+    return _estimators.estimator_kind(model)
+
+
+@dataclass(frozen=True)
+class PriorMap:
+    """A prior as one image's stitch takes it: the map, its kind, trust and sidecar record."""
+
+    values: np.ndarray
+    kind: str
+    confidence: np.ndarray | None
+    record: dict[str, Any]
+
+    @property
+    def metric(self) -> bool:
+        """Whether the prior is in metres (its scale is kept)."""
+        return self.kind in _prior.METRIC_PRIOR_KINDS
+
+
+def _prior_pixels(prior: _prior.Prior | None, rgb: np.ndarray) -> int:
+    """Pixels of the prior's map (a model's: its network input) for the memory estimate."""
+    if prior is None:
+        return 0
+    if prior.array is not None:
+        return int(prior.array.size)
+    if isinstance(prior.estimator, _estimators.OnnxEstimator):
+        h, w = prior.estimator.network_size(rgb.shape[:2])
+        return h * w
+    return int(rgb.shape[0] * rgb.shape[1])
+
+
+def _prior_map(
+    prior: _prior.Prior,
+    photo: np.ndarray | None,
+    *,
+    prior_input: np.ndarray | None,
+    raw: np.ndarray | None = None,
+) -> PriorMap:
+    """Give the prior of one image: the array, or the prior model's output on the photo.
+
+    ``prior_input`` is the model's input when made elsewhere (:func:`m360.pipeline.prior.
+    prior_input`, the Ray engine's first stage), ``raw`` its output when run elsewhere (the
+    Ray engine's model actors); else the model runs here on ``photo``.
+    """
+    record = _prior.describe(prior)
+    if prior.array is not None:
+        return PriorMap(prior.array, prior.kind, prior.confidence, record)
+    if raw is None:
+        if prior_input is None:
+            if photo is None:
+                raise InputError("a prior model needs the photo")
+            prior_input = _prior.prior_input(prior.estimator, photo)
+        raw = _prior.run_prior(prior.estimator, prior_input)
+    return PriorMap(raw, prior.kind, None, record)
+
+
+def _estimate_panoramic(
+    rgb: np.ndarray,
+    model: Any,
+    model_opts: ModelOptions,
+    t_start: float,
+    *,
+    mask: Any,
+    scale: Any,
+    job: dict[str, Any],
+) -> EstimateResult:
+    """:func:`estimate` with a panoramic model: one pass at its size, then upsampling."""
+    height, width = rgb.shape[:2]
+    if mask is not None and not isinstance(mask, (_masks.Cap, list, tuple)) and np.ndim(mask) != 2:
+        raise InputError(
+            "a panoramic model takes ERP masks ((H, W) bool arrays, nadir/zenith caps), not a "
+            "tangent mask"
+        )
+    estimator = _estimators.load_estimator(model, model_options=model_opts)
+    t_load = time.perf_counter()
+    network_input = _prior.prior_input(estimator, rgb)
+    _memory.check_memory(
+        _memory.estimate_panoramic_memory(width, network_input.shape[:2]),
+        f"m360.estimate of a {width}x{height} panorama with a panoramic model",
+    )
+    t_project = time.perf_counter()
+    raw = _prior.run_prior(estimator, network_input, "panoramic model")
+    t_network = time.perf_counter()
+    timings = {
+        "load": t_load - t_start,
+        "project": t_project - t_load,
+        "network": t_network - t_project,
+    }
+    erp_valid = None if mask is None else _masks.erp_mask(mask, height, width)
+    result = _from_panoramic(
+        raw,
+        estimator.output_kind,
+        (height, width),
+        _model_info(estimator, None, network_input.shape[:2]),
+        timings,
+        guide=rgb,
+        erp_valid=erp_valid,
+        sky_mode=job["sky"],
+        scale=scale,
+        upsample=job["upsample"],
+    )
+    result.timings["total"] = time.perf_counter() - t_start
+    return result
+
+
+def _from_panoramic(
+    raw: np.ndarray,
+    kind: str,
+    erp_shape: tuple[int, int],
+    model_info: dict[str, Any],
+    timings: dict[str, float],
+    *,
+    guide: np.ndarray,
+    erp_valid: np.ndarray | None = None,
+    sky_mode: str = "keep",
+    scale: Any = None,
+    upsample: str = "guided",
+) -> EstimateResult:
+    """Do the rest of :func:`estimate` after a panoramic model (convert, upsample, masks, scale).
+
+    The map is converted to spherical disparity at the network's resolution, resized to an
+    ERP grid (h, 2h) if the network's output is not one, then upsampled to ``erp_shape`` with
+    the photo ``guide`` (``upsample``: guided or bilinear; shrunk by area when the network's
+    map is larger than the photo).
+    """
+    t0 = time.perf_counter()
+    network_shape = list(raw.shape)
+    disparity = _estimators.to_spherical_disparity(raw, kind)
+    valid_before = float(np.isfinite(disparity).mean())
+    if valid_before < _kinds.MIN_VALID_FRACTION:
+        raise ModelError(
+            f"the panoramic model's {kind} output has too few valid pixels "
+            f"({valid_before:.1%} < {_kinds.MIN_VALID_FRACTION:.0%})"
+        )
+    h = disparity.shape[0]
+    if disparity.shape[1] != 2 * h:
+        h = max(2, (disparity.shape[0] + disparity.shape[1] // 2) // 2)
+        disparity = _prior.fit_to_job(disparity, None, (h, 2 * h), None)[0]
+    t_convert = time.perf_counter()
+    height, width = erp_shape
+    if h < height:
+        disparity = guided_upsample(disparity, guide, method=upsample)
+    elif h > height:
+        disparity = _prior.fit_to_job(disparity, None, erp_shape, None)[0]
+    else:
+        disparity = disparity.copy()
+    t_upsampled = time.perf_counter()
+    if erp_valid is not None:
+        disparity[~erp_valid] = np.nan
+    if sky_mode == "nan":
+        disparity[_masks.sky(disparity)] = np.nan
+    metric = kind in _prior.METRIC_PRIOR_KINDS
+    scale_fit: dict[str, Any] | None = {"method": "network"} if metric else None
+    if scale is not None:
+        disparity, fit = scale_disparity(disparity, scale, affine=not metric)
+        metric, scale_fit = True, fit.as_dict()
+    with np.errstate(invalid="ignore"):
+        valid_fraction = float((disparity > 0).mean())
+    confidence = np.where(np.isfinite(disparity), np.float32(0), np.float32(np.nan))
+    return EstimateResult(
+        disparity=disparity,
+        depth=depth_of(disparity),
+        confidence=confidence.astype(np.float32, copy=False),
+        tangents=None,
+        timings={
+            **timings,
+            "convert": t_convert - t0,
+            "upsample": t_upsampled - t_convert,
+        },
+        model={**model_info, "kind": "panoramic", "output_shape": network_shape},
+        units="metres" if metric else "relative",
+        options={
+            "kind": "panoramic",
+            "erp_shape": [height, width],
+            "network_output_shape": network_shape,
+            "upsample": upsample if h < height else None,
+            **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
+            **({"sky": "nan"} if sky_mode == "nan" else {}),
+        },
+        layout=None,
+        stitch=None,
+        scale=scale_fit,
+        checks={"valid_fraction": valid_fraction, "network_valid_fraction": valid_before},
+    )
 
 
 def _split_mask(
@@ -343,6 +594,7 @@ def _from_network(
     scale: Any = None,
     guide: np.ndarray | None = None,
     upsample: str = "guided",
+    prior: PriorMap | None = None,
 ) -> EstimateResult:
     """Do the rest of :func:`estimate` after the network (stitch, upsample, masks, scale).
 
@@ -352,8 +604,21 @@ def _from_network(
     ``erp_shape`` is the output's shape; when the layout's is smaller (a working width),
     ``guide`` is the full-resolution RGB photo that guides the upsampling. ``mask`` is the
     tangent mask and ``erp_valid`` the output-sized ERP mask (see :func:`_split_mask`).
+    ``prior`` is the image's prior map (:func:`_prior_map`): fitted to the job (2:1, masked
+    with ``erp_valid``, no larger than the layout's ERP) and given to every stitch; a prior in
+    metres is kept as the result's scale (no anchoring on the tangents).
     """
     t_network = time.perf_counter()
+    prior_args: dict[str, Any] = {}
+    prior_record = None
+    if prior is not None:
+        values, trust = _prior.fit_to_job(
+            prior.values, prior.confidence, layout.erp_shape, erp_valid
+        )
+        prior_args = {"prior": values, "prior_kind": prior.kind}
+        if trust is not None:
+            prior_args["prior_confidence"] = trust
+        prior_record = {**prior.record, "used_shape": list(values.shape)}
     perspective = _estimators.to_perspective_disparity(raw, kind, layout)
     perspective, tangent_checks = _kinds.sanitise(perspective, kind, raw=raw)
     t_convert = time.perf_counter()
@@ -365,10 +630,22 @@ def _from_network(
         stitch_layout = Layout.from_cameras([layout.cameras[k] for k in kept], layout.erp_shape)
         stitch_mask = None if mask is None else np.ascontiguousarray(mask[kept])
         details, checks = stitch_checked(
-            np.ascontiguousarray(perspective[kept]), stitch_layout, stitch_mask, opts
+            np.ascontiguousarray(perspective[kept]),
+            stitch_layout,
+            stitch_mask,
+            opts,
+            prior=prior_args,
+            anchor=prior is None or not prior.metric,
         )
     else:
-        details, checks = stitch_checked(perspective, layout, mask, opts)
+        details, checks = stitch_checked(
+            perspective,
+            layout,
+            mask,
+            opts,
+            prior=prior_args,
+            anchor=prior is None or not prior.metric,
+        )
     checks["tangents"] = tangent_checks
     used = details.options if details.options is not None else opts
     if checks["fallback"] != "none":
@@ -394,14 +671,17 @@ def _from_network(
         disparity[_masks.sky(disparity)] = np.nan
     st = details.timings
     metric = kind in _kinds.DEPTH_KINDS
-    scale_fit = None
-    if metric:
+    scale_fit: dict[str, Any] | None = None
+    if prior is not None and prior.metric:
+        # The stitch put the result on the prior's metres; nothing anchored it elsewhere.
+        metric, scale_fit = True, {"method": "prior", "prior_kind": prior.kind}
+    elif metric:
         # The anchoring fitted the result to the network's own metres (scale and offset).
         scale_fit = {"method": "network", "aligned": anchor is not None}
         if anchor is not None:
             scale_fit.update(scale=anchor["scale"], offset=anchor["offset"])
     if scale is not None:
-        affine = kind not in _kinds.DEPTH_KINDS
+        affine = not metric
         disparity, fit = scale_disparity(disparity, scale, affine=affine)
         metric, scale_fit = True, fit.as_dict()
     with np.errstate(invalid="ignore"):
@@ -431,6 +711,7 @@ def _from_network(
             "upsample": upsample if work_width != width else None,
             **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
             **({"sky": "nan"} if sky_mode == "nan" else {}),
+            **({} if prior_record is None else {"prior": prior_record}),
         },
         layout=layout,
         stitch=details,
@@ -439,18 +720,22 @@ def _from_network(
     )
 
 
-def _model_info(estimator: Any, layout: Layout) -> dict[str, Any]:
+def _model_info(
+    estimator: Any, layout: Layout | None, image_shape: tuple[int, int] | None = None
+) -> dict[str, Any]:
+    """Describe what ran (result, sidecar); ``image_shape``: what a panoramic model saw."""
     info: dict[str, Any] = {
         "name": getattr(estimator, "name", type(estimator).__name__),
         "output_kind": estimator.output_kind,
     }
     if isinstance(estimator, _estimators.OnnxEstimator):
+        shape = layout.tangent_shape if layout is not None else image_shape
         info.update(
             sha256=estimator.sha256,
             path=str(estimator.path),
             providers=list(estimator.providers),
             threads=estimator.threads,
-            network_size=list(estimator.network_size(layout.tangent_shape)),
+            network_size=None if shape is None else list(estimator.network_size(shape)),
             input_size=None if estimator.input_size is None else list(estimator.input_size),
             resize=estimator.resize_policy,
             multiple_of=estimator.multiple_of,

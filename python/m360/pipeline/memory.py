@@ -18,6 +18,13 @@ reached (its result and plan stay, and the allocator keeps what it freed); the f
 written one after another, so the largest counts. The per-pixel costs of
 decoding and writing were measured at 12K (benches/bench_bigpano.py ``--outputs``).
 
+A global prior adds a part per pixel of its map and a part per working pixel, measured (peak
+RSS of ``m360.estimate`` at 2K and 4K with a 512 x 1024 prior map, with and without it: +51 MB
+and +118 MB); a prior model's input and output are counted on top. A panoramic model alone
+(:func:`estimate_panoramic_memory`) needs its network's arrays, the upsampling's planes at the
+network's size and the full-resolution outputs, counted from the arrays m360 allocates. The
+networks' own activations, held by ONNX Runtime, are not counted for any model.
+
 ``M360_MEMORY_LIMIT`` (bytes, or with a K/M/G suffix) replaces the available memory the check
 compares against; ``M360_MEMORY_LIMIT=0`` turns the check off.
 """
@@ -43,6 +50,7 @@ __all__ = [
     "check_memory",
     "check_working_width",
     "estimate_memory",
+    "estimate_panoramic_memory",
     "taps_per_pixel",
     "working_width_for",
 ]
@@ -73,12 +81,32 @@ _RGB_BYTES_PER_PIXEL = 3.0
 #: panorama held), measured at 12K: npy streams into the file; pfm's and exr's encoders hold
 #: the encoded map (and a copy); png16 holds its uint16 codes and the encoded PNG; the preview
 #: the finite values (for the percentiles), then the colour image and its PNG.
-_OUTPUT_BYTES_PER_PIXEL = {"npy": 1.0, "pfm": 8.5, "exr": 8.5, "png16": 4.2, "preview": 5.0}
-#: The streamed 3D writers: a band's temporaries (about a million vertices) ...
-_GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
+#: ``normals`` holds its three float32 planes and 8-bit codes (13 bytes) and the encoders'
+#: buffers (measured 19.7 at 4K, 17.4 at 8K: benches/bench_3d.py normals_files).
+_OUTPUT_BYTES_PER_PIXEL = {
+    "npy": 1.0,
+    "pfm": 8.5,
+    "exr": 8.5,
+    "png16": 4.2,
+    "preview": 5.0,
+    "normals": 20.0,
+}
+#: The streamed 3D writers: a band's temporaries (about a million vertices; the splats' a
+#: quarter million pixels, measured 114 MB at 4K and 141 MB at 8K) ...
+_GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20, "splat": 160 * 2**20}
 #: ... and, for the mesh, per strided grid vertex: the per-quad flags, the used mask and the
 #: renumbering (int32).
 _MESH_BYTES_PER_VERTEX = 9.0
+
+#: Bytes per prior-map pixel: measured about 55 for a map (its checked and fitted copies, the
+#: stitch's conversion and sampling), plus a model's float32 input and output (16).
+_PRIOR_BYTES_PER_PIXEL = 64.0
+#: Bytes per working-resolution ERP pixel a prior adds (the confidence combined with the
+#: prior's disagreement): measured 10.7 between 2K and 4K with a 512 x 1024 prior.
+_PRIOR_BYTES_PER_WORKING_PIXEL = 11.0
+#: Bytes per network pixel of a panoramic model: input (12), output and disparity (8), the
+#: guided upsampling's planes of that resolution (7 float32 planes and their sums in f64: 84).
+_PANORAMIC_BYTES_PER_NETWORK_PIXEL = 104.0
 
 _UNITS = {"": 1, "K": 2**10, "M": 2**20, "G": 2**30, "T": 2**40}
 
@@ -125,6 +153,7 @@ def estimate_memory(
     max_vertices: int | str | None = "default",
     header: ImageHeader | None = None,
     file_bytes: int = 0,
+    prior_pixels: int = 0,
 ) -> int:
     """Peak bytes :func:`m360.estimate` (or, with outputs or a header, a whole run) adds.
 
@@ -151,6 +180,8 @@ def estimate_memory(
         any aspect fix).
     file_bytes : int
         The input file's size (held while it is decoded).
+    prior_pixels : int
+        Pixels of the global prior's map (a prior model's: its network input); 0: no prior.
 
     Returns
     -------
@@ -168,6 +199,9 @@ def estimate_memory(
     per_pixel += _BYTES_PER_TAP * (taps - _REFERENCE_TAPS)
     working_pixels = work * (work // 2)
     total = _FIXED_BYTES + per_pixel * working_pixels
+    if prior_pixels:
+        total += _PRIOR_BYTES_PER_PIXEL * prior_pixels
+        total += _PRIOR_BYTES_PER_WORKING_PIXEL * working_pixels
     if work != width:
         total += _BYTES_PER_FULL_PIXEL * width * (width // 2)
     if formats is None and header is None:
@@ -179,6 +213,30 @@ def estimate_memory(
     # result, its plan kept for the next image, and freed memory the allocator keeps).
     writing = _writing_bytes(width, formats or (), preview, confidence, max_vertices)
     return int(max(decoding, rgb + total + writing))
+
+
+def estimate_panoramic_memory(width: int, network_shape: tuple[int, int]) -> int:
+    """Peak bytes :func:`m360.estimate` adds with a panoramic model (its activations apart).
+
+    Parameters
+    ----------
+    width : int
+        Input ERP width (height width / 2): the outputs' size.
+    network_shape : (int, int)
+        The network's input (height, width).
+
+    Returns
+    -------
+    int
+        Bytes beyond the input image.
+    """
+    network_pixels = int(network_shape[0]) * int(network_shape[1])
+    full = width * (width // 2)
+    return int(
+        _FIXED_BYTES
+        + _PANORAMIC_BYTES_PER_NETWORK_PIXEL * network_pixels
+        + _BYTES_PER_FULL_PIXEL * full
+    )
 
 
 def _decoding_bytes(header: ImageHeader) -> float:
@@ -213,8 +271,8 @@ def _writing_bytes(
     for fmt in formats:
         if fmt in _OUTPUT_BYTES_PER_PIXEL:
             peaks.append(_OUTPUT_BYTES_PER_PIXEL[fmt] * pixels)
-        elif fmt == "ply":
-            peaks.append(_GEOMETRY_BAND_BYTES["ply"])
+        elif fmt in ("ply", "splat"):
+            peaks.append(_GEOMETRY_BAND_BYTES[fmt])
         elif fmt == "glb":
             step = mesh.stride_for(height, width, 1, budget if budget is None else int(budget), 2)
             grid = -(-height // step) * -(-width // step)

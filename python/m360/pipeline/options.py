@@ -2,8 +2,9 @@
 
 Every keyword :func:`m360.estimate` and :func:`m360.batch.run` take beyond their named
 parameters: the stitching options (:class:`m360.stitching.options.StitchKeywords`), the model
-options (:class:`m360.estimators.ModelKeywords`) and the job's own (:class:`JobKeywords`). ``m360
-run`` builds one flag per entry from the same lists (m360._keywords).
+options (:class:`m360.estimators.ModelKeywords`), the job's own (:class:`JobKeywords`) and the
+global prior (:class:`PriorKeywords`). ``m360 run`` builds one flag per entry from the same
+lists (m360._keywords).
 """
 
 from __future__ import annotations
@@ -19,8 +20,9 @@ from ..stitching.options import StitchKeywords
 from ..stitching.upsample import UPSAMPLE_METHODS
 from .masks import SKY_MODES, SKY_THRESHOLD
 from .memory import DEFAULT_WORKING_WIDTH, NATIVE_WIDTH_LIMIT, check_working_width
+from .prior import PRIOR_KINDS, check_prior, check_prior_confidence
 
-__all__ = ["EstimateKeywords", "JobKeywords"]
+__all__ = ["EstimateKeywords", "JobKeywords", "PriorKeywords"]
 
 
 def _working_width(value: Any, name: str) -> int | str | None:
@@ -102,11 +104,50 @@ class JobKeywords(TypedDict, total=False):
 
 
 @document
-class EstimateKeywords(StitchKeywords, ModelKeywords, JobKeywords, total=False):
+class PriorKeywords(TypedDict, total=False):
+    """The global prior: what the whole sphere looks like at a low resolution (docs/method.md)."""
+
+    prior: Annotated[
+        Any,
+        Option(
+            "a global prior the alignment pulls the tangents' low frequencies toward: a "
+            "panoramic model (an .onnx path or registry name, loaded with kind panoramic and "
+            "run on each photo at its own size) or an ERP map (Hp, 2 Hp) of any resolution, "
+            "NaN = unknown (on the command line a .npy, .pfm or .exr file); needs alignment",
+            check=lambda v, n: check_prior(v, n),
+            parse=str,
+            metavar="MODEL|MAP",
+        ),
+    ]
+    prior_kind: Annotated[
+        str | None,
+        Option(
+            "what the prior holds: affine_disparity, disparity (1/metres), affine_depth or "
+            "distance (radial metres); a prior model's output kind (default: the registry's, "
+            "or affine_disparity); required for a map",
+            check=lambda v, n: one_of(v, n, PRIOR_KINDS),
+            choices=PRIOR_KINDS,
+        ),
+    ]
+    prior_confidence: Annotated[
+        Any,
+        Option(
+            "per-pixel trust in a prior map, (Hp, Wp) in [0, 1] (on the command line a .npy, "
+            ".pfm or .exr file)",
+            check=lambda v, n: check_prior_confidence(v, n),
+            parse=str,
+            metavar="MAP",
+        ),
+    ]
+
+
+@document
+class EstimateKeywords(StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, total=False):
     """Every keyword of :func:`m360.estimate` and :func:`m360.batch.run` beyond their named ones.
 
     The stitching options (``align``, ``blend``, ``energy`` …; :mod:`m360.align`,
     :mod:`m360.blend`), the model options (``providers``, ``threads``, ``input_size``,
-    ``output_kind``, ``mean``, ``std``) and the job's own (``working_width``, ``upsample``,
-    ``padding``, ``sky``). None or absent: the default.
+    ``kind``, ``output_kind``, ``mean``, ``std``), the job's own (``working_width``,
+    ``upsample``, ``padding``, ``sky``) and the global prior (``prior``, ``prior_kind``,
+    ``prior_confidence``). None or absent: the default.
     """

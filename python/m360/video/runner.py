@@ -54,12 +54,13 @@ from ..batch.runner import (
     fingerprint,
 )
 from ..errors import InputError, M360Error, ModelError, ReadError
+from ..estimators import estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
 from ..io import check_formats, remove_stale_temporaries, save
 from ..io.files import atomic_path, save_json, temporary_prefix
-from ..pipeline.options import EstimateKeywords, JobKeywords
+from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
 from ..stitching.depth import depth_of
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from .reader import Frame, Source, check_selection, frames, prefetch, probe
@@ -140,6 +141,7 @@ class _Plan:
     run_id: str
     resume: bool
     temporal: Temporal
+    tangent_model: bool = True  # a panoramic model runs alone: no prior goes with it
 
 
 def _input_of(plan: _Plan, frame: Frame) -> Path:
@@ -177,7 +179,7 @@ def _process(
     t0 = time.perf_counter()
     grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
     prior = {}
-    if plan.options.align is not None:  # a prior needs the alignment
+    if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
         prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
     record["prior"] = bool(prior)
     result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
@@ -317,9 +319,14 @@ def run(
         temporal = Temporal(temporal)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
-    stitch_keywords, model_keywords, job_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="video.run"
+    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where="video.run"
     )
+    if prior_keywords:
+        raise InputError(
+            f"video.run takes no prior of its own ({', '.join(sorted(prior_keywords))}): the "
+            'temporal term uses the previous frame (temporal=Temporal("smooth", prior=True))'
+        )
     model_opts = ModelOptions.build(model_options, **model_keywords)
     job_options = resolved(job_keywords, JobKeywords)
     opts = build(options, **stitch_keywords)
@@ -359,6 +366,7 @@ def run(
         run_id=uuid.uuid4().hex[:12],
         resume=bool(resume),
         temporal=temporal,
+        tangent_model=estimator_kind(estimator) != "panoramic",
     )
     _make_output_folder(out)
     report = VideoReport(
