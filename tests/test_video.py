@@ -235,6 +235,8 @@ def test_frame_selection_and_resume_by_fingerprint(tmp_path: Path) -> None:
     assert len(again.skipped) == 3 and not again.done
     other = m360.video.run(clip, out, model=model, every=4, temporal="none", progress=False, **FAST)
     assert len(other.done) == 3  # another temporal mode is another output: redone
+    with pytest.raises(m360.InputError, match="no prior of its own"):
+        m360.video.run(clip, out, model=model, prior=np.ones((8, 16)), progress=False)
     run_file = json.loads((out / m360.video.RUN_FILE).read_text())
     assert run_file["frames"] == ["000000", "000004", "000008"]
 
@@ -427,26 +429,20 @@ def test_the_temporal_term_removes_flicker_without_losing_accuracy() -> None:
 def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch
 ) -> None:
-    """Plumbing: where m360.estimate takes a prior, each frame after the first (and not after a
-    cut) gets the previous frame's state as one, in the run's units, with the image-change
-    confidence; none without alignment."""
+    """With Temporal(prior=True) each frame after the first (and not after a cut) gets the
+    previous frame's state as the stitch's prior, in the run's units, with the image-change
+    confidence; none without alignment, none by default."""
     import m360.pipeline.estimate as pipeline_estimate
-    import m360.video.runner as runner
 
     real = pipeline_estimate.estimate
     calls: list[dict] = []
 
     def estimate(rgb, model, **keywords):
-        prior = {
-            k: keywords.pop(k) for k in ("prior", "prior_kind", "prior_confidence") if k in keywords
-        }
-        calls.append(prior)
+        names = ("prior", "prior_kind", "prior_confidence")
+        calls.append({k: keywords[k] for k in names if k in keywords})
         return real(rgb, model, **keywords)
 
     monkeypatch.setattr(pipeline_estimate, "estimate", estimate)
-    monkeypatch.setattr(
-        runner, "_estimate_keywords", lambda: {"prior", "prior_kind", "prior_confidence"}
-    )
     folder = tmp_path / "frames"
     _walk_frames(folder, 3, 3)
     model = batch_helpers.Gated(None)
