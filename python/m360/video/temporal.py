@@ -139,7 +139,7 @@ def shrink(disparity: np.ndarray) -> np.ndarray:
 def _grow(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
     """Bilinear upsampling of a state-sized map to ``shape`` (H, W), wrapping in longitude."""
     height, width = shape
-    h, w = values.shape
+    h, w = values.shape[:2]
     col = ((np.arange(width, dtype=np.float32) + 0.5) * (w / width) - 0.5)[None, :]
     row = ((np.arange(height, dtype=np.float32) + 0.5) * (h / height) - 0.5)[:, None]
     map_x = np.broadcast_to(np.mod(col, w), shape).astype(np.float32)
@@ -329,9 +329,16 @@ class Temporal:
         state = TemporalState((small + correction).astype(np.float32), grey, velocity)
         # Near depth edges the low-resolution maps mix both sides and a moving camera shifts
         # the edge: the correction is kept only where the frame is smooth at the state's scale.
-        grown = _grow(small, disparity.shape)
+        # One two-channel upsampling for both maps; the weight in place, one temporary.
+        grown = _grow(np.dstack([small, correction]), disparity.shape)
         with np.errstate(invalid="ignore", divide="ignore"):
-            edge = np.abs(out / grown - 1)
-        smooth = np.exp(-np.square(np.nan_to_num(edge, nan=1.0) / EDGE_SCALE)).astype(np.float32)
-        out += smooth * _grow(correction, disparity.shape)
+            weight = np.divide(out, grown[..., 0])
+        weight -= 1
+        weight *= np.float32(1 / EDGE_SCALE)
+        np.square(weight, out=weight)
+        np.negative(weight, out=weight)
+        np.exp(weight, out=weight)
+        weight[~np.isfinite(weight)] = 0  # no state there: no correction
+        weight *= grown[..., 1]
+        out += weight
         return out, state, {"gauge": [a, b], "strength": STRENGTH}
