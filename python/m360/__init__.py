@@ -12,6 +12,7 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 >>> model = m360.ModelOptions(input_size=(224, 224), mean=(0, 0, 0), std=(1, 1, 1))
 >>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
 >>> m360.save(result, "out/pano", formats=("npy", "exr"))      # m360.load("out/pano") reads it
+>>> pair = m360.stereo(result, erp_rgb, ipd=0.064)              # VR: left/right eye panoramas
 >>> report = m360.batch.run(["photos/"], "out/", workers=2)     # many images, resumable
 """
 
@@ -37,6 +38,7 @@ from .evaluation import synthetic
 from .geometry import Layout, TangentCamera, clear_plan_cache, erp_to_tangents, tangents_to_erp
 from .io import SavedResult, decode, load, mesh, save, viewer
 from .io.mesh import Mesh, PointCloud, to_mesh, to_points
+from .io.stereo import StereoResult, stereo
 from .pipeline import masks, memory, scale
 from .pipeline.estimate import EstimateResult, estimate
 from .stitching import align, blend, options, upsample
@@ -83,6 +85,7 @@ __all__ = [
     "SavedResult",
     "ScaleError",
     "SolverError",
+    "StereoResult",
     "StitchOptions",
     "StitchResult",
     "TangentCamera",
@@ -110,6 +113,7 @@ __all__ = [
     "save",
     "scale",
     "set_num_threads",
+    "stereo",
     "stitch",
     "stitching",
     "synthetic",

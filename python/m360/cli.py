@@ -32,6 +32,7 @@ from .geometry.layout import default_layout
 from .io import (
     GEOMETRY_FORMATS,
     SAVE_FORMATS,
+    STEREO_FORMATS,
     load,
     output_stem,
     read_array,
@@ -40,6 +41,7 @@ from .io import (
     save_png,
 )
 from .io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
+from .io.stereo import StereoKeywords
 from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
@@ -112,7 +114,9 @@ def build_parser() -> argparse.ArgumentParser:
         type=_formats,
         default=("npy",),
         help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
-        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d])",
+        f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh; extra m360[3d]); VR "
+        f"{', '.join(STEREO_FORMATS)} (the stereo 360 pair top-bottom, left eye on top, JPEG or "
+        "PNG, GPano stereo XMP)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument(
@@ -127,6 +131,9 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="N",
         help=f"most vertices of each 3D file (ply, glb): larger images are strided to fit "
         f"(default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar records the stride",
+    )
+    add_flags(
+        run.add_argument_group("stereo outputs (--formats stereo, stereo-png)"), StereoKeywords
     )
     run.add_argument(
         "--workers",
@@ -310,7 +317,7 @@ def _max_vertices(text: str) -> int | None:
 
 def _formats(text: str) -> tuple[str, ...]:
     chosen = tuple(f.strip() for f in text.split(",") if f.strip())
-    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    known = SAVE_FORMATS + GEOMETRY_FORMATS + STEREO_FORMATS
     unknown = [f for f in chosen if f not in known]
     if unknown or not chosen:
         raise argparse.ArgumentTypeError(
@@ -415,6 +422,7 @@ def _run(args: argparse.Namespace) -> int:
         cpus_per_stitch=args.cpus_per_stitch,
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
+        **from_args(args, StereoKeywords),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code

@@ -59,7 +59,7 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any
 
-from .._keywords import definition, resolved, split
+from .._keywords import checked, definition, resolved, split
 from .._validate import MAX_THREADS, flag, integer
 from ..errors import InputError, ReadError
 from ..estimators import OnnxEstimator
@@ -68,10 +68,12 @@ from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
 from ..io import (
     GEOMETRY_FORMATS,
+    STEREO_FORMATS,
     check_formats,
 )
 from ..io.decode import IMAGE_SUFFIXES
 from ..io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
+from ..io.stereo import StereoKeywords
 from ..pipeline.options import EstimateKeywords, JobKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ._inputs import read_manifest, scan
@@ -92,7 +94,26 @@ from .image import (
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
-__all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
+__all__ = [
+    "BatchReport",
+    "ImageOutcome",
+    "Job",
+    "RunKeywords",
+    "collect",
+    "fingerprint",
+    "is_done",
+    "run",
+]
+
+
+class RunKeywords(EstimateKeywords, StereoKeywords, total=False):
+    """Every keyword of :func:`run` beyond its named ones.
+
+    :func:`m360.estimate`'s (:class:`m360.pipeline.options.EstimateKeywords`) and the stereo
+    outputs' (:class:`m360.io.stereo.StereoKeywords`: ``ipd``, ``pole_fade``,
+    ``median_distance``).
+    """
+
 
 MANIFEST_SUFFIXES = (".txt", ".csv")
 FAILURES_FILE = "failures.jsonl"
@@ -375,7 +396,7 @@ def run(
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
-    **keywords: Unpack[EstimateKeywords],
+    **keywords: Unpack[RunKeywords],
 ) -> BatchReport:
     """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
 
@@ -433,7 +454,8 @@ def run(
         :class:`m360.pipeline.options.EstimateKeywords` (the stitching options, the model
         options, ``working_width``, ``upsample``, ``padding``, ``sky``). ``threads`` is also
         the core's threads per worker with ``workers > 1`` (default: the CPU count divided
-        among the workers).
+        among the workers). Also the stereo formats' ``ipd``, ``pole_fade`` and
+        ``median_distance`` (:class:`m360.io.stereo.StereoKeywords`; see :func:`m360.save`).
 
     Returns
     -------
@@ -450,8 +472,8 @@ def run(
         raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
-    stitch_keywords, model_keywords, job_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, where="run"
+    stitch_keywords, model_keywords, job_keywords, stereo_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, StereoKeywords, where="run"
     )
     model_opts = ModelOptions.build(model_options, **model_keywords)
     job_options = resolved(job_keywords, JobKeywords)
@@ -500,7 +522,11 @@ def run(
         masks=masks,
         confidence=confidence,
         max_vertices=max_vertices,
+        stereo=checked(stereo_keywords, StereoKeywords),
     )
+    # A rerun with other stereo options must not be skipped (absent without a stereo format).
+    if any(f in STEREO_FORMATS for f in chosen):
+        settings.fingerprint["stereo"] = resolved(stereo_keywords, StereoKeywords)
     # A rerun with another vertex budget must not be skipped (absent when default, as below).
     if max_vertices != DEFAULT_MAX_VERTICES and any(f in GEOMETRY_FORMATS for f in chosen):
         settings.fingerprint["max_vertices"] = max_vertices

@@ -3,12 +3,13 @@
 :mod:`~m360.io.decode` reads input panoramas; :mod:`~m360.io.files` writes one file atomically
 in each array format; :mod:`~m360.io.writing` saves a whole result (:func:`save`, sidecar last)
 and :mod:`~m360.io.reading` loads it back (:func:`load`); :mod:`~m360.io.mesh` makes point
-clouds and meshes and their PLY/GLB files; :mod:`~m360.io.viewer` shows them in a browser.
+clouds and meshes and their PLY/GLB files;
+:mod:`~m360.io.stereo` the stereo (ODS) pair for VR; :mod:`~m360.io.viewer` shows them in a browser.
 """
 
 from __future__ import annotations
 
-from . import decode, files, mesh, reading, writing
+from . import decode, files, mesh, reading, stereo, writing
 from .decode import (
     IMAGE_SUFFIXES,
     decode_image,
@@ -24,6 +25,8 @@ from .files import (
     GEOMETRY_FORMATS,
     QUANTITIES,
     SAVE_FORMATS,
+    STEREO_FILES,
+    STEREO_FORMATS,
     atomic_path,
     check_formats,
     colorize,
@@ -46,6 +49,8 @@ __all__ = [
     "IMAGE_SUFFIXES",
     "QUANTITIES",
     "SAVE_FORMATS",
+    "STEREO_FILES",
+    "STEREO_FORMATS",
     "SavedResult",
     "atomic_path",
     "check_formats",
@@ -69,6 +74,7 @@ __all__ = [
     "save_json",
     "save_npy",
     "save_png",
+    "stereo",
     "write_array",
     "writing",
 ]

@@ -30,6 +30,11 @@ SAVE_FORMATS = ("npy", "pfm", "exr", "png16")
 #: ``STEM.points.ply`` (m360 frame), ``glb`` the mesh ``STEM.mesh.glb`` (glTF frame, y up).
 GEOMETRY_FORMATS = ("ply", "glb")
 GEOMETRY_FILES = {"ply": ("points", ".points.ply"), "glb": ("mesh", ".mesh.glb")}
+#: Stereo formats :func:`save` writes (needs ``rgb``): the ODS pair of :func:`m360.stereo`,
+#: top-bottom (left eye on top) with GPano stereo XMP, as ``STEM.stereo.jpg`` (``stereo``) or
+#: ``STEM.stereo.png`` (``stereo-png``, lossless).
+STEREO_FORMATS = ("stereo", "stereo-png")
+STEREO_FILES = {"stereo": ("stereo", ".stereo.jpg"), "stereo-png": ("stereo", ".stereo.png")}
 #: The quantities :func:`save` writes per format.
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
@@ -302,7 +307,7 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
         return p.with_name(name.removesuffix(".json").removesuffix(".preview.png"))
-    for _, tail in GEOMETRY_FILES.values():
+    for _, tail in (*GEOMETRY_FILES.values(), *STEREO_FILES.values()):
         if name.endswith(tail):
             return p.with_name(name.removesuffix(tail))
     for quantity in QUANTITIES:
@@ -321,7 +326,7 @@ def check_formats(formats: Sequence[str] | str) -> tuple[str, ...]:
         chosen = tuple(formats)
     else:
         raise InputError(f"formats must be a format name or a list of them, got {formats!r}")
-    known = SAVE_FORMATS + GEOMETRY_FORMATS
+    known = SAVE_FORMATS + GEOMETRY_FORMATS + STEREO_FORMATS
     for fmt in chosen:
         if not isinstance(fmt, str) or fmt not in known:
             raise InputError(f"format {fmt!r} is not supported; choose from {known}")
@@ -353,6 +358,7 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     names = [f"{base.name}.{q}{suffix}" for q in quantities for suffix in FORMAT_SUFFIXES.values()]
     names += [f"{base.name}.preview.png", f"{base.name}.json"]
     names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
+    names += [base.name + tail for _, tail in STEREO_FILES.values()]
     removed = []
     for name in names:
         for tmp in base.parent.glob(f"{glob.escape(temporary_prefix(name))}{'?' * 8}.tmp"):

@@ -74,6 +74,11 @@ _RGB_BYTES_PER_PIXEL = 3.0
 #: the encoded map (and a copy); png16 holds its uint16 codes and the encoded PNG; the preview
 #: the finite values (for the percentiles), then the colour image and its PNG.
 _OUTPUT_BYTES_PER_PIXEL = {"npy": 1.0, "pfm": 8.5, "exr": 8.5, "png16": 4.2, "preview": 5.0}
+#: The stereo pair (:func:`m360.stereo`, written once for both stereo formats): the two eyes
+#: and their hole masks (8), the eye positions of the warp (8, one eye at a time), the scaled
+#: depth of a relative result (4), then the top-bottom image, its BGR copy and the encoded file
+#: with its XMP (about 6 + 6 + 4). Measured at 2K-8K (benches/bench_3d.py, stereo_save).
+_STEREO_BYTES_PER_PIXEL = 30.0
 #: The streamed 3D writers: a band's temporaries (about a million vertices) ...
 _GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
 #: ... and, for the mesh, per strided grid vertex: the per-quad flags, the used mask and the
@@ -219,6 +224,8 @@ def _writing_bytes(
             step = mesh.stride_for(height, width, 1, budget if budget is None else int(budget), 2)
             grid = -(-height // step) * -(-width // step)
             peaks.append(_GEOMETRY_BAND_BYTES["glb"] + _MESH_BYTES_PER_VERTEX * grid)
+    if any(fmt in ("stereo", "stereo-png") for fmt in formats):
+        peaks.append(_STEREO_BYTES_PER_PIXEL * pixels)
     if preview:
         peaks.append(_OUTPUT_BYTES_PER_PIXEL["preview"] * pixels)
     del confidence  # written one quantity at a time: one more file, not a larger peak
