@@ -18,6 +18,13 @@ writers. Compared in the same run with
   number of pixels read as a pinhole depth image (a cost reference), and
   ``o3d_from_numpy`` times building an ``o3d.geometry.PointCloud`` from the numpy points.
 
+Stereo (``m360.stereo``, the ODS pair at IPD 64 mm): ``stereo`` times the warp of both eyes in
+the Rust core, ``stereo_save`` the warp and the top-bottom JPEG with its XMP (what ``m360.save``
+writes for ``formats=("stereo",)``; its file size), against ``numpy_warp``, a plain numpy
+forward warp of both eyes written in this bench: each pixel's eye position (the same ODS
+formula, no pole-fade iteration), rounded to the nearest pixel, z-buffered by sorting by depth,
+holes filled with the nearest seen pixel on their left (no background test).
+
 The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
 not depend on the content beyond the share of cut triangles.
 
@@ -51,6 +58,9 @@ OPS = (
     "trimesh_ply",
     "o3d_from_depth",
     "o3d_from_numpy",
+    "numpy_warp",
+    "stereo",
+    "stereo_save",
 )
 
 
@@ -62,12 +72,49 @@ def depth_map(width: int, cache: Path) -> Path:
 
         base = cache / "depth_2048.npy"
         if not base.exists():
-            np.save(base, synthetic.render(synthetic.room(0), 2048)[1])
+            rgb, depth = synthetic.render(synthetic.room(0), 2048)
+            np.save(base, depth)
+            np.save(cache / "rgb_2048.npy", rgb)
         depth = np.load(base)
+        rgb = np.load(cache / "rgb_2048.npy")
         if width != 2048:
             depth = cv2.resize(depth, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+            rgb = cv2.resize(rgb, (width, width // 2), interpolation=cv2.INTER_LINEAR)
         np.save(path, depth)
+        np.save(cache / f"rgb_{width}.npy", rgb)
     return path
+
+
+def numpy_warp(rgb: np.ndarray, depth: np.ndarray, ipd: float = 0.064) -> list[np.ndarray]:
+    """Both ODS eyes by a plain numpy forward warp (nearest pixel, z-buffer by sorting)."""
+    h, w = depth.shape
+    lat = (np.pi / 2 - np.pi * (np.arange(h) + 0.5) / h)[:, None]
+    lon = (2 * np.pi * (np.arange(w) + 0.5) / w - np.pi)[None, :]
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 1e9)
+    rho = d * np.cos(lat)
+    r = ipd / 2
+    ok = (rho > r).ravel()
+    order = np.argsort(-d.ravel()[ok], kind="stable")  # far first: the nearest is written last
+    src = np.flatnonzero(ok)[order]
+    eyes = []
+    for sign in (-1.0, 1.0):
+        with np.errstate(invalid="ignore"):
+            eye_lon = lon - np.arcsin(sign * r / rho)
+            eye_lat = np.arctan2(d * np.sin(lat), np.sqrt(np.maximum(rho**2 - r * r, 0)))
+        col = np.rint((eye_lon + np.pi) * w / (2 * np.pi) - 0.5).astype(np.int64) % w
+        row = np.clip(np.rint((np.pi / 2 - eye_lat) * h / np.pi - 0.5), 0, h - 1).astype(np.int64)
+        target = (row * w + col).ravel()[src]
+        out = np.zeros((h * w, 3), np.uint8)
+        seen = np.zeros(h * w, bool)
+        out[target] = rgb.reshape(-1, 3)[src]
+        seen[target] = True
+        # holes: the nearest seen pixel on the left in the row (a streak)
+        index = np.where(seen.reshape(h, w), np.arange(w)[None, :], -1)
+        index = np.maximum.accumulate(index, axis=1)
+        index = np.where(index < 0, np.arange(w)[None, :], index)
+        rows = np.arange(h)[:, None] * w
+        eyes.append(out[(rows + index).ravel()].reshape(h, w, 3))
+    return eyes
 
 
 def numpy_floor(depth: np.ndarray) -> np.ndarray:
@@ -85,6 +132,7 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
         import m360
         from m360 import mesh
     depth = np.load(path)
+    rgb = np.load(Path(path).with_name(Path(path).name.replace("depth_", "rgb_")))
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times = []
     size = 0
@@ -92,6 +140,17 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
         t0 = time.perf_counter()
         if op == "numpy_floor":
             numpy_floor(depth)
+        elif op == "numpy_warp":
+            numpy_warp(rgb, depth)
+        elif op == "stereo":
+            m360.stereo(depth, rgb, ipd=0.064)
+        elif op == "stereo_save":
+            from m360.io.stereo import write_stereo
+
+            target = Path(out_dir) / f"st{k}.stereo.jpg"
+            write_stereo(target, m360.stereo(depth, rgb, ipd=0.064))
+            size = target.stat().st_size
+            target.unlink()
         elif op == "to_points":
             m360.to_points(depth, max_vertices=None)
         elif op == "to_mesh":

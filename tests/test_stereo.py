@@ -152,22 +152,25 @@ def test_holes_are_what_the_centre_cannot_see(scene, centre):
 def test_estimated_depth_matches_ray_cast_eyes(scene, centre, eyes):
     rgb, depth = centre
     layout = m360.geometry.default_layout(WIDTH)
-    estimator = m360.estimators.SimulatedEstimator(scene, layout, seed=SEED)
+    # Per-tangent affine ambiguity and 5 % noise: m360's depth is 1.2 % off (median).
+    estimator = m360.estimators.SimulatedEstimator(scene, layout, seed=SEED, noise=0.05)
     camera_height = float(scene.room_max[1])  # the floor is at y = room_max[1]
     result = m360.estimate(rgb, estimator, scale=m360.scale.camera_height(camera_height))
     assert result.units == "metres"
     pair = m360.stereo(result, rgb, ipd=0.064)
-    truth_pair = m360.stereo(depth, rgb, ipd=0.064)
-    for eye, holes, sign, exact in (
-        (pair.left, pair.left_holes, -1.0, truth_pair.left),
-        (pair.right, pair.right_holes, 1.0, truth_pair.right),
+    exact = m360.stereo(depth, rgb, ipd=0.064)
+    wrong = m360.stereo(depth * 0.25, rgb, ipd=0.064)  # a 4x wrong scale: 4x the parallax
+    for eye, holes, sign, true_eye, wrong_eye in (
+        (pair.left, pair.left_holes, -1.0, exact.left, wrong.left),
+        (pair.right, pair.right_holes, 1.0, exact.right, wrong.right),
     ):
         truth, _ = eyes[sign]
         keep = ~dilate(holes, 1)
-        warped = psnr(eye, truth, keep)
-        assert warped > psnr(rgb, truth, keep) + 3.0
-        assert warped > psnr(exact, truth, keep) - 4.0  # close to the true depth's warp
-        assert ssim(eye, truth, keep) > 0.9
+        warped = psnr(eye, truth, keep)  # measured 38.5 and 38.9 dB
+        assert warped > psnr(rgb, truth, keep) + 6.0  # 29.1 and 29.4 dB
+        assert warped > psnr(true_eye, truth, keep) - 1.5  # 38.6 and 39.3 dB
+        assert warped > psnr(wrong_eye, truth, keep) + 6.0  # about 25 dB
+        assert ssim(eye, truth, keep) > 0.97  # 0.980
 
 
 def test_zero_ipd_gives_the_input_back(centre):
