@@ -63,8 +63,12 @@ def _core_defaults() -> dict[str, float]:
     return dict(ods_defaults())
 
 
+#: The core's defaults and limits of the warp (``m360_core::stereo``): written once, there.
+_CORE = _core_defaults()
+
+
 def _ipd(value: Any, name: str) -> float:
-    return number(value, name, low=0.0, high=_core_defaults()["max_ipd"])
+    return number(value, name, low=0.0, high=_CORE["max_ipd"])
 
 
 def _pole_fade(value: Any, name: str) -> float:
@@ -85,7 +89,7 @@ class StereoKeywords(TypedDict, total=False):
     ipd: Annotated[
         float | None,
         Option(
-            "interpupillary distance of the stereo outputs in metres",
+            f"interpupillary distance of the stereo outputs in metres (default {DEFAULT_IPD})",
             check=_ipd,
             parse=float,
             metavar="M",
@@ -95,11 +99,12 @@ class StereoKeywords(TypedDict, total=False):
     pole_fade: Annotated[
         float | None,
         Option(
-            "latitude in degrees from which the stereo IPD fades to 0 at the poles (90: no fade)",
+            "latitude in degrees from which the stereo IPD fades to 0 at the poles (default "
+            f"{_CORE['pole_fade']:g}; 90: no fade)",
             check=_pole_fade,
             parse=float,
             metavar="DEG",
-            default=60.0,
+            default=_CORE["pole_fade"],
         ),
     ]
     median_distance: Annotated[
@@ -268,8 +273,7 @@ def stereo(
     options = resolved(
         {"ipd": ipd, "pole_fade": pole_fade, "median_distance": median_distance}, StereoKeywords
     )
-    defaults = _core_defaults()
-    ratio = defaults["max_depth_ratio"] if max_depth_ratio is None else max_depth_ratio
+    ratio = _CORE["max_depth_ratio"] if max_depth_ratio is None else max_depth_ratio
     ratio = number(ratio, "max_depth_ratio", low=1.0, high=1e6)
     depth, units = _depth_of(source)
     colours = _rgb_of(rgb, depth.shape) if as_array(rgb, "rgb").ndim == 3 else None

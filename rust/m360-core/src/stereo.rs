@@ -41,8 +41,8 @@ pub const MAX_IPD: f64 = 10.0;
 pub const DEFAULT_POLE_FADE_DEG: f64 = 60.0;
 /// Default depth ratio above which a grid triangle is an occlusion edge, not a surface.
 pub const DEFAULT_MAX_DEPTH_RATIO: f64 = 1.1;
-/// Eye rows per parallel band.
-const BAND_ROWS: usize = 8;
+/// Eye rows per parallel band (a band also reads the grid rows one or two beyond its own).
+const BAND_ROWS: usize = 32;
 /// Tolerance (pixels) of the rasteriser's edge tests: pixel centres on a shared edge or vertex
 /// belong to every triangle there (the z-buffer keeps one).
 const EDGE_EPS: f64 = 1e-6;
@@ -258,19 +258,8 @@ struct Band<'a> {
 impl Band<'_> {
     /// Rasterise one triangle into the band (z-test, colour interpolated from its pixels).
     fn draw(&mut self, warp: &Warp<'_>, v: [Vertex; 3]) {
-        let w = self.width as f64;
-        // Unwrap the longitudes around the first vertex so the triangle is not cut at the seam.
-        let unwrap = |x: f64| x - w * ((x - v[0].x) / w).round();
-        let xs = [v[0].x, unwrap(v[1].x), unwrap(v[2].x)];
+        // The cheap test first: most triangles a band reads miss its rows.
         let ys = [v[0].y, v[1].y, v[2].y];
-        let area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0]);
-        if area.abs() < 1e-12 {
-            return;
-        }
-        let (x_lo, x_hi) = (xs[0].min(xs[1]).min(xs[2]), xs[0].max(xs[1]).max(xs[2]));
-        if x_hi - x_lo > 0.5 * w {
-            return; // wraps round a pole: not a surface patch of the eye's view
-        }
         let (y_lo, y_hi) = (ys[0].min(ys[1]).min(ys[2]), ys[0].max(ys[1]).max(ys[2]));
         let first = self.first_row as f64;
         let last = (self.first_row + self.rows - 1) as f64;
@@ -278,6 +267,18 @@ impl Band<'_> {
         let row_hi = (y_hi + EDGE_EPS).floor().min(last);
         if row_lo > row_hi {
             return;
+        }
+        let w = self.width as f64;
+        // Unwrap the longitudes around the first vertex so the triangle is not cut at the seam.
+        let unwrap = |x: f64| x - w * ((x - v[0].x) / w).round();
+        let xs = [v[0].x, unwrap(v[1].x), unwrap(v[2].x)];
+        let area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0]);
+        if area.abs() < 1e-12 {
+            return;
+        }
+        let (x_lo, x_hi) = (xs[0].min(xs[1]).min(xs[2]), xs[0].max(xs[1]).max(xs[2]));
+        if x_hi - x_lo > 0.5 * w {
+            return; // wraps round a pole: not a surface patch of the eye's view
         }
         let col_lo = (x_lo - EDGE_EPS).ceil() as i64;
         let col_hi = (x_hi + EDGE_EPS).floor() as i64;
