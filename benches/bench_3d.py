@@ -1,7 +1,8 @@
 """3D outputs: m360.to_points, m360.to_mesh and the GLB/PLY writers at 2K, 4K and 8K.
 
 Per ERP width, in a fresh subprocess each (so peak RSS belongs to the one operation): seconds
-(median of --repeat runs), peak RSS (ru_maxrss of the subprocess) and its growth over the input
+(median of --repeat runs; also the process's CPU seconds, all threads, less noisy on a shared
+machine), peak RSS (ru_maxrss of the subprocess) and its growth over the input
 alone (0 when the operation stays below the peak of importing m360), and the file size for the
 writers. Compared in the same run with
 
@@ -101,8 +102,10 @@ def numpy_warp(rgb: np.ndarray, depth: np.ndarray, ipd: float = 0.064) -> list[n
         with np.errstate(invalid="ignore"):
             eye_lon = lon - np.arcsin(sign * r / rho)
             eye_lat = np.arctan2(d * np.sin(lat), np.sqrt(np.maximum(rho**2 - r * r, 0)))
-        col = np.rint((eye_lon + np.pi) * w / (2 * np.pi) - 0.5).astype(np.int64) % w
-        row = np.clip(np.rint((np.pi / 2 - eye_lat) * h / np.pi - 0.5), 0, h - 1).astype(np.int64)
+            # (NaN where rho <= r: those pixels are not in src)
+            col = np.rint((eye_lon + np.pi) * w / (2 * np.pi) - 0.5).astype(np.int64) % w
+            row = np.rint((np.pi / 2 - eye_lat) * h / np.pi - 0.5).astype(np.int64)
+        row = np.clip(row, 0, h - 1)
         target = (row * w + col).ravel()[src]
         out = np.zeros((h * w, 3), np.uint8)
         seen = np.zeros(h * w, bool)
@@ -135,8 +138,10 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
     rgb = np.load(Path(path).with_name(Path(path).name.replace("depth_", "rgb_")))
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times = []
+    cpu = []
     size = 0
     for k in range(repeat):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         if op == "numpy_floor":
             numpy_floor(depth)
@@ -217,9 +222,11 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
             t0 = time.perf_counter()
             o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {
         "seconds": float(np.median(times)),
+        "cpu_seconds": float(np.median(cpu)),
         "peak_rss_mb": peak / 1024,
         "growth_mb": (peak - rss_input) / 1024,
         "file_mb": size / 1e6,
@@ -249,7 +256,7 @@ def main() -> None:
 
     print(f"m360 {m360.__version__}, {os.cpu_count()} CPUs (machine shared: timings noisy)")
     print(
-        f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
+        f"{'width':>6} {'operation':<14} {'seconds':>8} {'CPU s':>7} {'peak RSS MB':>11} "
         f"{'growth MB':>9} {'file MB':>8}"
     )
     with tempfile.TemporaryDirectory() as tmp:
@@ -273,7 +280,8 @@ def main() -> None:
                     continue
                 r = json.loads(run.stdout.strip().splitlines()[-1])
                 print(
-                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['peak_rss_mb']:>11.0f} "
+                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['cpu_seconds']:>7.2f} "
+                    f"{r['peak_rss_mb']:>11.0f} "
                     f"{r['growth_mb']:>9.0f} {r['file_mb']:>8.1f}",
                     flush=True,
                 )

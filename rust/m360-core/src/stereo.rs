@@ -9,7 +9,8 @@
 //!
 //! A scene point P = D·d(λ, φ) of the centre panorama is seen by the eye at longitude
 //! λ' = λ − asin(s·r/ρ) with ρ = D cos φ (the horizontal distance) and at latitude
-//! φ' = atan2(D sin φ, √(ρ² − r²)); since r depends on φ', that pair is found by a fixed-point
+//! φ' = atan2(D sin φ, √(ρ² − r²)) (`eye_latitude` evaluates it without an arctangent in
+//! the usual case); since r depends on φ', that pair is found by a fixed-point
 //! iteration (exact when r does not change, i.e. outside the fade). A point within the viewing
 //! circle (ρ ≤ r) is seen by no eye ray.
 //!
@@ -141,12 +142,41 @@ impl OdsOptions {
     }
 }
 
+/// Latitude of one grid row and its sine and cosine (computed once per row).
+#[derive(Clone, Copy)]
+struct RowAngle {
+    lat: f64,
+    sin: f64,
+    cos: f64,
+}
+
+/// Eye latitude of a point at latitude `row.lat` seen from `radius` off the centre, ρ its
+/// horizontal distance: tan φ' = tan φ / √(1 − q²), q = r/ρ. Written as φ + atan(x) with
+/// x = k·t / (1 + (1 + k)·t²), t = tan φ, k = 1/√(1 − q²) − 1 (atan(a) − atan(b) =
+/// atan((a − b)/(1 + ab))): x is tiny for eyes a few centimetres apart, and a short series then
+/// replaces the arctangent, the costliest step of the warp.
+fn eye_latitude(row: RowAngle, q: f64) -> f64 {
+    if q == 0.0 {
+        return row.lat;
+    }
+    let k = 1.0 / (1.0 - q * q).sqrt() - 1.0;
+    let t = row.sin / row.cos; // rows never reach the poles: cos > 0
+    let x = k * t / (1.0 + (1.0 + k) * t * t);
+    let delta = if x.abs() < 1e-2 {
+        let x2 = x * x;
+        x * (1.0 - x2 * (1.0 / 3.0 - x2 / 5.0)) // error below x⁷/7 < 2e-15
+    } else {
+        x.atan()
+    };
+    row.lat + delta
+}
+
 #[allow(clippy::too_many_arguments)]
 /// Where one centre pixel lands in an eye's panorama: continuous (column, row), NaN column when
 /// no eye ray sees it.
 fn eye_position(
     depth: f32,
-    lat: f64,
+    row: RowAngle,
     lon: f64,
     opts: &OdsOptions,
     sign: f64,
@@ -157,19 +187,21 @@ fn eye_position(
     if !(depth.is_finite() && depth > 0.0) {
         return (identity.0 as f32, identity.1 as f32); // at infinity: no parallax
     }
-    let d = f64::from(depth);
-    let (sin_lat, cos_lat) = lat.sin_cos();
-    let rho = d * cos_lat;
-    let height_up = d * sin_lat;
-    let mut eye_lat = lat;
+    let rho = f64::from(depth) * row.cos;
+    let mut eye_lat = row.lat;
     let mut radius = opts.radius_at(eye_lat);
     let mut eye_lon = lon;
     for _ in 0..FADE_ITERATIONS {
         if radius >= rho {
             return (f32::NAN, f32::NAN);
         }
-        eye_lon = lon - (sign * radius / rho).asin();
-        eye_lat = height_up.atan2((rho * rho - radius * radius).sqrt());
+        let q = radius / rho;
+        eye_lon = if q == 0.0 {
+            lon
+        } else {
+            lon - (sign * q).asin()
+        };
+        eye_lat = eye_latitude(row, q);
         let next = opts.radius_at(eye_lat);
         if next.to_bits() == radius.to_bits() {
             break;
@@ -270,7 +302,14 @@ impl Band<'_> {
         }
         let w = self.width as f64;
         // Unwrap the longitudes around the first vertex so the triangle is not cut at the seam.
-        let unwrap = |x: f64| x - w * ((x - v[0].x) / w).round();
+        let unwrap = |x: f64| {
+            let dx = x - v[0].x;
+            if dx.abs() <= 0.5 * w {
+                x // the usual case: no division
+            } else {
+                x - w * (dx / w).round()
+            }
+        };
         let xs = [v[0].x, unwrap(v[1].x), unwrap(v[2].x)];
         let area = (xs[1] - xs[0]) * (ys[2] - ys[0]) - (xs[2] - xs[0]) * (ys[1] - ys[0]);
         if area.abs() < 1e-12 {
@@ -407,9 +446,20 @@ fn eye_positions(
         .enumerate()
         .for_each(|(i, (row, d))| {
             let lat = row_latitude(i as f64, height);
+            let (sin, cos) = lat.sin_cos();
+            let angle = RowAngle { lat, sin, cos };
             for (j, (p, &z)) in row.iter_mut().zip(d).enumerate() {
                 let lon = column_longitude(j as f64, width);
-                *p = eye_position(z, lat, lon, opts, sign, height, width, (j as f64, i as f64));
+                *p = eye_position(
+                    z,
+                    angle,
+                    lon,
+                    opts,
+                    sign,
+                    height,
+                    width,
+                    (j as f64, i as f64),
+                );
             }
         });
     positions
@@ -508,13 +558,13 @@ pub fn ods_eye(
                     continue;
                 }
                 let i = p as isize - 1;
+                // The right column of one quad is the left column of the next.
+                let (mut top_left, mut bottom_left) = (warp.vertex(i, 0), warp.vertex(i + 1, 0));
                 for j in 0..width {
-                    let quad = [
-                        warp.vertex(i, j),
-                        warp.vertex(i, j + 1),
-                        warp.vertex(i + 1, j),
-                        warp.vertex(i + 1, j + 1),
-                    ];
+                    let (top_right, bottom_right) =
+                        (warp.vertex(i, j + 1), warp.vertex(i + 1, j + 1));
+                    let quad = [top_left, top_right, bottom_left, bottom_right];
+                    (top_left, bottom_left) = (top_right, bottom_right);
                     for tri in [[0, 1, 2], [1, 3, 2]] {
                         if let (Some(a), Some(b), Some(c)) =
                             (quad[tri[0]], quad[tri[1]], quad[tri[2]])
@@ -528,8 +578,9 @@ pub fn ods_eye(
             }
             // Pixels no triangle covers may still be seen: single pixels between occlusion
             // edges (thin structures) land there as points, the nearest kept.
+            let all_covered = band.covered.iter().all(|&k| k);
             for (p, &(lo, hi)) in pair_rows.iter().enumerate() {
-                if p == 0 || hi < top - 1.0 || lo > bottom + 1.0 {
+                if all_covered || p == 0 || hi < top - 1.0 || lo > bottom + 1.0 {
                     continue;
                 }
                 for j in 0..width {
@@ -751,6 +802,25 @@ mod tests {
                 .expect("pool");
             let again = pool.install(|| warp(&rgb, &depth, h, w, &opts, Eye::Left));
             assert_eq!(again.0, out);
+        }
+    }
+
+    #[test]
+    fn eye_latitude_is_the_arctangent() {
+        for i in 0..200 {
+            let lat = -1.55 + 3.1 * f64::from(i) / 199.0;
+            let (sin, cos) = lat.sin_cos();
+            for q in [0.0, 1e-6, 1e-3, 0.03, 0.3, 0.9, 0.999] {
+                let d = 1.0;
+                let rho = d * cos;
+                let r = q * rho;
+                let exact = (d * sin).atan2((rho * rho - r * r).sqrt());
+                let got = eye_latitude(RowAngle { lat, sin, cos }, q);
+                assert!(
+                    (got - exact).abs() < 1e-12,
+                    "lat {lat} q {q}: {got} vs {exact}"
+                );
+            }
         }
     }
 
