@@ -187,8 +187,11 @@ def _depth_of(source: Any) -> tuple[np.ndarray, str]:
 
         source = load(source)
     if hasattr(source, "depth"):
-        values, units, name = source.depth, str(getattr(source, "units", "relative")), "depth"
-        name = "result.depth"
+        values, units, name = (
+            source.depth,
+            str(getattr(source, "units", "relative")),
+            "result.depth",
+        )
     else:
         values, units, name = source, "metres", "depth"
     array = as_array(values, name)
