@@ -47,8 +47,8 @@ const BAND_ROWS: usize = 32;
 /// Tolerance (pixels) of the rasteriser's edge tests: pixel centres on a shared edge or vertex
 /// belong to every triangle there (the z-buffer keeps one).
 const EDGE_EPS: f64 = 1e-6;
-/// Fixed-point iterations of the eye latitude inside the pole fade (each one shrinks the error
-/// by the fade's slope times r/ρ, far below 1).
+/// Most fixed-point iterations of the eye latitude inside the pole fade (each one shrinks the
+/// error by the fade's slope times r/ρ, far below 1; two or three usually settle it).
 const FADE_ITERATIONS: usize = 6;
 
 /// Which eye of an ODS pair.
@@ -148,6 +148,8 @@ struct RowAngle {
     lat: f64,
     sin: f64,
     cos: f64,
+    /// The viewing circle's radius at this latitude.
+    radius: f64,
 }
 
 /// Eye latitude of a point at latitude `row.lat` seen from `radius` off the centre, ρ its
@@ -189,7 +191,7 @@ fn eye_position(
     }
     let rho = f64::from(depth) * row.cos;
     let mut eye_lat = row.lat;
-    let mut radius = opts.radius_at(eye_lat);
+    let mut radius = row.radius;
     let mut eye_lon = lon;
     for _ in 0..FADE_ITERATIONS {
         if radius >= rho {
@@ -203,7 +205,9 @@ fn eye_position(
         };
         eye_lat = eye_latitude(row, q);
         let next = opts.radius_at(eye_lat);
-        if next.to_bits() == radius.to_bits() {
+        // Settled once the radius moves by less than a nanometre per metre of IPD (outside the
+        // fade it does not move at all): the eye direction then changes by < 1e-9 rad.
+        if (next - radius).abs() <= 1e-9 * opts.ipd {
             break;
         }
         radius = next;
@@ -211,6 +215,29 @@ fn eye_position(
     let col = (eye_lon + PI) * width as f64 / TAU - 0.5;
     let row = (FRAC_PI_2 - eye_lat) * height as f64 / PI - 0.5;
     (col as f32, row as f32)
+}
+
+/// ⌊v⌋ for pixel coordinates (|v| far below 2^53), without the libm call `f64::floor` makes on
+/// targets without SSE4.1: the rasteriser takes several per triangle.
+#[inline]
+fn floor(v: f64) -> f64 {
+    let t = v as i64 as f64;
+    if t > v {
+        t - 1.0
+    } else {
+        t
+    }
+}
+
+/// ⌈v⌉, as [`floor`].
+#[inline]
+fn ceil(v: f64) -> f64 {
+    let t = v as i64 as f64;
+    if t < v {
+        t + 1.0
+    } else {
+        t
+    }
 }
 
 /// One vertex of the warp mesh: eye position, depth (∞ for none) and the centre pixel whose
@@ -295,8 +322,8 @@ impl Band<'_> {
         let (y_lo, y_hi) = (ys[0].min(ys[1]).min(ys[2]), ys[0].max(ys[1]).max(ys[2]));
         let first = self.first_row as f64;
         let last = (self.first_row + self.rows - 1) as f64;
-        let row_lo = (y_lo - EDGE_EPS).ceil().max(first);
-        let row_hi = (y_hi + EDGE_EPS).floor().min(last);
+        let row_lo = ceil(y_lo - EDGE_EPS).max(first);
+        let row_hi = floor(y_hi + EDGE_EPS).min(last);
         if row_lo > row_hi {
             return;
         }
@@ -319,8 +346,8 @@ impl Band<'_> {
         if x_hi - x_lo > 0.5 * w {
             return; // wraps round a pole: not a surface patch of the eye's view
         }
-        let col_lo = (x_lo - EDGE_EPS).ceil() as i64;
-        let col_hi = (x_hi + EDGE_EPS).floor() as i64;
+        let col_lo = ceil(x_lo - EDGE_EPS) as i64;
+        let col_hi = floor(x_hi + EDGE_EPS) as i64;
         let inv = 1.0 / area;
         let all_far = v.iter().all(|p| p.z.is_infinite());
         let c = self.channels;
@@ -354,7 +381,8 @@ impl Band<'_> {
                     let value = b0 * f64::from(warp.rgb[v[0].pixel * c + k])
                         + b1 * f64::from(warp.rgb[v[1].pixel * c + k])
                         + b2 * f64::from(warp.rgb[v[2].pixel * c + k]);
-                    self.rgb[at * c + k] = value.round().clamp(0.0, 255.0) as u8;
+                    self.rgb[at * c + k] = (value + 0.5).clamp(0.0, 255.0) as u8;
+                    // rounded
                 }
             }
             py += 1.0;
@@ -364,11 +392,11 @@ impl Band<'_> {
     /// Splat one vertex onto its nearest eye pixel if no triangle covers that pixel (z-test
     /// among the points).
     fn point(&mut self, warp: &Warp<'_>, v: Vertex) {
-        let row = v.y.round();
+        let row = floor(v.y + 0.5);
         if row < self.first_row as f64 || row > (self.first_row + self.rows - 1) as f64 {
             return;
         }
-        let col = (v.x.round() as i64).rem_euclid(self.width as i64) as usize;
+        let col = (floor(v.x + 0.5) as i64).rem_euclid(self.width as i64) as usize;
         let at = (row as usize - self.first_row) * self.width + col;
         if self.covered[at] && (self.by_triangle[at] || v.z >= self.z[at]) {
             return;
@@ -447,7 +475,12 @@ fn eye_positions(
         .for_each(|(i, (row, d))| {
             let lat = row_latitude(i as f64, height);
             let (sin, cos) = lat.sin_cos();
-            let angle = RowAngle { lat, sin, cos };
+            let angle = RowAngle {
+                lat,
+                sin,
+                cos,
+                radius: opts.radius_at(lat),
+            };
             for (j, (p, &z)) in row.iter_mut().zip(d).enumerate() {
                 let lon = column_longitude(j as f64, width);
                 *p = eye_position(
@@ -815,7 +848,13 @@ mod tests {
                 let rho = d * cos;
                 let r = q * rho;
                 let exact = (d * sin).atan2((rho * rho - r * r).sqrt());
-                let got = eye_latitude(RowAngle { lat, sin, cos }, q);
+                let row = RowAngle {
+                    lat,
+                    sin,
+                    cos,
+                    radius: 0.0,
+                };
+                let got = eye_latitude(row, q);
                 assert!(
                     (got - exact).abs() < 1e-12,
                     "lat {lat} q {q}: {got} vs {exact}"
