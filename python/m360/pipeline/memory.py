@@ -77,8 +77,8 @@ _OUTPUT_BYTES_PER_PIXEL = {"npy": 1.0, "pfm": 8.5, "exr": 8.5, "png16": 4.2, "pr
 #: The stereo pair (:func:`m360.stereo`, written once for both stereo formats): the two eyes
 #: and their hole masks (8), the eye positions of the warp (8, one eye at a time), the scaled
 #: depth of a relative result (4), then the top-bottom image, its BGR copy and the encoded file
-#: with its XMP (about 6 + 6 + 4). Measured 18.5 at 8K beyond the input (benches/bench_3d.py,
-#: stereo_save: 622 MB); the margin covers the allocator.
+#: with its XMP (about 6 + 6 + 4). Measured 18.6 at 8K beyond the input (benches/bench_3d.py,
+#: stereo_save: 624 MB); the margin covers the allocator.
 _STEREO_BYTES_PER_PIXEL = 24.0
 #: The streamed 3D writers: a band's temporaries (about a million vertices) ...
 _GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20}
