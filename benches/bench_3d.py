@@ -1,7 +1,8 @@
 """3D outputs: m360.to_points, m360.to_mesh and the GLB/PLY writers at 2K, 4K and 8K.
 
 Per ERP width, in a fresh subprocess each (so peak RSS belongs to the one operation): seconds
-(median of --repeat runs), peak RSS (ru_maxrss of the subprocess) and its growth over the input
+(median of --repeat runs; also the process's CPU seconds, all threads, less noisy on a shared
+machine), peak RSS (ru_maxrss of the subprocess) and its growth over the input
 alone (0 when the operation stays below the peak of importing m360), and the file size for the
 writers. Compared in the same run with
 
@@ -17,6 +18,13 @@ writers. Compared in the same run with
   m360): ``PointCloud.create_from_depth_image`` is pinhole-only, so it is timed on the same
   number of pixels read as a pinhole depth image (a cost reference), and
   ``o3d_from_numpy`` times building an ``o3d.geometry.PointCloud`` from the numpy points.
+
+Stereo (``m360.stereo``, the ODS pair at IPD 64 mm): ``stereo`` times the warp of both eyes in
+the Rust core, ``stereo_save`` the warp and the top-bottom JPEG with its XMP (what ``m360.save``
+writes for ``formats=("stereo",)``; its file size), against ``numpy_warp``, a plain numpy
+forward warp of both eyes written in this bench: each pixel's eye position (the same ODS
+formula, no pole-fade iteration), rounded to the nearest pixel, z-buffered by sorting by depth,
+holes filled with the nearest seen pixel on their left (no background test).
 
 The depth map is a synthetic room rendered at 2K and resized (bilinear) to 4K/8K: timings do
 not depend on the content beyond the share of cut triangles.
@@ -57,6 +65,9 @@ OPS = (
     "trimesh_ply",
     "o3d_from_depth",
     "o3d_from_numpy",
+    "numpy_warp",
+    "stereo",
+    "stereo_save",
 )
 #: Normals and Gaussian splats (m360.normals, m360.to_splats and their files), with the numpy
 #: baseline a user would write for normals (central differences of the point grid, no seam,
@@ -80,12 +91,51 @@ def depth_map(width: int, cache: Path) -> Path:
 
         base = cache / "depth_2048.npy"
         if not base.exists():
-            np.save(base, synthetic.render(synthetic.room(0), 2048)[1])
+            rgb, depth = synthetic.render(synthetic.room(0), 2048)
+            np.save(base, depth)
+            np.save(cache / "rgb_2048.npy", rgb)
         depth = np.load(base)
+        rgb = np.load(cache / "rgb_2048.npy")
         if width != 2048:
             depth = cv2.resize(depth, (width, width // 2), interpolation=cv2.INTER_LINEAR)
+            rgb = cv2.resize(rgb, (width, width // 2), interpolation=cv2.INTER_LINEAR)
         np.save(path, depth)
+        np.save(cache / f"rgb_{width}.npy", rgb)
     return path
+
+
+def numpy_warp(rgb: np.ndarray, depth: np.ndarray, ipd: float = 0.064) -> list[np.ndarray]:
+    """Both ODS eyes by a plain numpy forward warp (nearest pixel, z-buffer by sorting)."""
+    h, w = depth.shape
+    lat = (np.pi / 2 - np.pi * (np.arange(h) + 0.5) / h)[:, None]
+    lon = (2 * np.pi * (np.arange(w) + 0.5) / w - np.pi)[None, :]
+    d = np.where(np.isfinite(depth) & (depth > 0), depth, 1e9)
+    rho = d * np.cos(lat)
+    r = ipd / 2
+    ok = (rho > r).ravel()
+    order = np.argsort(-d.ravel()[ok], kind="stable")  # far first: the nearest is written last
+    src = np.flatnonzero(ok)[order]
+    eyes = []
+    for sign in (-1.0, 1.0):
+        with np.errstate(invalid="ignore"):
+            eye_lon = lon - np.arcsin(sign * r / rho)
+            eye_lat = np.arctan2(d * np.sin(lat), np.sqrt(np.maximum(rho**2 - r * r, 0)))
+            # (NaN where rho <= r: those pixels are not in src)
+            col = np.rint((eye_lon + np.pi) * w / (2 * np.pi) - 0.5).astype(np.int64) % w
+            row = np.rint((np.pi / 2 - eye_lat) * h / np.pi - 0.5).astype(np.int64)
+        row = np.clip(row, 0, h - 1)
+        target = (row * w + col).ravel()[src]
+        out = np.zeros((h * w, 3), np.uint8)
+        seen = np.zeros(h * w, bool)
+        out[target] = rgb.reshape(-1, 3)[src]
+        seen[target] = True
+        # holes: the nearest seen pixel on the left in the row (a streak)
+        index = np.where(seen.reshape(h, w), np.arange(w)[None, :], -1)
+        index = np.maximum.accumulate(index, axis=1)
+        index = np.where(index < 0, np.arange(w)[None, :], index)
+        rows = np.arange(h)[:, None] * w
+        eyes.append(out[(rows + index).ravel()].reshape(h, w, 3))
+    return eyes
 
 
 def numpy_floor(depth: np.ndarray) -> np.ndarray:
@@ -148,15 +198,29 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
         import m360
         from m360 import mesh
     depth = np.load(path)
+    rgb = np.load(Path(path).with_name(Path(path).name.replace("depth_", "rgb_")))
     rss_input = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     times = []
+    cpu = []
     size = 0
     for k in range(repeat):
+        c0 = time.process_time()
         t0 = time.perf_counter()
         if op in SURFACE_OPS:
             size = surface_op(op, depth, k, out_dir)
         elif op == "numpy_floor":
             numpy_floor(depth)
+        elif op == "numpy_warp":
+            numpy_warp(rgb, depth)
+        elif op == "stereo":
+            m360.stereo(depth, rgb, ipd=0.064)
+        elif op == "stereo_save":
+            from m360.io.stereo import write_stereo
+
+            target = Path(out_dir) / f"st{k}.stereo.jpg"
+            write_stereo(target, m360.stereo(depth, rgb, ipd=0.064))
+            size = target.stat().st_size
+            target.unlink()
         elif op == "to_points":
             m360.to_points(depth, max_vertices=None)
         elif op == "to_mesh":
@@ -223,9 +287,11 @@ def child(op: str, path: str, repeat: int, out_dir: str) -> dict[str, float]:
             t0 = time.perf_counter()
             o3d.geometry.PointCloud(o3d.utility.Vector3dVector(pts))
         times.append(time.perf_counter() - t0)
+        cpu.append(time.process_time() - c0)
     peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
     return {
         "seconds": float(np.median(times)),
+        "cpu_seconds": float(np.median(cpu)),
         "peak_rss_mb": peak / 1024,
         "growth_mb": (peak - rss_input) / 1024,
         "file_mb": size / 1e6,
@@ -255,7 +321,7 @@ def main() -> None:
 
     print(f"m360 {m360.__version__}, {os.cpu_count()} CPUs (machine shared: timings noisy)")
     print(
-        f"{'width':>6} {'operation':<14} {'seconds':>8} {'peak RSS MB':>11} "
+        f"{'width':>6} {'operation':<14} {'seconds':>8} {'CPU s':>7} {'peak RSS MB':>11} "
         f"{'growth MB':>9} {'file MB':>8}"
     )
     with tempfile.TemporaryDirectory() as tmp:
@@ -279,7 +345,8 @@ def main() -> None:
                     continue
                 r = json.loads(run.stdout.strip().splitlines()[-1])
                 print(
-                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['peak_rss_mb']:>11.0f} "
+                    f"{width:>6} {op:<14} {r['seconds']:>8.3f} {r['cpu_seconds']:>7.2f} "
+                    f"{r['peak_rss_mb']:>11.0f} "
                     f"{r['growth_mb']:>9.0f} {r['file_mb']:>8.1f}",
                     flush=True,
                 )

@@ -12,6 +12,7 @@ back into one seamless ERP disparity map. The heavy lifting runs in a Rust core 
 >>> model = m360.ModelOptions(input_size=(224, 224), mean=(0, 0, 0), std=(1, 1, 1))
 >>> result = m360.estimate(erp_rgb, model="midas-v21-small")  # end to end, ONNX Runtime
 >>> m360.save(result, "out/pano", formats=("npy", "exr"))      # m360.load("out/pano") reads it
+>>> pair = m360.stereo(result, erp_rgb, ipd=0.064)              # VR: left/right eye panoramas
 >>> report = m360.batch.run(["photos/"], "out/", workers=2)     # many images, resumable
 """
 
@@ -39,6 +40,7 @@ from .io import SavedResult, decode, load, mesh, save, splat, viewer
 from .io.mesh import Mesh, PointCloud, to_mesh, to_points
 from .io.normals import normals
 from .io.splat import Splats, to_splats
+from .io.stereo import StereoResult, stereo
 from .pipeline import masks, memory, scale
 from .pipeline.estimate import EstimateResult, estimate
 from .stitching import align, blend, options, upsample
@@ -86,6 +88,7 @@ __all__ = [
     "ScaleError",
     "SolverError",
     "Splats",
+    "StereoResult",
     "StitchOptions",
     "StitchResult",
     "TangentCamera",
@@ -115,6 +118,7 @@ __all__ = [
     "scale",
     "set_num_threads",
     "splat",
+    "stereo",
     "stitch",
     "stitching",
     "synthetic",

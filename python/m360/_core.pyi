@@ -19,6 +19,8 @@ __all__ = [
     "guided_fit",
     "guided_upsample",
     "icosahedron_cameras",
+    "ods_defaults",
+    "ods_stereo",
     "poisson_blend",
     "set_num_threads",
     "stitch_options",
@@ -129,6 +131,21 @@ def guided_upsample(
     edge_low: float,
     edge_high: float,
 ) -> npt.NDArray[np.float32]: ...
+def ods_stereo(
+    rgb: npt.NDArray[np.uint8],
+    depth: npt.NDArray[np.float32],
+    ipd: float,
+    pole_fade: float,
+    max_depth_ratio: float,
+) -> tuple[
+    npt.NDArray[np.uint8],
+    npt.NDArray[np.uint8],
+    npt.NDArray[np.bool_],
+    npt.NDArray[np.bool_],
+    int,
+    int,
+]: ...
+def ods_defaults() -> dict[str, float]: ...
 def bilinear_upsample(
     disparity: npt.NDArray[np.float32], out_shape: tuple[int, int]
 ) -> npt.NDArray[np.float32]: ...

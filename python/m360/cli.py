@@ -35,6 +35,7 @@ from .io import (
     KNOWN_FORMATS,
     NORMALS_FORMATS,
     SAVE_FORMATS,
+    STEREO_FORMATS,
     load,
     output_stem,
     read_array,
@@ -43,6 +44,7 @@ from .io import (
     save_png,
 )
 from .io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
+from .io.stereo import StereoKeywords
 from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
@@ -116,7 +118,9 @@ def build_parser() -> argparse.ArgumentParser:
         default=("npy",),
         help=f"comma-separated formats: arrays {', '.join(SAVE_FORMATS)} (default npy); 3D "
         f"{', '.join(GEOMETRY_FORMATS)} (ply: point cloud, glb: mesh, splat: Gaussian splats; "
-        f"extra m360[3d]); {', '.join(NORMALS_FORMATS)} (surface normals, exr and png)",
+        f"extra m360[3d]); {', '.join(NORMALS_FORMATS)} (surface normals, exr and png); VR "
+        f"{', '.join(STEREO_FORMATS)} (the stereo 360 pair top-bottom, left eye on top, JPEG or "
+        "PNG, GPano stereo XMP)",
     )
     run.add_argument("--no-preview", action="store_true", help="do not write the colour preview")
     run.add_argument(
@@ -132,6 +136,9 @@ def build_parser() -> argparse.ArgumentParser:
         help=f"most vertices (splats) of each 3D file (ply, glb, splat): larger images are "
         f"strided to fit (default {DEFAULT_MAX_VERTICES}; 'none': every pixel); the sidecar "
         "records the stride",
+    )
+    add_flags(
+        run.add_argument_group("stereo outputs (--formats stereo, stereo-png)"), StereoKeywords
     )
     run.add_argument(
         "--workers",
@@ -439,6 +446,7 @@ def _run(args: argparse.Namespace) -> int:
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
         **from_args(args, PriorKeywords),
+        **from_args(args, StereoKeywords),
     )
     print(report.summary(), file=sys.stderr)
     return report.exit_code

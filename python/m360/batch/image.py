@@ -30,6 +30,8 @@ from ..io import (
     NORMALS_FILES,
     QUANTITIES,
     SAVE_FORMATS,
+    STEREO_FILES,
+    STEREO_FORMATS,
     listed_files,
     read_sidecar,
     remove_stale_temporaries,
@@ -109,6 +111,7 @@ class _Settings:
     prior_confidence: Any = None
     prior_pixels: int = 0  # the prior map's pixels, for the memory check
     panoramic: bool = False  # the model is panoramic (one pass on the whole ERP)
+    stereo: dict[str, Any] = field(default_factory=dict)  # m360.io.stereo.StereoKeywords given
 
     @property
     def threads(self) -> int | None:
@@ -374,8 +377,8 @@ def _describe_masks(masks: Sequence[Any]) -> list[dict[str, Any]]:
 
 
 def _needs_rgb(s: _Settings) -> bool:
-    """Whether writing needs the panorama's colours (the 3D formats)."""
-    return any(fmt in GEOMETRY_FORMATS for fmt in s.formats)
+    """Whether writing needs the panorama's colours (the 3D and stereo formats)."""
+    return any(fmt in GEOMETRY_FORMATS or fmt in STEREO_FORMATS for fmt in s.formats)
 
 
 def _write_job(
@@ -394,6 +397,7 @@ def _write_job(
         rgb=rgb,
         confidence=s.confidence,
         max_vertices=s.max_vertices,
+        **s.stereo,
     )
 
 
@@ -462,6 +466,7 @@ def output_names(
     names += [f"{stem}.preview.png"] * bool(preview)
     names += [stem + GEOMETRY_FILES[fmt][1] for fmt in formats if fmt in GEOMETRY_FILES]
     names += [stem + tail for tail in NORMALS_FILES.values()] * ("normals" in formats)
+    names += [stem + STEREO_FILES[fmt][1] for fmt in formats if fmt in STEREO_FILES]
     return [*names, f"{stem}.json"]
 
 
@@ -529,7 +534,7 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
         names = [n for listed in listed_files(meta, job.stem).values() for n in listed.values()]
     except M360Error:
         return False
-    for extra in ("preview", "normals", *(kind for kind, _ in GEOMETRY_FILES.values())):
+    for extra in ("preview", "normals", "stereo", *(kind for kind, _ in GEOMETRY_FILES.values())):
         entry = meta["files"].get(extra)  # a file name, or {format: file name} for 3D files
         for name in entry.values() if isinstance(entry, dict) else [entry]:
             if isinstance(name, str) and Path(name).name == name:

@@ -68,10 +68,12 @@ from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
 from ..io import (
     GEOMETRY_FORMATS,
+    STEREO_FORMATS,
     check_formats,
 )
 from ..io.decode import IMAGE_SUFFIXES
 from ..io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
+from ..io.stereo import StereoKeywords
 from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
 from ..pipeline.prior import describe as describe_prior
 from ..pipeline.prior import load_prior
@@ -94,7 +96,26 @@ from .image import (
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
-__all__ = ["BatchReport", "ImageOutcome", "Job", "collect", "fingerprint", "is_done", "run"]
+__all__ = [
+    "BatchReport",
+    "ImageOutcome",
+    "Job",
+    "RunKeywords",
+    "collect",
+    "fingerprint",
+    "is_done",
+    "run",
+]
+
+
+class RunKeywords(EstimateKeywords, StereoKeywords, total=False):
+    """Every keyword of :func:`run` beyond its named ones.
+
+    :func:`m360.estimate`'s (:class:`m360.pipeline.options.EstimateKeywords`) and the stereo
+    outputs' (:class:`m360.io.stereo.StereoKeywords`: ``ipd``, ``pole_fade``,
+    ``median_distance``).
+    """
+
 
 MANIFEST_SUFFIXES = (".txt", ".csv")
 FAILURES_FILE = "failures.jsonl"
@@ -377,7 +398,7 @@ def run(
     engine: str = "local",
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
-    **keywords: Unpack[EstimateKeywords],
+    **keywords: Unpack[RunKeywords],
 ) -> BatchReport:
     """Estimate the depth of many panoramas into ``out_dir``; see the module docstring.
 
@@ -440,7 +461,8 @@ def run(
         loaded once before any image (a :class:`m360.ModelError` if it cannot be) and runs on
         each photo; a prior map applies to every image. The resume fingerprint holds the prior
         (a model's name, sha256, output kind and preprocessing; a map's sha256), so a rerun with
-        another prior redoes the images.
+        another prior redoes the images. Also the stereo formats' ``ipd``, ``pole_fade`` and
+        ``median_distance`` (:class:`m360.io.stereo.StereoKeywords`; see :func:`m360.save`).
 
     Returns
     -------
@@ -457,8 +479,14 @@ def run(
         raise InputError(f"output folder {str(out)!r} is not a valid path: it contains a NUL")
     if out.exists() and not out.is_dir():
         raise InputError(f"output folder {out} exists and is not a folder")
-    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where="run"
+    stitch_keywords, model_keywords, job_keywords, prior_keywords, stereo_keywords = split(
+        keywords,
+        StitchKeywords,
+        ModelKeywords,
+        JobKeywords,
+        PriorKeywords,
+        StereoKeywords,
+        where="run",
     )
     model_opts = ModelOptions.build(model_options, **model_keywords)
     job_options = resolved(job_keywords, JobKeywords)
@@ -532,11 +560,15 @@ def run(
         prior_confidence=None if prior is None else prior.confidence,
         prior_pixels=_prior_pixels(prior),
         panoramic=panoramic,
+        stereo=checked(stereo_keywords, StereoKeywords),
     )
     # A rerun with another prior (model bytes, its options, its kind; a map's values) redoes
     # the image; absent without one, so the fingerprints of earlier runs stay valid.
     if prior is not None:
         settings.fingerprint["prior"] = describe_prior(prior)
+    # A rerun with other stereo options must not be skipped (absent without a stereo format).
+    if any(f in STEREO_FORMATS for f in chosen):
+        settings.fingerprint["stereo"] = resolved(stereo_keywords, StereoKeywords)
     # A rerun with another vertex budget must not be skipped (absent when default, as below).
     if max_vertices != DEFAULT_MAX_VERTICES and any(f in GEOMETRY_FORMATS for f in chosen):
         settings.fingerprint["max_vertices"] = max_vertices

@@ -382,16 +382,20 @@ class Scene:
                 obj[idx] = first_sphere + k
         return t_best, normal, obj
 
-    def _intersect_flat(self, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _intersect_flat(
+        self, dirs: np.ndarray, origins: np.ndarray | None = None
+    ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        lo = self.room_min if origins is None else self.room_min - origins
+        hi = self.room_max if origins is None else self.room_max - origins
         with np.errstate(divide="ignore", invalid="ignore"):
-            t_axes = np.where(dirs > 0, self.room_max / dirs, self.room_min / dirs)
+            t_axes = np.where(dirs > 0, hi / dirs, lo / dirs)
         t_axes = np.where(dirs == 0, np.inf, t_axes)
         axis = t_axes.argmin(axis=1)
         rows = np.arange(dirs.shape[0])
         t_room = t_axes[rows, axis]
         positive = dirs[rows, axis] > 0
         room_id = 2 * axis + positive
-        t, normal, obj = self._cast_objects(None, dirs, t_room, 6)
+        t, normal, obj = self._cast_objects(origins, dirs, t_room, 6)
         room_hit = obj < 0
         obj[room_hit] = room_id[room_hit]
         nr = np.zeros((int(room_hit.sum()), 3))
@@ -408,29 +412,55 @@ class Scene:
             raise InputError("directions must be finite unit vectors (|d| = 1 within 1e-6)")
         return d
 
-    def intersect(self, directions: np.ndarray) -> Hit:
-        """First hit of rays from the origin.
+    def _origins(self, origins: Any, directions: np.ndarray) -> np.ndarray | None:
+        """Check ray origins (..., 3) against the directions; None for the camera itself."""
+        if origins is None:
+            return None
+        o = as_array(origins, "origins").astype(np.float64)
+        if o.ndim < 1 or o.shape[-1] != 3 or not np.all(np.isfinite(o)):
+            raise InputError(f"origins must be finite points of shape (..., 3), got {o.shape}")
+        try:
+            o = np.broadcast_to(o, directions.shape)
+        except ValueError:
+            raise InputError(
+                f"origins {o.shape} do not broadcast to the directions {directions.shape}"
+            ) from None
+        if not (np.all(o > self.room_min) and np.all(o < self.room_max)):
+            raise InputError("origins must lie strictly inside the room")
+        return o.reshape(-1, 3)
+
+    def intersect(self, directions: np.ndarray, origins: np.ndarray | None = None) -> Hit:
+        """First hit of rays from the origin (or from ``origins``).
 
         Parameters
         ----------
         directions : array_like
             (..., 3) float64 unit directions in the world frame.
+        origins : array_like, optional
+            (..., 3) ray origins (broadcast to the directions), strictly inside the room; default
+            the camera at the world origin. ODS eye rays, for instance, start on the viewing
+            circle.
 
         Returns
         -------
         Hit
-            Distances (...), normals (..., 3), hit points (..., 3) and object ids (...).
+            Distances from each ray's origin (...), normals (..., 3), hit points (..., 3) and
+            object ids (...).
         """
         d = self._prepare(directions)
         shape = d.shape[:-1]
         flat = d.reshape(-1, 3)
+        starts = self._origins(origins, d)
         t = np.empty(flat.shape[0])
         normal = np.empty((flat.shape[0], 3))
         obj = np.empty(flat.shape[0], dtype=np.int64)
         for s in range(0, flat.shape[0], _CHUNK_RAYS):
             sl = slice(s, s + _CHUNK_RAYS)
-            t[sl], normal[sl], obj[sl] = self._intersect_flat(flat[sl])
+            o = None if starts is None else starts[sl]
+            t[sl], normal[sl], obj[sl] = self._intersect_flat(flat[sl], o)
         point = t[:, None] * flat
+        if starts is not None:
+            point = point + starts
         return Hit(
             distance=t.reshape(shape),
             normal=normal.reshape(*shape, 3),
@@ -438,13 +468,16 @@ class Scene:
             object_id=obj.reshape(shape),
         )
 
-    def distance(self, directions: np.ndarray) -> np.ndarray:
+    def distance(self, directions: np.ndarray, origins: np.ndarray | None = None) -> np.ndarray:
         """Radial distance from the origin to the first hit along each direction.
 
         Parameters
         ----------
         directions : array_like
             (..., 3) float64 unit world directions.
+        origins : array_like, optional
+            (..., 3) ray origins inside the room (see :meth:`intersect`); the distance is then
+            from each origin.
 
         Returns
         -------
@@ -453,9 +486,11 @@ class Scene:
         """
         d = self._prepare(directions)
         flat = d.reshape(-1, 3)
+        starts = self._origins(origins, d)
         out = np.empty(flat.shape[0])
         for s in range(0, flat.shape[0], _CHUNK_RAYS):
-            out[s : s + _CHUNK_RAYS] = self._intersect_flat(flat[s : s + _CHUNK_RAYS])[0]
+            o = None if starts is None else starts[s : s + _CHUNK_RAYS]
+            out[s : s + _CHUNK_RAYS] = self._intersect_flat(flat[s : s + _CHUNK_RAYS], o)[0]
         return out.reshape(d.shape[:-1])
 
     # ---------------------------------------------------------------- shading
@@ -482,10 +517,13 @@ class Scene:
         return tex
 
     def _shade_flat(
-        self, dirs: np.ndarray, hit: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None
+        self,
+        dirs: np.ndarray,
+        hit: tuple[np.ndarray, np.ndarray, np.ndarray] | None = None,
+        origins: np.ndarray | None = None,
     ) -> np.ndarray:
-        t, normal, obj = self._intersect_flat(dirs) if hit is None else hit
-        point = t[:, None] * dirs
+        t, normal, obj = self._intersect_flat(dirs, origins) if hit is None else hit
+        point = t[:, None] * dirs if origins is None else origins + t[:, None] * dirs
         albedo = np.stack([m.albedo for m in self.materials])[obj]
         light = np.full(t.shape[0], self.ambient)
         lights = self.lights or (Light(position=np.zeros(3)),)
@@ -504,13 +542,16 @@ class Scene:
         rgb = np.clip(rgb, 0.0, 1.0) ** (1 / 2.2)
         return np.round(rgb * 255).astype(np.uint8)  # type: ignore[no-any-return]  # numpy stubs: Any
 
-    def shade(self, directions: np.ndarray) -> np.ndarray:
+    def shade(self, directions: np.ndarray, origins: np.ndarray | None = None) -> np.ndarray:
         """Colour seen along each direction: textured albedo, Lambert point lights, ambient.
 
         Parameters
         ----------
         directions : array_like
             (..., 3) float64 unit world directions.
+        origins : array_like, optional
+            (..., 3) ray origins inside the room (see :meth:`intersect`); default the camera.
+            Shading depends on the hit point only, so a point looks the same from any origin.
 
         Returns
         -------
@@ -519,9 +560,11 @@ class Scene:
         """
         d = self._prepare(directions)
         flat = d.reshape(-1, 3)
+        starts = self._origins(origins, d)
         out = np.empty((flat.shape[0], 3), dtype=np.uint8)
         for s in range(0, flat.shape[0], _CHUNK_RAYS):
-            out[s : s + _CHUNK_RAYS] = self._shade_flat(flat[s : s + _CHUNK_RAYS])
+            o = None if starts is None else starts[s : s + _CHUNK_RAYS]
+            out[s : s + _CHUNK_RAYS] = self._shade_flat(flat[s : s + _CHUNK_RAYS], None, o)
         return out.reshape(*d.shape[:-1], 3)
 
 

@@ -3,13 +3,14 @@
 :mod:`~m360.io.decode` reads input panoramas; :mod:`~m360.io.files` writes one file atomically
 in each array format; :mod:`~m360.io.writing` saves a whole result (:func:`save`, sidecar last)
 and :mod:`~m360.io.reading` loads it back (:func:`load`); :mod:`~m360.io.mesh` makes point
-clouds and meshes and their PLY/GLB files, :mod:`~m360.io.normals` surface normals and
-:mod:`~m360.io.splat` 3D Gaussian splats; :mod:`~m360.io.viewer` shows them in a browser.
+clouds and meshes and their PLY/GLB files, :mod:`~m360.io.normals` surface normals,
+:mod:`~m360.io.splat` 3D Gaussian splats and :mod:`~m360.io.stereo` the stereo (ODS) pair for
+VR; :mod:`~m360.io.viewer` shows them in a browser.
 """
 
 from __future__ import annotations
 
-from . import decode, files, mesh, normals, reading, splat, writing
+from . import decode, files, mesh, normals, reading, splat, stereo, writing
 from .decode import (
     IMAGE_SUFFIXES,
     decode_image,
@@ -28,6 +29,8 @@ from .files import (
     NORMALS_FORMATS,
     QUANTITIES,
     SAVE_FORMATS,
+    STEREO_FILES,
+    STEREO_FORMATS,
     atomic_path,
     check_formats,
     colorize,
@@ -53,6 +56,8 @@ __all__ = [
     "NORMALS_FORMATS",
     "QUANTITIES",
     "SAVE_FORMATS",
+    "STEREO_FILES",
+    "STEREO_FORMATS",
     "SavedResult",
     "atomic_path",
     "check_formats",
@@ -78,6 +83,7 @@ __all__ = [
     "save_npy",
     "save_png",
     "splat",
+    "stereo",
     "write_array",
     "writing",
 ]

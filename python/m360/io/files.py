@@ -39,8 +39,13 @@ GEOMETRY_FILES = {
 #: channels R, G, B = x, y, z, NaN = none) and ``STEM.normals.png`` (8-bit, (n + 1) / 2).
 NORMALS_FORMATS = ("normals",)
 NORMALS_FILES = {"exr": ".normals.exr", "png": ".normals.png"}
+#: Stereo formats :func:`save` writes (needs ``rgb``): the ODS pair of :func:`m360.stereo`,
+#: top-bottom (left eye on top) with GPano stereo XMP, as ``STEM.stereo.jpg`` (``stereo``) or
+#: ``STEM.stereo.png`` (``stereo-png``, lossless).
+STEREO_FORMATS = ("stereo", "stereo-png")
+STEREO_FILES = {"stereo": ("stereo", ".stereo.jpg"), "stereo-png": ("stereo", ".stereo.png")}
 #: Every format name :func:`save` takes.
-KNOWN_FORMATS = SAVE_FORMATS + GEOMETRY_FORMATS + NORMALS_FORMATS
+KNOWN_FORMATS = SAVE_FORMATS + GEOMETRY_FORMATS + NORMALS_FORMATS + STEREO_FORMATS
 #: The quantities :func:`save` writes per format.
 QUANTITIES = ("disparity", "depth")
 #: File suffix of each array format: ``STEM.disparity.npy``, ``STEM.depth.png`` (16-bit) …
@@ -319,7 +324,11 @@ def output_stem(path: str | os.PathLike[str]) -> Path:
     name = p.name
     if name.endswith(".json") or name.endswith(".preview.png"):
         return p.with_name(name.removesuffix(".json").removesuffix(".preview.png"))
-    for tail in [*(tail for _, tail in GEOMETRY_FILES.values()), *NORMALS_FILES.values()]:
+    for tail in [
+        *(tail for _, tail in GEOMETRY_FILES.values()),
+        *NORMALS_FILES.values(),
+        *(tail for _, tail in STEREO_FILES.values()),
+    ]:
         if name.endswith(tail):
             return p.with_name(name.removesuffix(tail))
     for quantity in QUANTITIES:
@@ -371,6 +380,7 @@ def remove_stale_temporaries(stem: str | os.PathLike[str]) -> list[Path]:
     names += [f"{base.name}.preview.png", f"{base.name}.json"]
     names += [base.name + tail for _, tail in GEOMETRY_FILES.values()]
     names += [base.name + tail for tail in NORMALS_FILES.values()]
+    names += [base.name + tail for _, tail in STEREO_FILES.values()]
     removed = []
     for name in names:
         for tmp in base.parent.glob(f"{glob.escape(temporary_prefix(name))}{'?' * 8}.tmp"):

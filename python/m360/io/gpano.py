@@ -1,4 +1,4 @@
-"""Partial panoramas: the few GPano XMP fields that place a cropped capture in its full ERP canvas.
+r"""Partial panoramas: the few GPano XMP fields that place a cropped capture in its full ERP canvas.
 
 Google's Photo Sphere XMP (namespace ``http://ns.google.com/photos/1.0/panorama/``) says where a
 cropped equirectangular image sits in the full panorama: ``FullPanoWidthPixels``,
@@ -6,13 +6,25 @@ cropped equirectangular image sits in the full panorama: ``FullPanoWidthPixels``
 ``CroppedAreaLeftPixels``, ``CroppedAreaTopPixels`` and ``ProjectionType``. Only these are read,
 from the XMP packet (``<x:xmpmeta>`` … ``</x:xmpmeta>``) found in the file's bytes (JPEG APP1,
 PNG iTXt, or any container that stores the packet as plain text), with the standard library's
-XML parser; the fields may be attributes of ``rdf:Description`` or child elements.
+XML parser; the fields may be attributes of ``rdf:Description`` or child elements. A file whose
+``StereoMode`` says it holds two eyes (a stereo panorama such as m360's own ``STEM.stereo.jpg``)
+is refused with a clear :class:`~m360.errors.ReadError`: m360 reads monoscopic panoramas.
+
+The writer side (:func:`stereo_packet`, :func:`embed_xmp`) puts the packet VR players read into
+m360's top-bottom stereo files: ``GPano:ProjectionType="equirectangular"``,
+``GPano:UsePanoramaViewer="True"``, ``GPano:StereoMode="top-bottom"`` (the spelling of Google's
+spherical metadata, as OmniCapture and other ODS renderers write it), the full panorama and the
+cropped area both one eye's size (W × H, left 0, top 0), and ``GPano:StitchingSoftware``. JPEG:
+an APP1 segment ``http://ns.adobe.com/xap/1.0/\0`` + packet after the JFIF header; PNG: an
+``iTXt`` chunk with keyword ``XML:com.adobe.xmp`` after ``IHDR``.
 """
 
 from __future__ import annotations
 
 import re
+import struct
 import xml.etree.ElementTree as ET
+import zlib
 from dataclasses import dataclass
 from typing import Any
 
@@ -77,6 +89,12 @@ def read_gpano(data: bytes, name: str = "image") -> GPanoCrop | None:
     if match is None or GPANO_NS.encode() not in match.group(0):
         return None
     values = _values(match.group(0))
+    stereo = values.get("StereoMode", "mono").strip().lower()
+    if stereo not in ("", "mono"):
+        raise ReadError(
+            f"{name}: GPano StereoMode is {values['StereoMode']!r}: a stereo panorama (two eyes "
+            "in one image); m360 estimates depth from one monoscopic panorama, e.g. one eye's"
+        )
     if not any(v in values for v in _FIELDS.values()):
         return None
     projection = values.get("ProjectionType", "equirectangular")
@@ -136,3 +154,79 @@ def place(rgb: np.ndarray, crop: GPanoCrop, name: str = "image") -> tuple[np.nda
     canvas[rows, cols] = rgb
     mask[rows, cols] = True
     return canvas, mask
+
+
+# --------------------------------------------------------------------------------------------
+# Writing: the stereo files' packet.
+
+#: ``GPano:StereoMode`` of m360's stereo files: left eye on top, right eye below.
+STEREO_MODE = "top-bottom"
+_XMP_JPEG_HEADER = b"http://ns.adobe.com/xap/1.0/\x00"
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+#: Largest XMP packet one JPEG APP1 segment holds (65535 − 2 length bytes − the header).
+_MAX_JPEG_PACKET = 65535 - 2 - len(_XMP_JPEG_HEADER)
+
+
+def stereo_packet(width: int, height: int, software: str = "m360") -> bytes:
+    """Return the XMP packet of a top-bottom stereo ERP image of two ``width`` × ``height`` eyes.
+
+    The fields are listed in the module docstring; the file is ``width`` × ``2 * height``.
+    """
+    fields = {
+        "UsePanoramaViewer": "True",
+        "ProjectionType": "equirectangular",
+        "StereoMode": STEREO_MODE,
+        "FullPanoWidthPixels": str(int(width)),
+        "FullPanoHeightPixels": str(int(height)),
+        "CroppedAreaImageWidthPixels": str(int(width)),
+        "CroppedAreaImageHeightPixels": str(int(height)),
+        "CroppedAreaLeftPixels": "0",
+        "CroppedAreaTopPixels": "0",
+        "StitchingSoftware": software,
+    }
+    attributes = "".join(f'\n    GPano:{key}="{_escape(value)}"' for key, value in fields.items())
+    text = (
+        '<?xpacket begin="\ufeff" id="W5M0MpCehiHzreSzNTczkc9d"?>\n'
+        '<x:xmpmeta xmlns:x="adobe:ns:meta/">\n'
+        ' <rdf:RDF xmlns:rdf="http://www.w3.org/1999/02/22-rdf-syntax-ns#">\n'
+        '  <rdf:Description rdf:about=""\n'
+        f'    xmlns:GPano="{GPANO_NS}"{attributes}/>\n'
+        " </rdf:RDF>\n"
+        "</x:xmpmeta>\n"
+        '<?xpacket end="w"?>'
+    )
+    return text.encode("utf-8")
+
+
+def _escape(value: str) -> str:
+    return (
+        value.replace("&", "&amp;").replace("<", "&lt;").replace(">", "&gt;").replace('"', "&quot;")
+    )
+
+
+def embed_xmp(data: bytes, packet: bytes) -> bytes:
+    """Return the encoded JPEG or PNG ``data`` with the XMP ``packet`` added (see module doc).
+
+    Raises
+    ------
+    InputError
+        ``data`` is neither a JPEG nor a PNG, or the packet does not fit a JPEG segment.
+    """
+    from ..errors import InputError
+
+    if data.startswith(b"\xff\xd8"):
+        if len(packet) > _MAX_JPEG_PACKET:
+            raise InputError(f"an XMP packet of {len(packet)} bytes does not fit a JPEG APP1")
+        segment = _XMP_JPEG_HEADER + packet
+        app1 = b"\xff\xe1" + struct.pack(">H", len(segment) + 2) + segment
+        at = 2
+        if data[2:4] == b"\xff\xe0":  # JFIF's APP0 stays first
+            at = 4 + struct.unpack(">H", data[4:6])[0]
+        return data[:at] + app1 + data[at:]
+    if data.startswith(_PNG_SIGNATURE):
+        body = b"XML:com.adobe.xmp\x00\x00\x00\x00\x00" + packet  # no compression, no language
+        chunk = b"iTXt" + body
+        itxt = struct.pack(">I", len(body)) + chunk + struct.pack(">I", zlib.crc32(chunk))
+        ihdr_end = len(_PNG_SIGNATURE) + 8 + struct.unpack(">I", data[8:12])[0] + 4
+        return data[:ihdr_end] + itxt + data[ihdr_end:]
+    raise InputError("embed_xmp takes an encoded JPEG or PNG")

@@ -12,7 +12,7 @@ import datetime
 import os
 from collections.abc import Mapping, Sequence
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -27,6 +27,8 @@ from .files import (
     NORMALS_FORMATS,
     QUANTITIES,
     SAVE_FORMATS,
+    STEREO_FILES,
+    STEREO_FORMATS,
     _check_map,
     check_formats,
     colorize,
@@ -34,6 +36,11 @@ from .files import (
     save_png,
     write_array,
 )
+
+if TYPE_CHECKING:
+    from typing_extensions import Unpack
+
+    from .stereo import StereoKeywords
 
 
 def save(
@@ -46,6 +53,7 @@ def save(
     rgb: np.ndarray | None = None,
     confidence: bool = False,
     max_vertices: int | None = mesh.DEFAULT_MAX_VERTICES,
+    **stereo_options: Unpack[StereoKeywords],
 ) -> dict[str, Path]:
     """Write an :class:`m360.EstimateResult` next to ``stem``, atomically, the sidecar last.
 
@@ -88,6 +96,12 @@ def save(
         every pixel). The sidecar's ``geometry`` records the stride and counts of each file.
         The 3D files are written a band of rows at a time (:func:`m360.mesh.write_points_ply`,
         :func:`m360.mesh.write_mesh_glb`).
+    **stereo_options
+        ``ipd``, ``pole_fade``, ``median_distance`` of the stereo formats ``stereo``
+        (``STEM.stereo.jpg``) and ``stereo-png`` (``STEM.stereo.png``): the ODS pair of
+        :func:`m360.stereo` top-bottom, left eye on top, with GPano stereo XMP; they need
+        ``rgb``. The sidecar's ``stereo`` records the IPD, the depth's scale and the filled
+        fraction.
 
     Returns
     -------
@@ -98,6 +112,17 @@ def save(
 
     chosen = check_formats(formats)
     mesh.check_max_vertices(max_vertices)
+    unknown = [k for k in stereo_options if k not in ("ipd", "pole_fade", "median_distance")]
+    if unknown:
+        raise TypeError(f"save() got unexpected keyword argument(s) {unknown}")
+    stereo_formats = [f for f in chosen if f in STEREO_FORMATS]
+    if stereo_formats:
+        from .._keywords import checked
+        from .stereo import StereoKeywords
+
+        stereo_options = checked(stereo_options, StereoKeywords)  # type: ignore[assignment]
+        if rgb is None:
+            raise InputError(f"the formats {', '.join(stereo_formats)} need the panorama: rgb=")
     with np.errstate(over="ignore"):  # float64 beyond float32's range is ±inf, as in m360's maps
         arrays = {
             q: np.ascontiguousarray(_check_map(getattr(result, q, None), q), dtype=np.float32)
@@ -141,7 +166,12 @@ def save(
             )
             files["preview"] = written["preview"].name
         frames, geometry = _save_geometry(result, base, chosen, rgb, written, files, max_vertices)
+        stereo_info = _save_stereo(
+            result, base, stereo_formats, rgb, written, files, stereo_options
+        )
         sidecar = _sidecar(result, arrays["disparity"], files, png16, __version__)
+        if stereo_info:
+            sidecar["stereo"] = stereo_info
         if frames:
             sidecar["frame"] = frames
             sidecar["geometry"] = geometry  # stride used and counts, per 3D file
@@ -194,6 +224,29 @@ def _save_geometry(
             files["normals"][fmt] = path.name
             frames[path.name] = normals.NORMALS_FRAME
     return frames, geometry
+
+
+def _save_stereo(
+    result: Any,
+    base: Path,
+    formats: Sequence[str],
+    rgb: np.ndarray | None,
+    written: dict[str, Path],
+    files: dict[str, Any],
+    options: Mapping[str, Any],
+) -> dict[str, Any] | None:
+    """Write the stereo formats among ``formats`` (one warp for both); return the sidecar part."""
+    if not formats:
+        return None
+    from .stereo import stereo, write_stereo
+
+    pair = stereo(result, rgb, **{k: v for k, v in options.items() if v is not None})
+    files["stereo"] = {}
+    for fmt in formats:
+        path = write_stereo(base.with_name(base.name + STEREO_FILES[fmt][1]), pair, fmt)
+        written[f"stereo.{fmt}"] = path
+        files["stereo"][fmt] = path.name
+    return pair.describe()
 
 
 def _sidecar(

@@ -91,6 +91,12 @@ _OUTPUT_BYTES_PER_PIXEL = {
     "preview": 5.0,
     "normals": 20.0,
 }
+#: The stereo pair (:func:`m360.stereo`, written once for both stereo formats): the two eyes
+#: and their hole masks (8), the eye positions of the warp (8, one eye at a time), the scaled
+#: depth of a relative result (4), then the top-bottom image, its BGR copy and the encoded file
+#: with its XMP (about 6 + 6 + 4). Measured 18.6 at 8K beyond the input (benches/bench_3d.py,
+#: stereo_save: 624 MB); the margin covers the allocator.
+_STEREO_BYTES_PER_PIXEL = 24.0
 #: The streamed 3D writers: a band's temporaries (about a million vertices; the splats' a
 #: quarter million pixels, measured 114 MB at 4K and 141 MB at 8K) ...
 _GEOMETRY_BAND_BYTES = {"ply": 64 * 2**20, "glb": 96 * 2**20, "splat": 160 * 2**20}
@@ -277,6 +283,8 @@ def _writing_bytes(
             step = mesh.stride_for(height, width, 1, budget if budget is None else int(budget), 2)
             grid = -(-height // step) * -(-width // step)
             peaks.append(_GEOMETRY_BAND_BYTES["glb"] + _MESH_BYTES_PER_VERTEX * grid)
+    if any(fmt in ("stereo", "stereo-png") for fmt in formats):
+        peaks.append(_STEREO_BYTES_PER_PIXEL * pixels)
     if preview:
         peaks.append(_OUTPUT_BYTES_PER_PIXEL["preview"] * pixels)
     del confidence  # written one quantity at a time: one more file, not a larger peak

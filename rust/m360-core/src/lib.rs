@@ -11,6 +11,7 @@
 //! 6. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
 //! 7. [`blend`]: per-face weights, the row blends (mean, nearest, radial, frustum) and the
 //!    Poisson gradient-domain blend; [`Plan::blend`] dispatches on a [`blend::Method`].
+//! 8. [`stereo`]: after the depth, an omnidirectional stereo (ODS) pair by forward warping.
 //!
 //! [`options`] holds what the options share (names, limits); each option type lives with its
 //! stage and says its own names and defaults, so the bindings and Python only read them.
@@ -31,6 +32,7 @@ mod plan_array;
 pub mod plan_cache;
 pub mod resample;
 pub mod sphere;
+pub mod stereo;
 pub mod stitch;
 pub mod upsample;
 

@@ -16,6 +16,7 @@ mod blend;
 mod errors;
 mod layout;
 mod options;
+mod stereo;
 mod threads;
 mod upsample;
 
@@ -27,6 +28,8 @@ mod _core {
     use super::layout::{icosahedron_cameras, Plan};
     #[pymodule_export]
     use super::options::stitch_options;
+    #[pymodule_export]
+    use super::stereo::{ods_defaults, ods_stereo};
     #[pymodule_export]
     use super::threads::{get_num_threads, set_num_threads};
     #[pymodule_export]
