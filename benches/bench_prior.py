@@ -1,6 +1,7 @@
 """The global prior (issue 24): accuracy and cost of ``m360.stitch(..., prior=...)``.
 
-Tangents as in ``bench_align.py --robust``: ray cast exactly, then either affine errors only
+Tangents on the default layout (20 faces, the default padding) as in ``bench_align.py
+--robust``: ray cast exactly, then either affine errors only
 (``distort``: scale ×[0.5, 2], shift ±30 %, a ±10 % smooth field, 1 % noise) or content errors
 first (``content_errors``: 1-3 regions per tangent of 3-17 % of the tile, ±10-30 %, blur of 1 px
 per 2048 of ERP width) and then the same affine errors. The prior is
@@ -78,7 +79,7 @@ def priors(scene: syn.Scene, seed: int) -> dict[str, np.ndarray]:
 def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
     rows = []
     for width in sizes:
-        layout = m360.Layout.icosahedron(width, padding=0.3)
+        layout = m360.Layout.icosahedron(width)
         errs: dict[str, list[float]] = {}
         outvoted: dict[str, list[float]] = {}
         for seed in range(scenes):
@@ -120,7 +121,7 @@ def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarra
 
 
 def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
-    layout = m360.Layout.icosahedron(width, padding=0.3)
+    layout = m360.Layout.icosahedron(width)
     stitched, alone = [], []
     for seed in range(scenes):
         scene = syn.room(seed)
@@ -141,7 +142,7 @@ def timing(sizes: list[int], repeats: int, tuning: dict[str, Any]) -> list[list]
     scene = syn.room(0)
     prior = priors(scene, 0)["good"]
     for width in sizes:
-        layout = m360.Layout.icosahedron(width, padding=0.3)
+        layout = m360.Layout.icosahedron(width)
         tiles = tangents(scene, layout, width, 0)["content"]
         m360.stitch(tiles, layout)  # plan built, caches warm
 

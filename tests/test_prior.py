@@ -205,3 +205,33 @@ def test_prior_energy_gradient_matches_finite_differences(room: tuple, energy: s
         fm = plan.alignment_energy(maps, (4, 3), options, xm, prior, confidence, x)[0]
         fd = (fp - fm) / (2 * h)
         assert abs(fd - grad[i]) <= 1e-5 * max(abs(grad[i]), 1e-3), (i, fd, grad[i])
+
+
+def test_panoramic_prior_simulates_a_coarse_affine_network() -> None:
+    """Without its errors the simulator returns the scene's disparity; each error is what it
+    says: the affine map is global, the regions multiply their caps, the result is seeded."""
+    scene = syn.room(2)
+    exact = 1.0 / _distance(scene, 32)
+    clean = syn.panoramic_prior(
+        scene, 0, height=32, blur=0, field=0, scale=(1, 1), shift=0, regions=(0, 0)
+    )
+    assert np.allclose(clean, exact, rtol=1e-5)
+    affine = syn.panoramic_prior(scene, 0, height=32, blur=0, field=0, regions=(0, 0))
+    a, b = np.polyfit(exact.ravel(), np.asarray(affine).ravel(), 1)
+    assert np.allclose(affine, a * exact + b, rtol=1e-4, atol=1e-6)
+    wrong, regions = syn.panoramic_prior(
+        scene, 0, height=32, blur=0, field=0, scale=(1, 1), shift=0, regions=(1, 1),
+        region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3), return_regions=True,
+    )  # fmt: skip
+    assert np.allclose(wrong, exact * (1 + regions), rtol=1e-5)
+    assert np.isclose(np.abs(regions).max(), 0.3)
+    # The cap covers a fifth of the sphere (solid angle, not ERP pixels).
+    lat = (0.5 - (np.arange(32) + 0.5) / 32) * np.pi
+    area = np.cos(lat)[:, None] * (regions != 0)
+    assert abs(area.sum() / (np.cos(lat).sum() * 64) - 0.2) < 0.03
+    again = syn.panoramic_prior(scene, 5, height=32)
+    assert np.array_equal(again, syn.panoramic_prior(scene, 5, height=32))
+    with pytest.raises(m360.InputError, match="field"):
+        syn.panoramic_prior(scene, 0, field=1.0)
+    with pytest.raises(m360.InputError, match="truth"):
+        syn.panoramic_prior(np.ones((4, 4)), 0)
