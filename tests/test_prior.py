@@ -8,6 +8,7 @@ import m360
 import m360.synthetic as syn
 import numpy as np
 import pytest
+from m360.geometry import plan_for
 from m360.geometry import sphere as sph
 
 WIDTH = 512
@@ -80,7 +81,6 @@ def test_the_prior_fixes_what_the_tangents_cannot(room: tuple) -> None:
     assert err < plain, (err, plain)
 
 
-@pytest.mark.xfail(reason="in progress: prior weights against the tangents' consensus")
 def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     """A prior 30 % wrong on a fifth of the sphere: most of the wrong region's samples lose
     their pull, and the result stays as good as without a prior."""
@@ -178,3 +178,60 @@ def test_prior_options_are_checked() -> None:
         m360.StitchOptions(prior_scale_deg=100.0)
     opts = m360.StitchOptions(prior_weight=2.0)
     assert opts.align is not None and opts.align["prior_weight"] == 2.0
+
+
+@pytest.mark.parametrize("energy", ["normalized", "paper"])
+def test_prior_energy_gradient_matches_finite_differences(room: tuple, energy: str) -> None:
+    """Through the bindings: the energy with a prior term (confidence, reweighted) against
+    central differences of itself, at a point away from the identity."""
+    layout, tiles, _, scene = room
+    prior = (2.0 / _distance(scene, 32) + 0.5).astype(np.float32)
+    confidence = np.linspace(0.2, 1.0, prior.size, dtype=np.float32).reshape(prior.shape)
+    plan = plan_for(layout)
+    maps = plan.spherical_disparity(tiles)
+    options = {"energy": energy, "prior_weight": 3.0}
+    _, _, x0 = plan.alignment_energy(maps, (4, 3), options, None, prior, confidence)
+    rng = np.random.default_rng(0)
+    x = np.asarray(x0, np.float64) + rng.uniform(-0.2, 0.2, len(x0))
+    # The IRLS weights are taken at x and held for every evaluation.
+    energy0, grad, _ = plan.alignment_energy(maps, (4, 3), options, x, prior, confidence, x)
+    assert np.isfinite(energy0)
+    h = 1e-6
+    for i in [*range(0, len(x), 11), len(x) - 2, len(x) - 1]:  # the last two: (alpha, beta)
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        fp = plan.alignment_energy(maps, (4, 3), options, xp, prior, confidence, x)[0]
+        fm = plan.alignment_energy(maps, (4, 3), options, xm, prior, confidence, x)[0]
+        fd = (fp - fm) / (2 * h)
+        assert abs(fd - grad[i]) <= 1e-5 * max(abs(grad[i]), 1e-3), (i, fd, grad[i])
+
+
+def test_panoramic_prior_simulates_a_coarse_affine_network() -> None:
+    """Without its errors the simulator returns the scene's disparity; each error is what it
+    says: the affine map is global, the regions multiply their caps, the result is seeded."""
+    scene = syn.room(2)
+    exact = 1.0 / _distance(scene, 32)
+    clean = syn.panoramic_prior(
+        scene, 0, height=32, blur=0, field=0, scale=(1, 1), shift=0, regions=(0, 0)
+    )
+    assert np.allclose(clean, exact, rtol=1e-5)
+    affine = syn.panoramic_prior(scene, 0, height=32, blur=0, field=0, regions=(0, 0))
+    a, b = np.polyfit(exact.ravel(), np.asarray(affine).ravel(), 1)
+    assert np.allclose(affine, a * exact + b, rtol=1e-4, atol=1e-6)
+    wrong, regions = syn.panoramic_prior(
+        scene, 0, height=32, blur=0, field=0, scale=(1, 1), shift=0, regions=(1, 1),
+        region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3), return_regions=True,
+    )  # fmt: skip
+    assert np.allclose(wrong, exact * (1 + regions), rtol=1e-5)
+    assert np.isclose(np.abs(regions).max(), 0.3)
+    # The cap covers a fifth of the sphere (solid angle, not ERP pixels).
+    lat = (0.5 - (np.arange(32) + 0.5) / 32) * np.pi
+    area = np.cos(lat)[:, None] * (regions != 0)
+    assert abs(area.sum() / (np.cos(lat).sum() * 64) - 0.2) < 0.03
+    again = syn.panoramic_prior(scene, 5, height=32)
+    assert np.array_equal(again, syn.panoramic_prior(scene, 5, height=32))
+    with pytest.raises(m360.InputError, match="field"):
+        syn.panoramic_prior(scene, 0, field=1.0)
+    with pytest.raises(m360.InputError, match="truth"):
+        syn.panoramic_prior(np.ones((4, 4)), 0)

@@ -1,5 +1,6 @@
 # Stub of the compiled module m360._core (rust/m360-py); checked by `mypy.stubtest m360._core`.
 import os
+from collections.abc import Sequence
 from pathlib import Path
 from typing import Any, final
 
@@ -95,6 +96,16 @@ class Plan:
         str,
         dict[str, Any] | None,
     ]: ...
+    def alignment_energy(
+        self,
+        maps: npt.NDArray[np.float32],
+        grid: tuple[int, int],
+        align: dict[str, Any],
+        x: Sequence[float] | npt.NDArray[np.float64] | None = None,
+        prior: npt.NDArray[np.float32] | None = None,
+        prior_confidence: npt.NDArray[np.float32] | None = None,
+        reweight_at: Sequence[float] | npt.NDArray[np.float64] | None = None,
+    ) -> tuple[float, npt.NDArray[np.float64], npt.NDArray[np.float64]]: ...
     def alignment_problem(
         self, maps: npt.NDArray[np.float32], grid: tuple[int, int], align: dict[str, Any]
     ) -> dict[str, Any]: ...

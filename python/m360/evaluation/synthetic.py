@@ -1049,3 +1049,166 @@ def content_errors(
         out[k] = d
         errors[k] = factor - 1.0
     return (out, errors) if return_regions else out
+
+
+# -------------------------------------------------------------------- panoramic prior
+
+
+def _cap_share_radius(share: float) -> float:
+    """Angular radius (radians) of a spherical cap covering ``share`` of the sphere."""
+    return float(np.arccos(1.0 - 2.0 * share))
+
+
+def panoramic_prior(
+    truth: Any,
+    seed: int,
+    *,
+    height: int = 512,
+    blur: float = 1.5,
+    field: float = 0.03,
+    scale: tuple[float, float] = (0.5, 2.0),
+    shift: float = 0.3,
+    regions: tuple[int, int] = (0, 2),
+    region_share: tuple[float, float] = (0.01, 0.05),
+    region_amplitude: tuple[float, float] = (0.1, 0.3),
+    return_regions: bool = False,
+) -> np.ndarray | tuple[np.ndarray, np.ndarray]:
+    """Simulate a panoramic depth network's output: coarse, blurred, smoothly biased, affine.
+
+    Panoramic networks (trained on whole ERP images) are globally consistent but run at about
+    0.5 MP and blur above it, bend the geometry at low frequencies, and occasionally get a whole
+    region wrong (windows, mirrors, sky). From the true distance this builds, as spherical
+    disparity at ``height`` × 2·``height``:
+
+    1. the true disparity 1/distance, area-averaged to that size (ray cast there for a scene);
+    2. a gaussian blur of std ``blur`` pixels (wrapping in longitude): blurred edges;
+    3. a smooth multiplicative error ``1 + field·f`` with ``f`` a sum of four random
+       low-frequency waves over the sphere (≤ 2 cycles around it, |f| ≤ 1);
+    4. between ``regions[0]`` and ``regions[1]`` regional errors: spherical caps at random
+       centres, each covering a share of the sphere uniform in ``region_share``, whose
+       disparity is multiplied by ``1 ± a`` (``a`` uniform in ``region_amplitude``, random
+       sign), fading over the outer tenth of the cap's radius;
+    5. the network's own affine ambiguity in disparity: ``s·d + o``, ``s`` log-uniform in
+       ``scale``, ``o`` uniform in ``±shift·median(d)``.
+
+    Parameters
+    ----------
+    truth : Scene or (H, 2H) array
+        A scene (ray cast at the prior's size) or its true radial distance as an ERP map of
+        any size (area-averaged in disparity to the prior's size); NaN = unknown.
+    seed : int
+        Seed of ``np.random.default_rng``.
+    height : int
+        Rows of the prior (columns: 2·height); default 512 (a 512 x 1024 network).
+    blur : float
+        Gaussian std in pixels (≥ 0, at most 100).
+    field : float
+        Amplitude of the smooth error, in [0, 1).
+    scale : (float, float)
+        Range (0 < lo ≤ hi) of the log-uniform scale.
+    shift : float
+        Relative shift amplitude (≥ 0).
+    regions : (int, int)
+        Range (0 ≤ lo ≤ hi ≤ 64) of the number of regional errors.
+    region_share : (float, float)
+        Range (0 < lo ≤ hi ≤ 1) of each region's share of the sphere.
+    region_amplitude : (float, float)
+        Range (0 ≤ lo ≤ hi < 1) of each region's relative error.
+    return_regions : bool
+        Also return the (height, 2·height) float32 map of the regional error factor minus 1.
+
+    Returns
+    -------
+    np.ndarray or (np.ndarray, np.ndarray)
+        (height, 2·height) float32 affine spherical disparity, and the region map if asked.
+    """
+    import cv2  # opencv is a core dependency; imported here to keep `import m360` light
+
+    h = integer(height, "height", low=2, high=MAX_ERP_WIDTH // 2)
+    blur = number(blur, "blur", low=0.0, high=100.0)
+    field = number(field, "field", low=0.0, high=1.0)
+    if field == 1:
+        raise InputError("field must be in [0, 1), got 1")
+    pairs = {
+        "scale": (scale, 1e-6, SCENE_LIMIT),
+        "region_share": (region_share, 0.0, 1.0),
+        "region_amplitude": (region_amplitude, 0.0, 1.0),
+    }
+    checked: dict[str, tuple[float, float]] = {}
+    for name, (pair, low, high) in pairs.items():
+        if not (isinstance(pair, (tuple, list)) and len(pair) == 2):
+            raise InputError(f"{name} must be a pair (lo, hi), got {pair!r}")
+        lo, hi = (number(v, name, low=low, high=high) for v in pair)
+        if lo > hi:
+            raise InputError(f"{name} must satisfy lo <= hi, got {pair!r}")
+        checked[name] = (lo, hi)
+    if checked["region_amplitude"][1] >= 1:
+        raise InputError(f"region_amplitude must be < 1, got {region_amplitude!r}")
+    if checked["region_share"][0] <= 0:
+        raise InputError(f"region_share must be > 0, got {region_share!r}")
+    if not (isinstance(regions, (tuple, list)) and len(regions) == 2):
+        raise InputError(f"regions must be a pair (lo, hi), got {regions!r}")
+    r_lo, r_hi = (integer(v, "regions", low=0, high=64) for v in regions)
+    if r_lo > r_hi:
+        raise InputError(f"regions must satisfy lo <= hi, got {regions!r}")
+    shift = number(shift, "shift", low=0.0, high=SCENE_LIMIT)
+    rng = np.random.default_rng(check_seed(seed))
+    w = 2 * h
+    lat = erp_latitudes(h)
+    lon = erp_longitudes(w)
+    dirs = lonlat_to_directions(lon[None, :], lat[:, None])
+    if isinstance(truth, Scene):
+        with np.errstate(divide="ignore"):
+            disparity = 1.0 / truth.distance(dirs)
+    else:
+        distance = as_array(truth, "truth")
+        if distance.ndim != 2 or distance.shape[1] != 2 * distance.shape[0]:
+            raise InputError(
+                f"truth must be a Scene or an (H, 2H) distance map, got shape {distance.shape}"
+            )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            full = np.where(distance > 0, 1.0 / distance.astype(np.float64), np.nan)
+        valid = np.isfinite(full)
+        num = cv2.resize(np.where(valid, full, 0.0), (w, h), interpolation=cv2.INTER_AREA)
+        den = cv2.resize(valid.astype(np.float64), (w, h), interpolation=cv2.INTER_AREA)
+        with np.errstate(invalid="ignore", divide="ignore"):
+            disparity = np.where(den > 0, num / den, np.nan)
+    d = np.asarray(disparity, np.float64)
+    if blur > 0:
+        # Wrap in longitude: pad by 4σ each side, blur, cut.
+        pad = min(int(np.ceil(4 * blur)) + 1, w)
+        padded = np.concatenate([d[:, -pad:], d, d[:, :pad]], axis=1)
+        d = _blur(padded, blur)[:, pad : pad + w]
+    # Smooth error over the sphere: waves in the direction coordinates.
+    amp = rng.uniform(0.2, 1.0, size=4)
+    amp /= amp.sum()
+    axes = rng.standard_normal((4, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    freq = rng.uniform(0.5, 2.0, size=4)
+    phase = rng.uniform(0, 2 * np.pi, size=4)
+    smooth = np.zeros((h, w))
+    for a, axis, f, p in zip(amp, axes, freq, phase, strict=True):
+        smooth += a * np.cos(f * np.pi * (dirs @ axis) + p)
+    d = d * (1.0 + field * smooth)
+    factor = np.ones((h, w))
+    for _ in range(int(rng.integers(r_lo, r_hi + 1))):
+        share = rng.uniform(*checked["region_share"])
+        centre = rng.standard_normal(3)
+        centre /= np.linalg.norm(centre)
+        radius = _cap_share_radius(share)
+        angle = np.arccos(np.clip(dirs @ centre, -1.0, 1.0))
+        a = rng.uniform(*checked["region_amplitude"]) * rng.choice([-1.0, 1.0])
+        bump = np.clip((radius - angle) / (0.1 * radius), 0.0, 1.0)
+        factor *= 1.0 + a * bump
+    d = d * factor
+    finite = np.isfinite(d)
+    med = float(np.abs(np.median(d[finite]))) if finite.any() else 0.0
+    lo, hi = checked["scale"]
+    s = float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+    o = float(rng.uniform(-shift * med, shift * med))
+    out = (s * d + o).astype(np.float32)
+    regions_map = (factor - 1.0).astype(np.float32)
+    return (out, regions_map) if return_regions else out
+
+
+__all__ += ["panoramic_prior"]

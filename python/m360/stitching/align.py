@@ -51,6 +51,13 @@ loss
     ``"squared"``: least squares, the paper's (the paper energy's default). The weights are
     reported per sample (``sample_weights``, ``sample_pixels`` in each level's report).
 
+prior_weight, prior_scale_deg
+    Used only with ``prior=`` (:mod:`m360.stitching.prior`): the weight λ of the prior term
+    (default 1) and the frequency split in degrees (default 4): a prior-only level with grid
+    nodes this far apart runs after the schedule, and the tangents are compared with the prior
+    averaged over half this radius; finer detail stays the tangents'. Measured in
+    benches/bench_prior.py (docs/method.md, "Global prior").
+
 When the tangents leave too few valid overlap samples for a level's grid (fewer than one per
 four grid nodes: a noisy or featureless panorama), the level is left out; when none is left, one
 per-tangent affine level runs if it can, else the tangents are only standardised. The stitch

@@ -627,11 +627,26 @@ impl PriorSample {
     }
 }
 
+/// Another tangent's view of a prior sample's direction: its cell, fractions, disparity and
+/// offset factor there (for the consensus that judges the prior, not in the energy).
+#[derive(Debug, Clone, Copy)]
+struct PriorView {
+    node: u32,
+    frac: [f64; 2],
+    d: f64,
+    f: f64,
+}
+
 /// The prior term of a level: λ/K · Σ_k c_k·ω_k·r_k² over its K samples, with c the prior's
 /// confidence and ω the IRLS weight (Cauchy, its own residual scale).
 #[derive(Debug, Clone)]
 struct PriorTerm {
     samples: Vec<PriorSample>,
+    /// Sample k's views by the other tangents: `views[view_start[k]..view_start[k + 1]]`.
+    view_start: Vec<u32>,
+    /// Trust-grid cell of each sample ([`prior::TRUST_ROWS`]).
+    cell: Vec<u32>,
+    views: Vec<PriorView>,
     /// Confidence of each sample.
     confidence: Vec<f64>,
     /// IRLS weight of each sample (1 until reweighted).
@@ -653,6 +668,30 @@ impl PriorTerm {
                 cs[j] * x[i] + co[j] * x[i + 1]
             })
             .sum()
+    }
+
+    /// The residual of sample k's direction closest to 0 over the tangents that see it (its
+    /// own and its views): small when any tangent agrees with the prior there. A prior that all
+    /// tangents contradict is wrong there; one that only its own tangent contradicts is right.
+    fn consensus_residual(&self, k: usize, x: &[f64], cols: usize) -> f64 {
+        let mut best = self.residual(k, x, cols);
+        let at = 2 * self.node as usize;
+        let target = x[at] * self.samples[k].p + x[at + 1];
+        let range = self.view_start[k] as usize..self.view_start[k + 1] as usize;
+        for view in &self.views[range] {
+            let w = bilinear_weights(view.frac[0], view.frac[1]);
+            let (a, c) = (view.node as usize, cols);
+            let r = [a, a + 1, a + c, a + c + 1]
+                .iter()
+                .zip(&w)
+                .map(|(&n, &wj)| wj * (view.d * x[2 * n] + view.f * x[2 * n + 1]))
+                .sum::<f64>()
+                - target;
+            if r.abs() < best.abs() {
+                best = r;
+            }
+        }
+        best
     }
 }
 
@@ -831,7 +870,7 @@ impl Problem {
         }
         let prior = prior.map(|(ps, weight)| {
             let node = (n * per) as u32;
-            let built: Vec<(PriorSample, f64)> = (0..ps.len())
+            let built: Vec<(PriorSample, f64, Vec<PriorView>, u32)> = (0..ps.len())
                 .into_par_iter()
                 .filter_map(|k| {
                     let d = ps.tangent_value(k, maps, tp);
@@ -842,6 +881,33 @@ impl Problem {
                     let p = ps.pixel[k] as usize;
                     let (x, y) = ((p % w) as f64, (p / w) as f64);
                     let (c, r, fx, fy) = grid_cell(x, y, w, h, cols, rows);
+                    let range = ps.view_start[k] as usize..ps.view_start[k + 1] as usize;
+                    let views = range
+                        .filter_map(|v| {
+                            let b = ps.view_tangent[v] as usize;
+                            let [xb, yb] = ps.view_xy[v].map(f64::from);
+                            let x0 = (xb as usize).min(w - 2);
+                            let y0 = (yb as usize).min(h - 2);
+                            let base = b * tp + y0 * w + x0;
+                            let corners = [base, base + 1, base + w, base + w + 1]
+                                .map(|i| f64::from(maps.value(i)));
+                            if corners.iter().any(|v| !v.is_finite()) {
+                                return None;
+                            }
+                            let db = bilinear_weights(xb - x0 as f64, yb - y0 as f64)
+                                .iter()
+                                .zip(&corners)
+                                .map(|(w, v)| w * v)
+                                .sum();
+                            let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
+                            Some(PriorView {
+                                node: (b * per + rb * cols + cb) as u32,
+                                frac: [bx, by],
+                                d: db,
+                                f: offset_factor(params.offsets, &layout.cameras[b], xb, yb),
+                            })
+                        })
+                        .collect();
                     Some((
                         PriorSample {
                             node: (t * per + r * cols + c) as u32,
@@ -851,11 +917,27 @@ impl Problem {
                             p: ps.value[k],
                         },
                         ps.confidence[k],
+                        views,
+                        ps.cell[k],
                     ))
                 })
                 .collect();
-            let (samples, confidence): (Vec<PriorSample>, Vec<f64>) = built.into_iter().unzip();
+            let mut samples = Vec::with_capacity(built.len());
+            let mut confidence = Vec::with_capacity(built.len());
+            let mut view_start = vec![0u32];
+            let mut views = Vec::new();
+            let mut cell = Vec::with_capacity(built.len());
+            for (sample, conf, sample_views, c) in built {
+                samples.push(sample);
+                cell.push(c);
+                confidence.push(conf);
+                views.extend(sample_views);
+                view_start.push(views.len() as u32);
+            }
             PriorTerm {
+                view_start,
+                views,
+                cell,
                 weights: vec![1.0; samples.len()],
                 scale: weight / samples.len().max(1) as f64,
                 samples,
@@ -1084,25 +1166,86 @@ impl Problem {
         })
     }
 
+    /// (α, β) fitted to the tangents' values at the prior samples as the fields `x` leave them
+    /// (x's own α, β ignored), robustly: Cauchy IRLS with the prior's confidence. None without
+    /// a prior or when the fit is degenerate.
+    #[must_use]
+    pub fn fit_prior_affine(&self, x: &[f64]) -> Option<(f64, f64)> {
+        let prior = self.prior.as_ref()?;
+        let mut z = x.to_vec();
+        let at = 2 * prior.node as usize;
+        z[at] = 0.0;
+        z[at + 1] = 0.0;
+        // With α = β = 0 the residual is the tangent's value.
+        let values = self.prior_residuals(&z);
+        let p: Vec<f64> = prior.samples.iter().map(|s| s.p).collect();
+        let mut weights = prior.confidence.clone();
+        let mut fit = None;
+        for _ in 0..ROBUST_ROUNDS + 2 {
+            let (mut sw, mut sp, mut sv, mut spp, mut spv) = (0.0, 0.0, 0.0, 0.0, 0.0);
+            for ((&w, &pk), &vk) in weights.iter().zip(&p).zip(&values) {
+                sw += w;
+                sp += w * pk;
+                sv += w * vk;
+                spp += w * pk * pk;
+                spv += w * pk * vk;
+            }
+            let det = sw * spp - sp * sp;
+            if sw <= 0.0 || det.abs() <= 1e-12 * sw * sw {
+                return fit;
+            }
+            let alpha = (sw * spv - sp * sv) / det;
+            let beta = (sv - alpha * sp) / sw;
+            fit = Some((alpha, beta));
+            let residuals: Vec<f64> = p
+                .iter()
+                .zip(&values)
+                .map(|(pk, vk)| vk - alpha * pk - beta)
+                .collect();
+            let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
+            for ((w, c), r) in weights.iter_mut().zip(&prior.confidence).zip(&residuals) {
+                *w = c * Loss::Cauchy.weight(*r, sigma);
+            }
+        }
+        fit
+    }
+
     /// The prior samples' IRLS weights (empty without a prior).
     #[must_use]
     pub fn prior_weights(&self) -> &[f64] {
         self.prior.as_ref().map_or(&[], |p| &p.weights)
     }
 
-    /// Set every prior sample's weight to the Cauchy IRLS weight of its residual at `x` with
-    /// its own scale σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]), and reassemble.
+    /// Set every prior sample's weight to the Cauchy IRLS weight of its consensus residual at
+    /// `x` (the smallest over the tangents that see its direction: a prior region is outvoted
+    /// only when no tangent agrees with it) with their own scale σ = 1.4826·median|r| (at least
+    /// [`MIN_PRIOR_SCALE`]), and reassemble. With `hard`, weights below [`HARD_TRUST`] become
+    /// 0: for a level where nothing else would resist their pull.
     /// Returns σ (0 without a prior).
-    pub fn reweight_prior(&mut self, x: &[f64]) -> f64 {
-        let residuals = self.prior_residuals(x);
+    pub fn reweight_prior(&mut self, x: &[f64], hard: bool) -> f64 {
+        let cols = self.params.cols;
+        let residuals: Vec<f64> = self.prior.as_ref().map_or_else(Vec::new, |prior| {
+            (0..prior.samples.len())
+                .into_par_iter()
+                .map(|k| prior.consensus_residual(k, x, cols))
+                .collect()
+        });
         let Some(prior) = self.prior.as_mut() else {
             return 0.0;
         };
         let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
-        prior.weights = residuals
+        let weights: Vec<f64> = residuals
             .iter()
             .map(|&r| Loss::Cauchy.weight(r, sigma))
             .collect();
+        prior.weights = spread_trust(prior, &weights);
+        if hard {
+            for w in &mut prior.weights {
+                if *w < HARD_TRUST {
+                    *w = 0.0;
+                }
+            }
+        }
         self.assemble();
         sigma
     }
@@ -1305,6 +1448,62 @@ impl Problem {
                 }
             });
     }
+}
+
+/// The prior-only level trusts only prior samples whose weight is at least this (|r| within
+/// 1.2 c of the consensus, c the Cauchy scale): measured on synthetic rooms with a prior 30 %
+/// wrong on a fifth of the sphere (benches/bench_prior.py), ½ let the level follow a third of
+/// the wrong region, 0.8 kept the gain on content errors and lost that.
+const HARD_TRUST: f64 = 0.8;
+
+/// Where only one tangent sees a prior sample's direction, its residual cannot tell whether the
+/// prior or the tangent is wrong: such samples take the mean weight of the samples that other
+/// tangents also see in their 6° cell and its 8 neighbours (1 when there are none), so a prior
+/// region that overlapping tangents outvoted stays outvoted between them, and a tangent's
+/// content error where it alone sees the sphere is corrected by a prior trusted around it.
+fn spread_trust(prior: &PriorTerm, weights: &[f64]) -> Vec<f64> {
+    let (rows, cols) = (prior::TRUST_ROWS, 2 * prior::TRUST_ROWS);
+    let mut sum = vec![0.0; rows * cols];
+    let mut count = vec![0.0; rows * cols];
+    let seen = |k: usize| prior.view_start[k + 1] > prior.view_start[k];
+    for (k, &w) in weights.iter().enumerate() {
+        if seen(k) {
+            sum[prior.cell[k] as usize] += w;
+            count[prior.cell[k] as usize] += 1.0;
+        }
+    }
+    let neighbourhood = |cell: usize| {
+        let (r, c) = ((cell / cols) as isize, (cell % cols) as isize);
+        let (mut s, mut n) = (0.0, 0.0);
+        for dr in -1..=1 {
+            let rr = r + dr;
+            if rr < 0 || rr >= rows as isize {
+                continue;
+            }
+            for dc in -1..=1 {
+                let cc = (c + dc).rem_euclid(cols as isize);
+                let i = rr as usize * cols + cc as usize;
+                s += sum[i];
+                n += count[i];
+            }
+        }
+        if n > 0.0 {
+            s / n
+        } else {
+            1.0
+        }
+    };
+    weights
+        .iter()
+        .enumerate()
+        .map(|(k, &w)| {
+            if seen(k) {
+                w
+            } else {
+                neighbourhood(prior.cell[k] as usize)
+            }
+        })
+        .collect()
 }
 
 /// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]; 1 without residuals).
@@ -1662,6 +1861,10 @@ pub struct Alignment {
     pub prior: Option<PriorFit>,
 }
 
+/// The prior samples keep this many times the overlap samples' `sample_fraction` of every
+/// tangent's pixels: the prior-only level's finer grid needs them.
+const PRIOR_SAMPLE_FACTOR: f64 = 2.0;
+
 /// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
 /// (all tangents together); below it the data cannot support the grid. (The smoothness term
 /// carries sparse data between samples: the paper's 16x14 level at ERP width 512 has about one
@@ -1699,9 +1902,11 @@ pub struct Options {
     pub loss: Loss,
     /// Weight λ of the prior term (used only with a prior).
     pub prior_weight: f64,
-    /// Frequency split of the prior term, in degrees: the tangents' values it compares with
-    /// the prior are averaged over a window of this radius, so the prior steers the fields and
-    /// not the tangents' finer detail (used only with a prior).
+    /// Frequency split of the prior term, in degrees: the finest scale the prior dictates.
+    /// After the schedule a prior-only level with grid nodes this far apart runs (when finer
+    /// than the schedule's last grid), and the tangents' values compared with the prior are
+    /// averaged over half this radius, so finer detail stays the tangents' (used only with a
+    /// prior; 0: no prior-only level, point values).
     pub prior_scale_deg: f64,
 }
 
@@ -1713,7 +1918,7 @@ impl Options {
     /// Default weight of the prior term (benches/bench_align.py --prior).
     pub const DEFAULT_PRIOR_WEIGHT: f64 = 1.0;
     /// Default frequency split of the prior term, degrees (benches/bench_align.py --prior).
-    pub const DEFAULT_PRIOR_SCALE_DEG: f64 = 1.0;
+    pub const DEFAULT_PRIOR_SCALE_DEG: f64 = 4.0;
     /// Largest frequency split, degrees.
     pub const MAX_PRIOR_SCALE_DEG: f64 = 30.0;
 
@@ -1916,8 +2121,8 @@ fn solve_levels(
                 layout,
                 maps,
                 p,
-                options.sample_fraction,
-                options.prior_scale_deg,
+                (PRIOR_SAMPLE_FACTOR * options.sample_fraction).min(1.0),
+                0.5 * options.prior_scale_deg,
             )
         })
         .transpose()?;
@@ -1935,7 +2140,29 @@ fn solve_levels(
             skipped = true;
             continue;
         }
-        levels.push(solve_level(&mut transform, problem, options, t0)?);
+        let start = prior_start(
+            layout, maps, &transform, overlaps, &problem, &levels, options,
+        )?;
+        levels.push(solve_level(&mut transform, problem, options, t0, start)?);
+    }
+    // The frequency split: a finer level on which only the prior (and the smoothness) acts, so
+    // the prior dictates down to `prior_scale_deg` while the tangents keep the detail below.
+    if let (Some(samples), Some(last)) = (prior_samples.as_ref(), levels.last()) {
+        if let Some(params) = prior_level_params(layout, options, &last.params) {
+            let t0 = std::time::Instant::now();
+            let empty = Overlaps::default();
+            let problem = level_problem(layout, maps, &transform, &empty, params, prior_term);
+            let per_tangent = params.cols * params.rows;
+            let mut counts = vec![0usize; n];
+            for &t in &samples.tangent {
+                counts[t as usize] += 1;
+            }
+            if counts.iter().all(|&c| c * NODES_PER_SAMPLE >= per_tangent) {
+                let start =
+                    prior_start(layout, maps, &transform, &empty, &problem, &levels, options)?;
+                levels.push(solve_level(&mut transform, problem, options, t0, start)?);
+            }
+        }
     }
     let mut fallback = if skipped {
         Fallback::CoarserGrid
@@ -1950,7 +2177,10 @@ fn solve_levels(
         params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
         let problem = level_problem(layout, maps, &transform, overlaps, params, prior_term);
         if (problem.samples() + problem.prior_samples()) * NODES_PER_SAMPLE >= n * 4 {
-            levels.push(solve_level(&mut transform, problem, options, t0)?);
+            let start = prior_start(
+                layout, maps, &transform, overlaps, &problem, &levels, options,
+            )?;
+            levels.push(solve_level(&mut transform, problem, options, t0, start)?);
             fallback = Fallback::Affine;
         } else {
             fallback = Fallback::Unaligned;
@@ -1968,37 +2198,7 @@ fn solve_levels(
     let fit = prior_samples
         .as_ref()
         .zip(levels.last().and_then(|l| l.prior.as_ref()))
-        .map(|(samples, level)| {
-            let (alpha, beta) = level.affine;
-            let (p_median, p_spread) = samples.stats;
-            // The maps now match α·(P − m_P)/s_P + β; as the result, v·spread + median.
-            let (mut spread, mut median) = (spread, median);
-            if samples.absolute && alpha.abs() > f64::MIN_POSITIVE {
-                // Express the result in the prior's units: v ← ((v − β)/α)·s_P + m_P.
-                spread = p_spread / alpha;
-                median = p_median - beta * p_spread / alpha;
-            }
-            let a = alpha * spread / p_spread;
-            let b = (beta - alpha * p_median / p_spread) * spread + median;
-            let pull: f64 = level.confidence.iter().sum();
-            let lost: f64 = level
-                .confidence
-                .iter()
-                .zip(&level.weights)
-                .filter(|(_, &w)| w < 0.5)
-                .map(|(c, _)| c)
-                .sum();
-            (
-                (spread, median),
-                PriorFit {
-                    affine: (a, b),
-                    samples: level.weights.len(),
-                    outvoted: if pull > 0.0 { lost / pull } else { 0.0 },
-                    weight: options.prior_weight,
-                    residual: level.residual,
-                },
-            )
-        });
+        .map(|(samples, level)| prior_fit(samples, level, spread, median, options.prior_weight));
     let (spread, median) = fit.as_ref().map_or((spread, median), |f| f.0);
     transform.restore(spread, median);
     Ok((
@@ -2009,6 +2209,46 @@ fn solve_levels(
         },
         transform,
     ))
+}
+
+/// The restore (spread, median) of an alignment with a prior and what was fitted: an absolute
+/// prior's units replace the tangents' mean units.
+fn prior_fit(
+    samples: &PriorSamples,
+    level: &LevelPrior,
+    spread: f64,
+    median: f64,
+    weight: f64,
+) -> ((f64, f64), PriorFit) {
+    let (alpha, beta) = level.affine;
+    let (p_median, p_spread) = samples.stats;
+    // The maps now match α·(P − m_P)/s_P + β; as the result, v·spread + median.
+    let (mut spread, mut median) = (spread, median);
+    if samples.absolute && alpha.abs() > f64::MIN_POSITIVE {
+        // Express the result in the prior's units: v ← ((v − β)/α)·s_P + m_P.
+        spread = p_spread / alpha;
+        median = p_median - beta * p_spread / alpha;
+    }
+    let a = alpha * spread / p_spread;
+    let b = (beta - alpha * p_median / p_spread) * spread + median;
+    let pull: f64 = level.confidence.iter().sum();
+    let lost: f64 = level
+        .confidence
+        .iter()
+        .zip(&level.weights)
+        .filter(|(_, &w)| w < 0.5)
+        .map(|(c, _)| c)
+        .sum();
+    (
+        (spread, median),
+        PriorFit {
+            affine: (a, b),
+            samples: level.weights.len(),
+            outvoted: if pull > 0.0 { lost / pull } else { 0.0 },
+            weight,
+            residual: level.residual,
+        },
+    )
 }
 
 /// The problem of a level on `maps` as `transform` leaves them.
@@ -2024,19 +2264,98 @@ fn level_problem(
     Problem::with_prior(layout, &view, overlaps, params, prior)
 }
 
-/// Solve one level's `problem` (built from `t0` on), reweighting it for a robust loss, and
-/// add its fields to `transform`.
+/// The prior-only level of the frequency split: grid nodes `prior_scale_deg` apart over a
+/// tangent's field of view, when that is finer than the `last` level's grid.
+fn prior_level_params(
+    layout: &Layout,
+    options: &Options,
+    last: &LevelParams,
+) -> Option<LevelParams> {
+    if options.prior_scale_deg <= 0.0 || options.prior_weight <= 0.0 {
+        return None;
+    }
+    let cam = layout.cameras.first()?;
+    let fov = |pixels: usize, focal: f64| 2.0 * (pixels as f64 / (2.0 * focal)).atan().to_degrees();
+    let nodes = |deg: f64| (deg / options.prior_scale_deg).ceil() as usize + 1;
+    let (h, w) = layout.tangent_shape();
+    let cols = nodes(fov(w, cam.fx)).min(w);
+    let rows = nodes(fov(h, cam.fy)).min(h);
+    (cols > last.cols && rows > last.rows).then_some(LevelParams {
+        cols,
+        rows,
+        smoothness: last.smoothness * PRIOR_LEVEL_SMOOTHNESS,
+        ..*last
+    })
+}
+
+/// The prior-only level's smoothness, relative to the schedule's: a bump of the fields costs
+/// the same Dirichlet energy whatever its size, so at the schedule's smoothness the prior could
+/// not move a region of a tenth of a tangent; this lets it, down to the level's node spacing.
+const PRIOR_LEVEL_SMOOTHNESS: f64 = 0.01;
+
+/// Where a level with a prior starts: identity fields, with (α, β) from the previous level; on
+/// the first level, from the fields of the level solved without the prior (the tangents'
+/// own consensus) and (α, β) fitted robustly to them, so the prior's first weights judge it
+/// against the tangents before it could pull them. None without a prior.
+fn prior_start(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &Transform,
+    overlaps: &Overlaps,
+    problem: &Problem,
+    levels: &[Level],
+    options: &Options,
+) -> Result<Option<Vec<f64>>> {
+    if problem.prior.is_none() {
+        return Ok(None);
+    }
+    let mut x = problem.identity();
+    let at = x.len() - 2;
+    if let Some(prev) = levels.last().and_then(|l| l.prior.as_ref()) {
+        x[at] = prev.affine.0;
+        x[at + 1] = prev.affine.1;
+        return Ok(Some(x));
+    }
+    let alone = level_problem(layout, maps, transform, overlaps, problem.params, None);
+    if alone.samples() * NODES_PER_SAMPLE >= alone.scale_nodes() {
+        let (fields, _) = solve(
+            &alone,
+            &alone.identity(),
+            options.solver,
+            options.iterations,
+            options.tolerance,
+        )?;
+        x[..at].copy_from_slice(&fields);
+    }
+    if let Some((alpha, beta)) = problem.fit_prior_affine(&x) {
+        x[at] = alpha;
+        x[at + 1] = beta;
+    }
+    Ok(Some(x))
+}
+
+/// Solve one level's `problem` (built from `t0` on) from `start` (identity fields when None),
+/// reweighting it for a robust loss, and add its fields to `transform`.
 fn solve_level(
     transform: &mut Transform,
     mut problem: Problem,
     options: &Options,
     t0: std::time::Instant,
+    start: Option<Vec<f64>>,
 ) -> Result<Level> {
     let params = problem.params;
     let t1 = std::time::Instant::now();
+    let start = start.unwrap_or_else(|| problem.identity());
+    // A prior-only level (the frequency split's, no overlap samples) judges the prior once, at
+    // its start (the tangents as the schedule aligned them), with hard weights: reweighted from
+    // its own solution it would trust whatever it had just followed.
+    let prior_only = problem.prior.is_some() && problem.samples() == 0;
+    if problem.prior.is_some() {
+        problem.reweight_prior(&start, prior_only);
+    }
     let (mut fields, mut report) = solve(
         &problem,
-        &problem.identity(),
+        &start,
         options.solver,
         options.iterations,
         options.tolerance,
@@ -2045,13 +2364,13 @@ fn solve_level(
     // The prior's samples are always reweighted (Cauchy): a prior is wrong on whole regions
     // (windows, mirrors, sky), whatever the data term's loss.
     let has_prior = problem.prior.is_some();
-    if options.loss != Loss::Squared || has_prior {
+    if (options.loss != Loss::Squared || has_prior) && !prior_only {
         for _ in 0..ROBUST_ROUNDS {
             if options.loss != Loss::Squared {
                 robust_scale = problem.reweight(&fields, options.loss);
             }
             if has_prior {
-                problem.reweight_prior(&fields);
+                problem.reweight_prior(&fields, false);
             }
             let (next, next_report) = solve(
                 &problem,

@@ -225,3 +225,72 @@ pub(crate) fn alignment_problem<'py>(
     d.set_item("unknowns", problem.len())?;
     Ok(d)
 }
+
+/// Energy and gradient at `x` (None: identity fields) of the first-level problem on `grid`,
+/// with the prior term when given, its samples reweighted (consensus IRLS) at `reweight_at`
+/// (default `x`): for checks of the gradient against finite differences.
+#[allow(clippy::type_complexity, clippy::too_many_arguments)]
+pub(crate) fn alignment_energy<'py>(
+    py: Python<'py>,
+    plan: &Plan,
+    maps: &PyReadonlyArray3<'py, f32>,
+    grid: (usize, usize),
+    options: &Bound<'py, PyDict>,
+    x: Option<Vec<f64>>,
+    prior: Option<&Prior>,
+    reweight_at: Option<Vec<f64>>,
+) -> PyResult<(
+    f64,
+    Bound<'py, PyArrayDyn<f64>>,
+    Bound<'py, PyArrayDyn<f64>>,
+)> {
+    let layout = plan.layout();
+    let mut options = align_options(options, Some(layout.tangent_shape()))?;
+    options.levels = vec![grid];
+    let options = core(options.validate(Some(layout.tangent_shape())))?;
+    let params: LevelParams = options.level_params()[0];
+    let mut data = contiguous(maps, "maps")?.to_vec();
+    let needs = [Need::Overlaps(
+        options.sample_fraction,
+        options.pole_cap_deg,
+    )];
+    let (energy, grad, x) = core(on_pool(py, Some((plan, &needs)), || {
+        align::standardize(layout, &mut data, options.offsets)?;
+        let overlaps = plan.overlaps(options.sample_fraction, options.pole_cap_deg);
+        let samples = prior
+            .map(|p| {
+                align::PriorSamples::build(
+                    layout,
+                    &data,
+                    p,
+                    options.sample_fraction,
+                    0.5 * options.prior_scale_deg,
+                )
+            })
+            .transpose()?;
+        let mut problem = Problem::with_prior(
+            layout,
+            data.as_slice(),
+            &overlaps,
+            params,
+            samples.as_ref().map(|s| (s, options.prior_weight)),
+        );
+        let x = x.unwrap_or_else(|| problem.identity());
+        let at = reweight_at.unwrap_or_else(|| x.clone());
+        for v in [&x, &at] {
+            if v.len() != problem.len() {
+                return Err(m360_core::CoreError::ShapeMismatch {
+                    what: "x (the problem's unknowns)",
+                    expected: vec![problem.len()],
+                    actual: vec![v.len()],
+                });
+            }
+        }
+        problem.reweight_prior(&at, false);
+        let mut grad = vec![0.0; x.len()];
+        let energy = problem.energy(&x, Some(&mut grad));
+        Ok::<_, m360_core::CoreError>((energy, grad, x))
+    })?)?;
+    let n = grad.len();
+    Ok((energy, to_numpy(py, grad, &[n])?, to_numpy(py, x, &[n])?))
+}

@@ -296,6 +296,44 @@ impl Plan {
         align::align_with_prior(py, &self.inner, maps, align, in_place, Some(&prior))
     }
 
+    /// Energy and gradient of the first-level alignment problem of `maps` on `grid` with the
+    /// options in `align`, at `x` (None: identity fields; the unknowns node-interleaved, then
+    /// the prior's (α, β)), with a prior term when `prior` (float32 ERP, see `align_with_prior`)
+    /// is given, its samples reweighted at `reweight_at` (default `x`): (energy, gradient, x).
+    /// For gradient checks.
+    #[pyo3(signature = (maps, grid, align, x=None, prior=None, prior_confidence=None, reweight_at=None))]
+    #[allow(clippy::type_complexity, clippy::too_many_arguments)]
+    fn alignment_energy<'py>(
+        &self,
+        py: Python<'py>,
+        maps: PyReadonlyArray3<'py, f32>,
+        grid: (usize, usize),
+        align: &Bound<'py, PyDict>,
+        x: Option<Vec<f64>>,
+        prior: Option<PyReadonlyArray2<'py, f32>>,
+        prior_confidence: Option<PyReadonlyArray2<'py, f32>>,
+        reweight_at: Option<Vec<f64>>,
+    ) -> PyResult<(
+        f64,
+        Bound<'py, PyArrayDyn<f64>>,
+        Bound<'py, PyArrayDyn<f64>>,
+    )> {
+        self.check_tangents("maps", maps.shape())?;
+        let prior = prior
+            .map(|p| align::prior_from(&p, prior_confidence.as_ref(), false))
+            .transpose()?;
+        align::alignment_energy(
+            py,
+            &self.inner,
+            &maps,
+            grid,
+            align,
+            x,
+            prior.as_ref(),
+            reweight_at,
+        )
+    }
+
     /// The first-level alignment problem of `maps` (standardised as `align` does) on grid
     /// (cols, rows) with the options in `align`: a dict with `nodes` (K,8) uint32, `coef_s`,
     /// `coef_o` (K,8) float64, `edges` (E,3) float64 as (p, q, weight), `scale_weight`,

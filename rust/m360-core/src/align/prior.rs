@@ -129,10 +129,24 @@ pub struct PriorSamples {
     pub(super) stats: (f64, f64),
     /// Whether the prior is absolute.
     pub(super) absolute: bool,
+    /// The other tangents that see each sample's direction: sample k's are entries
+    /// `view_start[k]..view_start[k + 1]` of (tangent, x, y).
+    pub(super) view_start: Vec<u32>,
+    pub(super) view_tangent: Vec<u16>,
+    pub(super) view_xy: Vec<[f32; 2]>,
+    /// Cell of each sample's direction in a [`TRUST_ROWS`] × 2·[`TRUST_ROWS`] ERP grid.
+    pub(super) cell: Vec<u32>,
 }
 
+/// Rows of the ERP grid over which the prior's trust, judged where tangents overlap, is spread
+/// to where one tangent alone sees the sphere (6° cells).
+pub const TRUST_ROWS: usize = 30;
+
 /// One tangent's samples: (tangent, pixel, prior value, confidence, raw window mean).
-type Part = Vec<(u16, u32, f64, f64, f32)>;
+type Part = (
+    Vec<(u16, u32, f64, f64, f32, u32)>,
+    Vec<(u32, u16, [f32; 2])>,
+);
 
 /// Salt of the prior samples' hash, so they are not the overlap samples' pixels.
 const PRIOR_SALT: u64 = 0x5052_494F_5200_0000;
@@ -168,6 +182,7 @@ impl PriorSamples {
                 let reach = if radius_px >= 0.5 { WINDOW_TAPS } else { 0 };
                 let map = &maps[t * h * w..(t + 1) * h * w];
                 let mut out = Vec::new();
+                let mut views = Vec::new();
                 for p in 0..h * w {
                     if splitmix64(PRIOR_SALT ^ ((t as u64) << 32) ^ p as u64) > threshold {
                         continue;
@@ -184,22 +199,56 @@ impl PriorSamples {
                     let Some(raw) = window_mean(map, w, h, x, y, reach, stride) else {
                         continue;
                     };
-                    out.push((t as u16, p as u32, value, conf, raw));
+                    // Where the other tangents see this direction (their consensus decides
+                    // whether the prior is wrong here).
+                    for (b, cam_b) in layout.cameras.iter().enumerate() {
+                        if b == t {
+                            continue;
+                        }
+                        if let Some((xb, yb)) = cam_b.project(&d) {
+                            if cam_b.contains(xb, yb) {
+                                let xy = [
+                                    xb.clamp(0.0, (w - 1) as f64) as f32,
+                                    yb.clamp(0.0, (h - 1) as f64) as f32,
+                                ];
+                                views.push((out.len() as u32, b as u16, xy));
+                            }
+                        }
+                    }
+                    let (cc, cr) = direction_to_pixel(&d, TRUST_ROWS, 2 * TRUST_ROWS);
+                    let cell_row = (cr.round().max(0.0) as usize).min(TRUST_ROWS - 1);
+                    let cell_col = (cc.round().rem_euclid(2.0 * TRUST_ROWS as f64)) as usize
+                        % (2 * TRUST_ROWS);
+                    let cell = (cell_row * 2 * TRUST_ROWS + cell_col) as u32;
+                    out.push((t as u16, p as u32, value, conf, raw, cell));
                 }
-                out
+                (out, views)
             })
             .collect();
         let mut samples = Self {
             absolute: prior.absolute,
             ..Self::default()
         };
-        for part in parts {
-            for (t, p, v, c, raw) in part {
+        samples.view_start.push(0);
+        for (part, views) in parts {
+            let mut views = views.into_iter().peekable();
+            for (i, (t, p, v, c, raw, cell)) in part.into_iter().enumerate() {
+                while let Some(&(k, b, xy)) = views.peek() {
+                    if k != i as u32 {
+                        break;
+                    }
+                    samples.view_tangent.push(b);
+                    samples.view_xy.push(xy);
+                    views.next();
+                }
+                samples.view_start.push(samples.view_tangent.len() as u32);
+
                 samples.tangent.push(t);
                 samples.pixel.push(p);
                 samples.value.push(v);
                 samples.confidence.push(c);
                 samples.raw.push(raw);
+                samples.cell.push(cell);
             }
         }
         if samples.tangent.is_empty() {
@@ -420,7 +469,7 @@ mod tests {
                 })
                 .collect();
             // IRLS weights that are not all 1.
-            problem.reweight_prior(&x);
+            problem.reweight_prior(&x, false);
             let mut g = vec![0.0; x.len()];
             let _ = problem.energy(&x, Some(&mut g));
             let last = x.len() - 2;

@@ -1,0 +1,215 @@
+"""The global prior (issue 24): accuracy and cost of ``m360.stitch(..., prior=...)``.
+
+Tangents on the default layout (20 faces, the default padding) as in ``bench_align.py
+--robust``: ray cast exactly, then either affine errors only
+(``distort``: scale ×[0.5, 2], shift ±30 %, a ±10 % smooth field, 1 % noise) or content errors
+first (``content_errors``: 1-3 regions per tangent of 3-17 % of the tile, ±10-30 %, blur of 1 px
+per 2048 of ERP width) and then the same affine errors. The prior is
+``m360.synthetic.panoramic_prior`` of the same room (512 x 1024, blur 1.5 px, ±10 % smooth error,
+0-2 regional errors of 1-5 % of the sphere at ±10-30 %, its own affine ambiguity), given as
+``prior_kind="affine_disparity"``; "wrong prior" is the same with one regional error of 30 % on a
+cap of 20 % of the sphere (and no others).
+
+Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
+
+1. AbsRel per size and case: content errors without / with the prior, affine errors without /
+   with it, content errors with the wrong prior; the goals of issue 24 beside them.
+2. Detail at ``--detail-size`` (4096): AbsRel in a band of 4 px around the depth edges of the
+   truth (a jump of more than 5 % between neighbours, dilated by 4 px), for the stitch with the
+   prior and for the prior alone brought to that size by ``m360.stitching.guided_upsample``
+   (guided by the rendered photo). Both are scale/shift-fitted to the truth by ``depth_metrics``.
+3. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
+   of ``--repeats`` runs on one room, and the ratio.
+
+Run: ``.venv/bin/python benches/bench_prior.py [--sizes 2048 4096] [--scenes 4]``.
+Options of the prior term can be tried with ``--prior-weight`` / ``--prior-scale-deg``.
+"""
+
+from __future__ import annotations
+
+import statistics
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import _harness as h
+import m360
+import m360.synthetic as syn
+from m360.geometry import sphere as sph
+
+#: The goals of issue 24 per case (None: no goal, a reference).
+GOALS = {
+    "content errors, no prior": "(~0.022)",
+    "content errors, with prior": "<= 0.012",
+    "affine errors, no prior": "(~0.011)",
+    "affine errors, with prior": "<= 0.009",
+    "content errors, wrong prior": "<= no prior + 0.002",
+}
+
+
+def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> dict[str, Any]:
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    wrong = syn.content_errors(exact, seed + 200, blur=width / 2048)
+    affine = {"scale": (0.5, 2.0), "shift": 0.3, "field": 0.1, "noise": 0.01}
+    return {
+        "affine": syn.distort(exact, seed + 100, **affine),  # type: ignore[arg-type]
+        "content": syn.distort(wrong, seed + 100, **affine),  # type: ignore[arg-type]
+    }
+
+
+def priors(scene: syn.Scene, seed: int) -> dict[str, np.ndarray]:
+    return {
+        "good": np.asarray(syn.panoramic_prior(scene, seed + 300)),
+        "wrong": np.asarray(
+            syn.panoramic_prior(
+                scene,
+                seed + 300,
+                regions=(1, 1),
+                region_share=(0.2, 0.2),
+                region_amplitude=(0.3, 0.3),
+            )
+        ),
+    }
+
+
+def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
+    rows = []
+    for width in sizes:
+        layout = m360.Layout.icosahedron(width)
+        errs: dict[str, list[float]] = {}
+        outvoted: dict[str, list[float]] = {}
+        for seed in range(scenes):
+            scene = syn.room(seed)
+            depth = scene.distance(sph.erp_directions(width // 2, width))
+            tiles = tangents(scene, layout, width, seed)
+            prior = priors(scene, seed)
+            cases = {
+                "content errors, no prior": (tiles["content"], None),
+                "content errors, with prior": (tiles["content"], prior["good"]),
+                "affine errors, no prior": (tiles["affine"], None),
+                "affine errors, with prior": (tiles["affine"], prior["good"]),
+                "content errors, wrong prior": (tiles["content"], prior["wrong"]),
+            }
+            for name, (t, p) in cases.items():
+                kw = tuning if p is not None else {}
+                res = m360.stitch(t, layout, prior=p, return_details=True, **kw)
+                errs.setdefault(name, []).append(
+                    m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
+                )
+                fit = res.report.get("prior")
+                if fit is not None:
+                    outvoted.setdefault(name, []).append(fit["outvoted"])
+        for name, values in errs.items():
+            share = statistics.median(outvoted[name]) if name in outvoted else float("nan")
+            rows.append([width, name, statistics.median(values), max(values), share, GOALS[name]])
+        print(f"  done {width}", flush=True)
+    return rows
+
+
+def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarray:
+    """Pixels within ``band`` px of a jump of more than ``jump`` (relative) between neighbours."""
+    disparity = 1.0 / depth
+    right = np.abs(np.diff(disparity, axis=1, append=disparity[:, :1])) / disparity
+    down = np.abs(np.diff(disparity, axis=0, append=disparity[-1:])) / disparity
+    edges = ((right > jump) | (down > jump)).astype(np.uint8)
+    kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
+    return cv2.dilate(edges, kernel).astype(bool)
+
+
+def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
+    layout = m360.Layout.icosahedron(width)
+    stitched, alone = [], []
+    for seed in range(scenes):
+        scene = syn.room(seed)
+        rgb, depth = syn.render(scene, width)
+        band = edge_band(depth)
+        tiles = tangents(scene, layout, width, seed)["content"]
+        prior = priors(scene, seed)["good"]
+        res = m360.stitch(tiles, layout, prior=prior, **tuning)
+        up = m360.stitching.guided_upsample(prior, rgb)
+        stitched.append(m360.eval.depth_metrics(res, depth, valid=band)["abs_rel"])
+        alone.append(m360.eval.depth_metrics(up, depth, valid=band)["abs_rel"])
+    s, a = statistics.median(stitched), statistics.median(alone)
+    return [[width, s, a, a / s, ">= 2x"]]
+
+
+def timing(sizes: list[int], repeats: int, tuning: dict[str, Any]) -> list[list]:
+    rows = []
+    scene = syn.room(0)
+    prior = priors(scene, 0)["good"]
+    for width in sizes:
+        layout = m360.Layout.icosahedron(width)
+        tiles = tangents(scene, layout, width, 0)["content"]
+        m360.stitch(tiles, layout)  # plan built, caches warm
+
+        def plain(t: np.ndarray = tiles, lay: m360.Layout = layout) -> None:
+            m360.stitch(t, lay)
+
+        def with_prior(t: np.ndarray = tiles, lay: m360.Layout = layout) -> None:
+            m360.stitch(t, lay, prior=prior, **tuning)
+
+        # Interleaved, so drifts of a shared machine hit both alike.
+        a, b = [], []
+        for _ in range(repeats):
+            a.append(h.measure(plain, repeats=1, warmup=0).median)
+            b.append(h.measure(with_prior, repeats=1, warmup=0).median)
+        ta, tb = statistics.median(a), statistics.median(b)
+        rows.append([width, ta, tb, tb / ta, "<= 1.2x"])
+        print(f"  timed {width}", flush=True)
+    return rows
+
+
+def main() -> None:
+    parser = h.bench_argparser(__doc__.splitlines()[0])
+    parser.set_defaults(repeats=3, sizes=[2048])
+    parser.add_argument("--scenes", type=int, default=4, help="rooms per size (4)")
+    parser.add_argument("--detail-size", type=int, default=4096, help="ERP width of table 2")
+    parser.add_argument("--time-sizes", type=int, nargs="*", default=[2048, 8192])
+    parser.add_argument("--prior-weight", type=float, default=None)
+    parser.add_argument("--prior-scale-deg", type=float, default=None)
+    parser.add_argument("--skip", nargs="*", default=[], choices=["accuracy", "detail", "time"])
+    args = parser.parse_args()
+    tuning = {
+        k: v
+        for k, v in (("prior_weight", args.prior_weight), ("prior_scale_deg", args.prior_scale_deg))
+        if v is not None
+    }
+    meta = h.metadata()
+    print(f"m360 {m360.__version__} @ {meta.get('git_commit')}, threads {m360.get_num_threads()}")
+    out: dict[str, Any] = {"tuning": tuning}
+    if "accuracy" not in args.skip:
+        rows = accuracy(args.sizes, args.scenes, tuning)
+        h.print_table(
+            f"AbsRel, median (and worst) over {args.scenes} rooms; outvoted = median share of "
+            "the prior's pull its robust weights removed",
+            ["ERP", "case", "AbsRel", "worst", "outvoted", "goal"],
+            rows,
+        )
+        out["accuracy"] = rows
+    if "detail" not in args.skip:
+        rows = detail(args.detail_size, args.scenes, tuning)
+        h.print_table(
+            "AbsRel in a 4 px band around depth edges: stitch with the prior vs the prior alone "
+            "(guided upsampling)",
+            ["ERP", "with prior", "prior alone", "ratio", "goal"],
+            rows,
+        )
+        out["detail"] = rows
+    if "time" not in args.skip and args.time_sizes:
+        rows = timing(args.time_sizes, args.repeats, tuning)
+        h.print_table(
+            f"stitch seconds without / with the prior, median of {args.repeats}",
+            ["ERP", "no prior s", "prior s", "ratio", "goal"],
+            rows,
+        )
+        out["time"] = rows
+    if args.json:
+        h.write_json(args.json, [out], meta)
+
+
+if __name__ == "__main__":
+    main()
