@@ -351,9 +351,18 @@ def test_batch_resume_redoes_an_image_when_the_prior_changes(
     assert len(run(prior=str(tmp_path / "map.npy"), prior_kind="distance").skipped) == 1
     np.save(tmp_path / "map.npy", a * 3)
     assert len(run(prior=str(tmp_path / "map.npy"), prior_kind="distance").done) == 1
-    # No prior at all: redone, and its fingerprint has no prior (as before the prior existed).
+    # The prior's own stitching options count with a prior: another weight redoes.
+    weighted = run(prior=str(tmp_path / "map.npy"), prior_kind="distance", prior_weight=2.0)
+    assert len(weighted.done) == 1
+    assert _sidecar(out)["batch"]["fingerprint"]["prior_options"]["prior_weight"] == 2.0
+    # No prior at all: redone, and its fingerprint has no prior and none of the prior's options
+    # (as before the prior existed, so earlier runs' outputs stay valid).
     assert len(run().done) == 1
-    assert "prior" not in _sidecar(out)["batch"]["fingerprint"]
+    fingerprint = _sidecar(out)["batch"]["fingerprint"]
+    assert "prior" not in fingerprint and "prior_options" not in fingerprint
+    assert not {"prior_weight", "prior_scale_deg"} & set(fingerprint["stitch"]["align"])
+    # Without a prior its weight changes no byte: skipped.
+    assert len(run(prior_weight=3.0).skipped) == 1
 
 
 @pytest.mark.skipif(not STITCH_TAKES_PRIOR, reason="the installed m360.stitch takes no prior yet")

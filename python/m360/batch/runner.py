@@ -566,6 +566,10 @@ def run(
     # the image; absent without one, so the fingerprints of earlier runs stay valid.
     if prior is not None:
         settings.fingerprint["prior"] = describe_prior(prior)
+        align = opts.as_dict()["align"] or {}
+        settings.fingerprint["prior_options"] = {
+            name: align[name] for name in PRIOR_OPTIONS if name in align
+        }
     # A rerun with other stereo options must not be skipped (absent without a stereo format).
     if any(f in STEREO_FORMATS for f in chosen):
         settings.fingerprint["stereo"] = resolved(stereo_keywords, StereoKeywords)
@@ -741,6 +745,11 @@ def _make_output_folder(out: Path) -> None:
         raise InputError(f"the output folder {out} is not writable")
 
 
+#: Stitching options that act only with a prior (``StitchTuning``'s ``prior_weight`` and
+#: ``prior_scale_deg``).
+PRIOR_OPTIONS = ("prior_weight", "prior_scale_deg")
+
+
 def fingerprint(
     estimator: Any,
     options: StitchOptions,
@@ -793,9 +802,16 @@ def fingerprint(
             std=[float(v) for v in estimator.std],
             providers=list(estimator.providers),
         )
+    stitch = options.as_dict()
+    # The prior's options change nothing without a prior: kept out, so the fingerprints of
+    # runs without one (and of runs from before the prior existed) stay valid; the runner
+    # adds them with the prior.
+    if stitch["align"] is not None:
+        for name in PRIOR_OPTIONS:
+            stitch["align"].pop(name, None)
     result = {
         "model": model,
-        "stitch": options.as_dict(),
+        "stitch": stitch,
         "formats": sorted(formats),
         "preview": bool(preview),
         "fix_aspect": bool(fix_aspect),
