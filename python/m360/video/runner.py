@@ -35,7 +35,7 @@ import json
 import os
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -45,12 +45,14 @@ import numpy as np
 
 from .._keywords import definition, resolved, split
 from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure, is_done
+from .._validate import MAX_THREADS, integer
 from ..batch.runner import (
     FAILURES_FILE,
     BatchReport,
     _append_failure,
     _keyboard_interrupt_once,
     _make_output_folder,
+    _ray_resources,
     fingerprint,
 )
 from ..errors import InputError, M360Error, ModelError, ReadError
@@ -142,6 +144,8 @@ class _Plan:
     resume: bool
     temporal: Temporal
     tangent_model: bool = True  # a panoramic model runs alone: no prior goes with it
+    model: Any = None  # what a chunk worker loads its estimator from (the run's ``model``)
+    model_options: ModelOptions | None = None
 
 
 def _input_of(plan: _Plan, frame: Frame) -> Path:
@@ -163,19 +167,37 @@ def _done(plan: _Plan, job: Job) -> bool:
     return done and (plan.temporal.mode == "none" or _state_path(job.stem).is_file())
 
 
-def _process(
+@dataclass
+class _Computed:
+    """A frame estimated and smoothed, not yet written (what :func:`_write` takes)."""
+
+    result: Any
+    state: TemporalState
+    extra: dict[str, Any]
+    timings: dict[str, float]
+
+    def with_gauge(self, a: float, b: float) -> _Computed:
+        """The same frame in another gauge: disparity and state mapped by ``a·D + b``."""
+        if (a, b) == (1.0, 0.0):
+            return self
+        disparity = self.result.disparity * np.float32(a) + np.float32(b)
+        result = dataclasses.replace(self.result, disparity=disparity, depth=depth_of(disparity))
+        state = self.state
+        state = TemporalState(
+            state.disparity * np.float32(a) + np.float32(b),
+            state.grey,
+            None if state.velocity is None else state.velocity * np.float32(a),
+        )
+        return _Computed(result, state, self.extra, self.timings)
+
+
+def _compute(
     plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
-) -> tuple[TemporalState, dict[str, float]]:
-    """Estimate, smooth and write one frame; its state for the next one and its timings."""
+) -> _Computed:
+    """Estimate and smooth one frame (nothing written)."""
     from ..pipeline.estimate import estimate
 
     assert frame.rgb is not None
-    # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
-    remove_stale_temporaries(job.stem)
-    state_name = _state_path(job.stem).name
-    for tmp in job.stem.parent.glob(f"{glob.escape(temporary_prefix(state_name))}{'?' * 8}.tmp"):
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
     t0 = time.perf_counter()
     grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
     prior = {}
@@ -194,37 +216,51 @@ def _process(
     if disparity is not result.disparity:
         result = dataclasses.replace(result, disparity=disparity, depth=depth_of(disparity))
     t_temporal = time.perf_counter()
-    stat = job.input.stat()
-    source = {
-        "path": str(job.input),
-        "size": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
-        "rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest(),
-    }
     extra = {
-        "input": source,
+        "input": {"rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest()},
         "frame": {"index": frame.index, "time": frame.time, "video": str(plan.source.path)},
         "temporal": {"mode": plan.temporal.mode, **record, **applied},
         "batch": {"fingerprint": plan.fingerprint, "run": plan.run_id},
     }
+    timings = {
+        **{k: v for k, v in result.timings.items() if k != "total"},
+        "estimate": t_estimate - t0,
+        "temporal": t_temporal - t_estimate,
+    }
+    return _Computed(result, state, extra, timings)
+
+
+def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
+    """Write one computed frame atomically, its sidecar last; its timings."""
+    t0 = time.perf_counter()
+    # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
+    remove_stale_temporaries(job.stem)
+    state_name = _state_path(job.stem).name
+    for tmp in job.stem.parent.glob(f"{glob.escape(temporary_prefix(state_name))}{'?' * 8}.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+    stat = job.input.stat()
+    source = {"path": str(job.input), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    extra = {**frame.extra, "input": {**source, **frame.extra["input"]}}
     if plan.temporal.mode != "none":
-        state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
+        frame.state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
     save(
-        result,
+        frame.result,
         job.stem,
         formats=plan.formats,
         preview=plan.preview,
         extra=extra,
         confidence=plan.confidence,
     )
-    t_write = time.perf_counter()
-    timings = {
-        **{k: v for k, v in result.timings.items() if k != "total"},
-        "estimate": t_estimate - t0,
-        "temporal": t_temporal - t_estimate,
-        "write": t_write - t_temporal,
-    }
-    return state, timings
+    return {**frame.timings, "write": time.perf_counter() - t0}
+
+
+def _process(
+    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
+) -> tuple[TemporalState, dict[str, float]]:
+    """Estimate, smooth and write one frame; its state for the next one and its timings."""
+    computed = _compute(plan, frame, job, previous, missing)
+    return computed.state, _write(plan, job, computed)
 
 
 def _estimate_keywords() -> set[str]:
@@ -256,6 +292,12 @@ def run(
     resume: bool = True,
     progress: bool = True,
     on_outcome: Callable[[ImageOutcome], None] | None = None,
+    engine: str = "local",
+    workers: int = 1,
+    chunk: int | None = None,
+    overlap: int | None = None,
+    gpus_per_model: float | None = None,
+    cpus_per_stitch: float = 1.0,
     **keywords: Unpack[EstimateKeywords],
 ) -> VideoReport:
     """Estimate the depth of every (selected) frame of a 360° video into ``out_dir``.
@@ -293,6 +335,25 @@ def run(
         Show a progress bar with frames per second and the time left.
     on_outcome : callable, optional
         Called with each frame's :class:`m360.batch.ImageOutcome` as it arrives.
+    engine : {"local", "ray"}
+        Where frames run: in this process, in order (default), or on a Ray cluster
+        (``pip install "m360[ray]"``; the cluster in ``RAY_ADDRESS``, else a local one) in
+        chunks of consecutive frames (:mod:`m360.video.chunks`). Same files, resume, failures
+        and exit codes either way; each engine resumes the other's frames.
+    workers : int
+        Ray only: chunk workers (Ray actors, one estimator each) running at once.
+    chunk : int, optional
+        Frames per chunk (Ray default :data:`~m360.video.chunks.DEFAULT_CHUNK`, 32). With the
+        local engine, ``chunk=`` runs the same chunks in this process (the Ray engine's bytes);
+        without it the whole video is one sequence.
+    overlap : int, optional
+        Warm-up frames each chunk starts before its own, on which its gauge is fitted to the
+        previous chunk's (default :data:`~m360.video.chunks.DEFAULT_OVERLAP`, 4; at most
+        ``chunk``).
+    gpus_per_model : float, optional
+        Ray only: GPUs per chunk worker (default 1 if ``providers`` asks for CUDA, else 0).
+    cpus_per_stitch : float
+        Ray only: CPUs per chunk worker (also the core's threads in it).
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones
         (:class:`m360.pipeline.options.EstimateKeywords`).
@@ -331,6 +392,16 @@ def run(
     job_options = resolved(job_keywords, JobKeywords)
     opts = build(options, **stitch_keywords)
     chosen = check_formats(formats)
+    workers = integer(workers, "workers", low=1, high=MAX_THREADS)
+    ray_resources = _ray_resources(
+        engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
+    )
+    if ray_resources is None and workers != 1:
+        raise InputError(
+            "the local video engine runs frames in order in one process: workers apply to "
+            "engine='ray' only"
+        )
+    chunking = _chunking(chunk, overlap, ray=ray_resources is not None)
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
@@ -367,6 +438,8 @@ def run(
         resume=bool(resume),
         temporal=temporal,
         tangent_model=estimator_kind(estimator) != "panoramic",
+        model=model,
+        model_options=model_opts,
     )
     _make_output_folder(out)
     report = VideoReport(
@@ -378,7 +451,11 @@ def run(
             report.outcomes.append(ImageOutcome(str(src), str(out), "busy"))
             report.seconds = time.perf_counter() - started
             return report
-        _run_frames(plan, src, (every, start, end, fps), report, progress, on_outcome)
+        selection = (every, start, end, fps)
+        if chunking is None:
+            _run_frames(plan, src, selection, report, progress, on_outcome)
+        else:
+            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, ray_resources)
         if preview_video and not report.interrupted:
             stems = [out / o.stem for o in report.outcomes if o.status in ("done", "skipped")]
             rate = (source.fps or 30.0) / every
@@ -463,6 +540,80 @@ def _run_frames(
     except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
         name = "video" if job is None else f"after {job.name}"
         record(_failure(plan.source.path, name, exc))
+    finally:
+        bar.close()
+
+
+def _chunking(chunk: Any, overlap: Any, *, ray: bool) -> tuple[int, int] | None:
+    """(chunk, overlap) of a chunked run, or None for the local engine's one sequence."""
+    from .chunks import DEFAULT_CHUNK, DEFAULT_OVERLAP
+
+    if chunk is None and not ray:
+        if overlap is not None:
+            raise InputError("overlap applies to chunked runs only (engine='ray' or chunk=)")
+        return None
+    size = DEFAULT_CHUNK if chunk is None else integer(chunk, "chunk", low=1)
+    warm = DEFAULT_OVERLAP if overlap is None else integer(overlap, "overlap", low=0)
+    if warm > size:
+        raise InputError(f"overlap must be at most chunk ({size}), got {warm}")
+    return size, warm
+
+
+def _run_chunks(
+    plan: _Plan,
+    src: str | os.PathLike[str],
+    selection: tuple[Any, ...],
+    report: VideoReport,
+    progress: bool,
+    on_outcome: Callable[[ImageOutcome], None] | None,
+    chunking: tuple[int, int],
+    resources: Any,
+) -> None:
+    """Run the frames in chunks (:mod:`m360.video.chunks`), in this process or on Ray."""
+    from ..batch._interrupt import MainThreadInterrupts
+    from .chunks import chunks_of, run_local, run_ray
+
+    every, start, end, fps = selection
+    bar = _progress_bar(_expected_frames(plan.source, every, start, end), progress)
+    last: list[str] = []
+
+    def record(outcome: ImageOutcome) -> None:
+        report.outcomes.append(outcome)
+        bar.update(1)
+        last[:] = [outcome.stem]
+        if outcome.status == "failed":
+            try:
+                _append_failure(report.failures_file, outcome, plan.run_id)
+            except OSError as exc:
+                report.notes.append(f"failures.jsonl could not be written ({exc})")
+        if on_outcome is not None:
+            on_outcome(outcome)
+
+    read_error: list[M360Error] = []
+
+    def selected() -> Iterator[Frame]:
+        try:
+            yield from frames(src, every, start, end, fps=fps, on_error="yield")
+        except M360Error as exc:  # a damaged container: the frames after it are lost
+            read_error.append(exc)
+
+    size, overlap = chunking
+    chunks = chunks_of(prefetch(selected(), READ_AHEAD), size, overlap)
+    try:
+        with MainThreadInterrupts(_keyboard_interrupt_once()):
+            if resources is None:
+                run_local(plan, chunks, overlap, record)
+            else:
+                run_ray(plan, chunks, overlap, record, resources)
+            if read_error:
+                name = f"after {last[0]}" if last else "video"
+                record(_failure(plan.source.path, name, read_error[0]))
+    except KeyboardInterrupt:
+        report.interrupted = True
+    except ModelError as exc:
+        if report.done:
+            raise
+        report.model_error = str(exc)
     finally:
         bar.close()
 
