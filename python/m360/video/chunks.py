@@ -1,5 +1,7 @@
-"""Chunked video runs: the Ray engine of :func:`m360.video.run` (``engine="ray"``), and the same
-chunks run in this process (``engine="local"`` with ``chunk=``).
+"""Chunked video runs: the Ray engine of :func:`m360.video.run`, and its chunks run here.
+
+``engine="ray"`` runs chunks on Ray; ``engine="local"`` with ``chunk=`` runs the same chunks in
+this process (the same bytes).
 
 The temporal term makes frames sequential, so a video is split into chunks of ``chunk``
 consecutive selected frames. Each chunk runs in order on one worker from a fresh temporal state
@@ -14,7 +16,7 @@ is mapped by that fit, so a chunk boundary does not jump; after a reset a frame 
 as in the local engine.
 
 Each frame is written by the worker that finished it, with the local engine's writer
-(:func:`m360.video.runner._write`: the same files, state, sidecar last, atomic), and is skipped
+(:func:`m360.video._frame._write`: the same files, state, sidecar last, atomic), and is skipped
 when it is already done with the run's fingerprint, whichever engine made it. The chunking is
 not in the fingerprint, so a local run and a Ray run resume each other's frames; the sidecar's
 ``temporal.chunk`` records the chunk and the gauge. A chunk with every frame done is not run; a
@@ -35,9 +37,9 @@ from typing import Any
 import numpy as np
 
 from ..batch.image import ImageOutcome, _error_outcome, _failure
-from ..errors import M360Error, ModelError, ReadError
+from ..errors import ModelError, ReadError
+from ._frame import _compute, _Computed, _done, _job, _Plan, _state_path, _write, frame_stem
 from .reader import Frame
-from .runner import _Computed, _done, _job, _Plan, _state_path, _write, frame_stem
 from .temporal import TemporalState, _fit_gauge
 
 __all__ = ["DEFAULT_CHUNK", "DEFAULT_OVERLAP", "Chunk", "ChunkRunner", "chunks_of"]
@@ -61,6 +63,7 @@ class Chunk:
 
     @property
     def own(self) -> list[Frame]:
+        """The chunk's own frames (written by it), after the warm-up."""
         return self.frames[self.warmup :]
 
 
@@ -87,8 +90,10 @@ def chunks_of(frames: Iterable[Frame], size: int, overlap: int) -> Iterator[Chun
 
 
 class ChunkRunner:
-    """Runs chunks on one estimator: :meth:`compute` holds a chunk's frames, :meth:`write`
-    writes them in the gauge the driver fitted. A Ray actor, or an object in this process.
+    """Runs chunks on one estimator: a Ray actor, or an object in this process.
+
+    :meth:`compute` holds a chunk's frames, :meth:`write` writes them in the gauge the driver
+    fitted.
     """
 
     def __init__(self, plan: _Plan, threads: int | None = None) -> None:
@@ -114,7 +119,7 @@ class ChunkRunner:
         return True
 
     def compute(self, chunk: Chunk) -> _Summary:
-        """Estimate and smooth the chunk's frames in order; keep its own frames for :meth:`write`."""
+        """Estimate and smooth the chunk's frames in order; keep its own ones for :meth:`write`."""
         plan = self.plan
         state: TemporalState | None = None
         missing = "first frame" if chunk.number == 0 else "chunk start"
@@ -149,14 +154,15 @@ class ChunkRunner:
         return summary
 
     def write(self, gauge: Gauge | None, overlap: int) -> tuple[list[ImageOutcome], Tail]:
-        """Write the kept frames (``gauge`` on those before the first reset), skipping frames
-        already done; the outcomes and the written states of the last ``overlap`` frames.
+        """Write the kept frames (``gauge`` on those before the first reset) but done ones.
+
+        Returns the outcomes and the written states of the last ``overlap`` frames.
         """
         plan, chunk = self.plan, self.chunk
         assert chunk is not None
         outcomes: list[ImageOutcome] = []
         tail: Tail = {}
-        last = {frame.index for frame in chunk.own[len(chunk.own) - overlap :]} if overlap else set()
+        last = set(_tail_indices(chunk, overlap))
         for job, item, anchored in self.kept:
             if isinstance(item, ImageOutcome):
                 outcomes.append(item)
@@ -186,8 +192,6 @@ class ChunkRunner:
 def _compute_frame(
     plan: _Plan, frame: Frame, job: Any, state: TemporalState | None, missing: str
 ) -> _Computed:
-    from .runner import _compute
-
     return _compute(plan, frame, job, state, missing)
 
 
@@ -198,7 +202,7 @@ def _replace_estimator(plan: _Plan, estimator: Any) -> _Plan:
 
 
 def written_states(plan: _Plan, indices: Iterable[int]) -> Tail:
-    """The state disparities frames already done left in OUT (unreadable ones left out)."""
+    """Read the state disparities that done frames left in OUT (unreadable ones left out)."""
     tail: Tail = {}
     for index in indices:
         with contextlib.suppress(ReadError):
@@ -208,7 +212,7 @@ def written_states(plan: _Plan, indices: Iterable[int]) -> Tail:
 
 
 def fit_gauge(summary: _Summary, previous: Tail) -> Gauge | None:
-    """The chunk's gauge: its warm-up states fitted to the previous chunk's written ones."""
+    """Fit the chunk's gauge: its warm-up states to the previous chunk's written ones."""
     if not summary.relative:
         return None  # metric results keep their metres
     shared = sorted(set(summary.warm) & set(previous))
@@ -220,7 +224,7 @@ def fit_gauge(summary: _Summary, previous: Tail) -> Gauge | None:
 
 
 def _skippable(plan: _Plan, chunk: Chunk) -> list[ImageOutcome] | None:
-    """The outcomes of a chunk with nothing to do (every frame done or unreadable), else None."""
+    """Give the outcomes of a chunk with nothing to do (all done or unreadable), else None."""
     if not plan.resume:
         return None
     outcomes = []
@@ -363,8 +367,3 @@ def _crashed(plan: _Plan, chunk: Chunk, exc: BaseException) -> list[ImageOutcome
         message = f"the Ray worker died while running chunk {chunk.number}: {cause}"
         outcomes.append(ImageOutcome(str(job.input), job.name, "failed", "WorkerCrashed", message))
     return outcomes
-
-
-def reader_error(plan: _Plan, after: str | None, exc: M360Error) -> ImageOutcome:
-    """The failure of a container that cannot be read further (the rest of it is lost)."""
-    return _failure(plan.source.path, "video" if after is None else f"after {after}", exc)
