@@ -117,7 +117,7 @@ def test_chunk_boundaries_do_not_flicker_more_than_inside_a_chunk(
     jump at the boundaries: the check can fail."""
     truth = [walk.render(k)[1] for k in range(FRAMES)]
     boundaries = [3, 7]  # pair k is frames k and k + 1
-    inside = [k for k in range(FRAMES - 1) if k not in boundaries and k % 4 != 0]
+    inside = [k for k in range(FRAMES - 1) if k not in boundaries]
     results = {}
     for overlap in (2, 0):
         out = tmp_path / f"overlap{overlap}"
@@ -129,9 +129,10 @@ def test_chunk_boundaries_do_not_flicker_more_than_inside_a_chunk(
             float(np.median(flicker[inside])),
         )
     at_boundary, within = results[2]
-    # Margin: a boundary pair may flicker up to 3x the median pair inside a chunk (+0.002).
-    assert at_boundary <= 3 * within + 0.002, results
-    assert results[0][0] > 3 * results[0][1] + 0.002, results  # no overlap: a jump
+    # Margin: the worse boundary pair flickers at most 1.5x the median pair inside a chunk
+    # (measured 0.96x: 0.0110 against 0.0115; without the overlap 9.6x).
+    assert at_boundary <= 1.5 * within, results
+    assert results[0][0] > 3 * results[0][1], results  # no overlap: a jump
 
 
 def test_resume_redoes_only_unfinished_frames_across_engines(
