@@ -193,3 +193,24 @@ def test_cli_video_engine_ray(
     records = [json.loads((out / f"{k:06d}.json").read_text()) for k in range(6)]
     assert [r["temporal"]["chunk"]["number"] for r in records] == [0, 0, 0, 1, 1, 1]
     assert main([*argv, "--chunk", "0"]) == 2  # a usage error
+
+
+class _Broken:
+    """A model whose network always fails."""
+
+    output_kind = "affine_disparity"
+    name = "broken"
+
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        raise m360.ModelError("this network always fails")
+
+
+@pytest.mark.parametrize("engine", ["local", "ray"])
+def test_a_model_failing_on_the_first_frame_stops_a_chunked_run(
+    local_ray: str, tmp_path: Path, frames: Path, engine: str
+) -> None:
+    """As the local engine's one sequence: exit 2, no frame written, nothing in failures."""
+    out = tmp_path / "out"
+    report = m360.video.run(frames, out, model=_Broken(), engine=engine, end=6, **CHUNKS, **OPTIONS)
+    assert report.exit_code == 2 and "always fails" in (report.model_error or "")
+    assert not report.outcomes and not list(out.glob("0*"))

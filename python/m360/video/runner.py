@@ -432,8 +432,14 @@ def _run_chunks(
     every, start, end, fps = selection
     bar = _progress_bar(_expected_frames(plan.source, every, start, end), progress)
     last: list[str] = []
+    tried: list[bool] = []  # whether a frame reached the model yet
 
     def record(outcome: ImageOutcome) -> None:
+        if outcome.status in ("done", "failed") and outcome.error != "ReadError" and not tried:
+            tried.append(True)
+            if outcome.error == "ModelError" and not report.done:
+                # As the local engine: the model failing on the first frame stops the run.
+                raise ModelError(outcome.message or "the model failed")
         report.outcomes.append(outcome)
         bar.update(1)
         last[:] = [outcome.stem]
