@@ -101,6 +101,8 @@ def test_ray_writes_the_bytes_of_the_same_chunks_run_here_whatever_the_workers(
         assert len(_arrays(out)) == 3 * FRAMES
         assert _sidecars(out) == _sidecars(tmp_path / "here")
         assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries, locks
+    run_file = json.loads((tmp_path / "ray1" / "video.json").read_text())
+    assert run_file["engine"] == {"engine": "ray", "chunk": 4, "overlap": 2}
     chunk_records = [_sidecars(tmp_path / "here")[f"{k:06d}.json"]["temporal"] for k in (0, 4, 9)]
     assert [r["chunk"]["number"] for r in chunk_records] == [0, 1, 2]
     assert chunk_records[0]["chunk"]["gauge"] == [1.0, 0.0]
@@ -214,3 +216,40 @@ def test_a_model_failing_on_the_first_frame_stops_a_chunked_run(
     report = m360.video.run(frames, out, model=_Broken(), engine=engine, end=6, **CHUNKS, **OPTIONS)
     assert report.exit_code == 2 and "always fails" in (report.model_error or "")
     assert not report.outcomes and not list(out.glob("0*"))
+
+
+class _CrashOn:
+    """The simulated network, but its worker process dies on one frame (every time)."""
+
+    output_kind = "affine_disparity"
+
+    def __init__(self, inner: sq.SequenceEstimator, frame: int) -> None:
+        self.inner, self.frame = inner, frame
+        self.name = inner.name  # the same fingerprint as the run without the crash
+
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        if self.inner.frame_of(tangents) == self.frame:
+            os._exit(3)
+        return self.inner.predict(tangents)
+
+
+def test_a_chunk_whose_worker_dies_fails_alone_and_a_rerun_finishes_it(
+    local_ray: str, tmp_path: Path, frames: Path, model: sq.SequenceEstimator
+) -> None:
+    """Frame 5 kills its worker: chunk 1 (frames 4-7) fails as WorkerCrashed, chunks 0 and 2
+    are written; the rerun with a sound network does frames 4-7 only."""
+    out = tmp_path / "out"
+    crashing = _CrashOn(model, 5)
+    report = m360.video.run(
+        frames, out, model=crashing, engine="ray", workers=2, **CHUNKS, **OPTIONS
+    )
+    assert report.exit_code == 1
+    assert [o.stem for o in report.failed] == [f"{k:06d}" for k in range(4, 8)]
+    assert {o.error for o in report.failed} == {"WorkerCrashed"}
+    assert len(report.done) == FRAMES - 4
+    lines = (out / "failures.jsonl").read_text().splitlines()
+    assert sorted(json.loads(line)["output"] for line in lines) == [f"{k:06d}" for k in range(4, 8)]
+    again = m360.video.run(frames, out, model=model, engine="ray", workers=2, **CHUNKS, **OPTIONS)
+    assert again.exit_code == 0
+    assert sorted(o.stem for o in again.done) == [f"{k:06d}" for k in range(4, 8)]
+    assert len(again.skipped) == FRAMES - 4

@@ -321,7 +321,10 @@ def run(
                 )
             except M360Error as exc:
                 report.notes.append(f"the preview video could not be written: {exc}")
-        _write_run_file(plan, report, (every, start, end, fps))
+        ran: dict[str, Any] = {"engine": "local" if ray_resources is None else "ray"}
+        if chunking is not None:
+            ran.update(chunk=chunking[0], overlap=chunking[1])
+        _write_run_file(plan, report, (every, start, end, fps), ran)
     report.seconds = time.perf_counter() - started
     return report
 
@@ -564,7 +567,9 @@ def _write_preview_video(
     return path, (lo, hi)
 
 
-def _write_run_file(plan: _Plan, report: VideoReport, selection: tuple[Any, ...]) -> None:
+def _write_run_file(
+    plan: _Plan, report: VideoReport, selection: tuple[Any, ...], engine: dict[str, Any]
+) -> None:
     """Write ``OUT/video.json``: the source, the selection, the run's counts and scale."""
     every, start, end, fps = selection
     record = {
@@ -578,6 +583,7 @@ def _write_run_file(plan: _Plan, report: VideoReport, selection: tuple[Any, ...]
         },
         "selection": {"every": every, "start": start, "end": end, "fps": fps},
         "temporal": plan.temporal.mode,
+        "engine": engine,  # how this run ran (chunk and overlap when chunked)
         "frames": sorted(o.stem for o in report.outcomes if o.status in ("done", "skipped")),
         "failed": sorted(o.stem for o in report.failed),
         "preview_video": None
