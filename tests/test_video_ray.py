@@ -253,3 +253,14 @@ def test_a_chunk_whose_worker_dies_fails_alone_and_a_rerun_finishes_it(
     assert again.exit_code == 0
     assert sorted(o.stem for o in again.done) == [f"{k:06d}" for k in range(4, 8)]
     assert len(again.skipped) == FRAMES - 4
+
+
+def test_without_the_temporal_term_chunks_change_no_byte(
+    tmp_path: Path, frames: Path, model: sq.SequenceEstimator
+) -> None:
+    """Frames on their own (temporal="none"): a chunked run writes the one sequence's arrays."""
+    options = {**OPTIONS, "temporal": "none", "end": 6}
+    m360.video.run(frames, tmp_path / "one", model=model, **options)
+    m360.video.run(frames, tmp_path / "chunked", model=model, chunk=4, **options)
+    assert _arrays(tmp_path / "chunked") == _arrays(tmp_path / "one")
+    assert len(_arrays(tmp_path / "one")) == 2 * 6

@@ -305,13 +305,15 @@ def run_ray(
         exhausted = False
         previous: Tail = {}
         while True:
-            while idle and not exhausted:
+            # Few chunks wait at once: each holds its decoded frames.
+            while idle and not exhausted and len(entries) < 2 * len(actors):
                 chunk = next(source, None)
                 if chunk is None:
                     exhausted = True
                     break
-                if _skippable(plan, chunk) is not None:
-                    entries.append((chunk, None, None))
+                skipped = _skippable(plan, chunk)
+                if skipped is not None:
+                    entries.append((chunk, None, skipped))
                     continue
                 actor = idle.popleft()
                 entries.append((chunk, actor, actor.compute.remote(chunk)))
@@ -319,7 +321,7 @@ def run_ray(
                 break
             chunk, actor, ref = entries.popleft()
             if actor is None:  # every frame done: recorded now, in order
-                for outcome in _skippable(plan, chunk) or []:
+                for outcome in ref:
                     record(outcome)
                 previous = written_states(plan, _tail_indices(chunk, overlap))
                 continue

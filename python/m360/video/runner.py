@@ -412,7 +412,7 @@ def _chunking(chunk: Any, overlap: Any, *, ray: bool) -> tuple[int, int] | None:
             raise InputError("overlap applies to chunked runs only (engine='ray' or chunk=)")
         return None
     size = DEFAULT_CHUNK if chunk is None else integer(chunk, "chunk", low=1)
-    warm = DEFAULT_OVERLAP if overlap is None else integer(overlap, "overlap", low=0)
+    warm = min(DEFAULT_OVERLAP, size) if overlap is None else integer(overlap, "overlap", low=0)
     if warm > size:
         raise InputError(f"overlap must be at most chunk ({size}), got {warm}")
     return size, warm
@@ -463,6 +463,8 @@ def _run_chunks(
             read_error.append(exc)
 
     size, overlap = chunking
+    if plan.temporal.mode == "none":
+        overlap = 0  # frames on their own: nothing to warm up or fit
     chunks = chunks_of(prefetch(selected(), READ_AHEAD), size, overlap)
     try:
         with MainThreadInterrupts(_keyboard_interrupt_once()):
