@@ -27,6 +27,7 @@ bytes do not depend on where a run stopped or on the number of workers.
 from __future__ import annotations
 
 import contextlib
+import dataclasses
 import logging
 import math
 from collections import deque
@@ -135,7 +136,7 @@ class ChunkRunner:
                 outcome: ImageOutcome = _failure(job.input, job.name, error)
             else:
                 try:
-                    computed = _compute_frame(plan, frame, job, state, missing)
+                    computed = _compute(plan, frame, job, state, missing)
                 except Exception as exc:  # a frame fails alone
                     outcome = _error_outcome(job, exc)
             if computed is None:
@@ -189,15 +190,7 @@ class ChunkRunner:
         return outcomes, tail
 
 
-def _compute_frame(
-    plan: _Plan, frame: Frame, job: Any, state: TemporalState | None, missing: str
-) -> _Computed:
-    return _compute(plan, frame, job, state, missing)
-
-
 def _replace_estimator(plan: _Plan, estimator: Any) -> _Plan:
-    import dataclasses
-
     return dataclasses.replace(plan, estimator=estimator)
 
 
