@@ -764,6 +764,43 @@ def _add_video_parser(commands: Any) -> None:
         action="store_true",
         help="write OUT/preview.mp4, the disparity in colour with one scale for the whole run",
     )
+    video.add_argument(
+        "--engine",
+        choices=ENGINES,
+        default=ENGINES[0],
+        help="where frames run: in this process, in order (default), or ray: chunks of frames "
+        'on a Ray cluster (pip install "m360[ray]"; the cluster in RAY_ADDRESS, else a local one)',
+    )
+    video.add_argument(
+        "--workers", type=int, default=1, help="--engine ray: chunk workers running at once"
+    )
+    video.add_argument(
+        "--chunk",
+        type=int,
+        default=None,
+        metavar="N",
+        help="frames per chunk (--engine ray: default 32; with the local engine, run the same "
+        "chunks here)",
+    )
+    video.add_argument(
+        "--overlap",
+        type=int,
+        default=None,
+        metavar="N",
+        help="warm-up frames a chunk starts early, its gauge fitted on them (default 4)",
+    )
+    video.add_argument(
+        "--gpus-per-model",
+        type=float,
+        default=None,
+        help="--engine ray: GPUs per chunk worker (default 1 with a CUDA provider, else 0)",
+    )
+    video.add_argument(
+        "--cpus-per-stitch",
+        type=float,
+        default=1.0,
+        help="--engine ray: CPUs per chunk worker (default 1)",
+    )
     video.add_argument("--confidence", action="store_true", help="also write confidence maps")
     video.add_argument("--overwrite", dest="resume", action="store_false", help="redo every frame")
     video.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -796,6 +833,12 @@ def _video(args: argparse.Namespace) -> int:
         resume=args.resume,
         progress=not args.no_progress,
         on_outcome=report_failure,
+        engine=args.engine,
+        workers=args.workers,
+        chunk=args.chunk,
+        overlap=args.overlap,
+        gpus_per_model=args.gpus_per_model,
+        cpus_per_stitch=args.cpus_per_stitch,
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
     )

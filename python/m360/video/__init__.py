@@ -3,7 +3,8 @@
 :mod:`~m360.video.reader` reads frames of video files (PyAV, extra ``m360[video]``) and of
 folders of images (:func:`frames`); :mod:`~m360.video.temporal` is the temporal term that keeps
 a frame consistent with the one before; :mod:`~m360.video.runner` runs a whole video with the
-batch's guarantees (resume, claims, atomic writes, failures) and writes the preview video.
+batch's guarantees (resume, claims, atomic writes, failures) and writes the preview video;
+:mod:`~m360.video.chunks` runs a video in chunks, on Ray (``engine="ray"``) or here.
 """
 
 from __future__ import annotations

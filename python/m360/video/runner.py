@@ -23,19 +23,20 @@ Frame by frame, with the batch's guarantees (docs/architecture.md, "Batch guaran
 - **One failure is one line** in ``OUT/failures.jsonl``; the next frame starts afresh (no
   temporal term across a failed frame) and the run goes on.
 - **Progress** with frames per second and the time left (tqdm).
+
+``engine="ray"`` runs the frames in chunks on a Ray cluster, each chunk started a few frames
+early with its gauge fitted to the previous chunk's on them (:mod:`m360.video.chunks`), with
+the same files, resume and failures; the engines resume each other's frames.
 """
 
 from __future__ import annotations
 
 import contextlib
-import dataclasses
-import glob
-import hashlib
 import json
 import os
 import time
 import uuid
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -44,13 +45,15 @@ import cv2
 import numpy as np
 
 from .._keywords import definition, resolved, split
-from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure, is_done
+from .._validate import MAX_THREADS, integer
+from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure
 from ..batch.runner import (
     FAILURES_FILE,
     BatchReport,
     _append_failure,
     _keyboard_interrupt_once,
     _make_output_folder,
+    _ray_resources,
     fingerprint,
 )
 from ..errors import InputError, M360Error, ModelError, ReadError
@@ -58,11 +61,19 @@ from ..estimators import estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import DEFAULT_PADDING
-from ..io import check_formats, remove_stale_temporaries, save
-from ..io.files import atomic_path, save_json, temporary_prefix
+from ..io import check_formats
+from ..io.files import atomic_path, save_json
 from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
-from ..stitching.depth import depth_of
 from ..stitching.options import StitchKeywords, StitchOptions, build
+from ._frame import (
+    STATE_SUFFIX,
+    _done,
+    _job,
+    _Plan,
+    _process,
+    _state_path,
+    frame_stem,
+)
 from .reader import Frame, Source, check_selection, frames, prefetch, probe
 from .temporal import TEMPORAL_MODES, Temporal, TemporalState
 
@@ -73,15 +84,8 @@ __all__ = ["RUN_FILE", "STATE_SUFFIX", "VideoReport", "frame_stem", "run"]
 
 #: The run's own description in OUT.
 RUN_FILE = "video.json"
-#: Suffix of a frame's temporal state (``OUT/000123.temporal.npy``).
-STATE_SUFFIX = ".temporal.npy"
 #: How many decoded frames wait for the network at most.
 READ_AHEAD = 4
-
-
-def frame_stem(index: int) -> str:
-    """Give the output stem of frame ``index``: six digits at least (``000123``)."""
-    return f"{index:06d}"
 
 
 @dataclass
@@ -125,118 +129,6 @@ class VideoReport(BatchReport):
         return "\n".join(lines)
 
 
-@dataclass(frozen=True)
-class _Plan:
-    """What every frame of a run shares."""
-
-    out: Path
-    source: Source
-    estimator: Any
-    options: StitchOptions
-    job: dict[str, Any]
-    formats: tuple[str, ...]
-    preview: bool
-    confidence: bool
-    fingerprint: dict[str, Any]
-    run_id: str
-    resume: bool
-    temporal: Temporal
-    tangent_model: bool = True  # a panoramic model runs alone: no prior goes with it
-
-
-def _input_of(plan: _Plan, frame: Frame) -> Path:
-    """Give the file a frame comes from (its image in a folder, else the video)."""
-    return frame.path if frame.path is not None else plan.source.path
-
-
-def _job(plan: _Plan, frame: Frame) -> Job:
-    name = frame_stem(frame.index)
-    return Job(_input_of(plan, frame), plan.out / name, name, f"{plan.source.path}#{frame.index}")
-
-
-def _state_path(stem: Path) -> Path:
-    return stem.with_name(stem.name + STATE_SUFFIX)
-
-
-def _done(plan: _Plan, job: Job) -> bool:
-    done = is_done(job, plan.fingerprint)
-    return done and (plan.temporal.mode == "none" or _state_path(job.stem).is_file())
-
-
-def _process(
-    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
-) -> tuple[TemporalState, dict[str, float]]:
-    """Estimate, smooth and write one frame; its state for the next one and its timings."""
-    from ..pipeline.estimate import estimate
-
-    assert frame.rgb is not None
-    # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
-    remove_stale_temporaries(job.stem)
-    state_name = _state_path(job.stem).name
-    for tmp in job.stem.parent.glob(f"{glob.escape(temporary_prefix(state_name))}{'?' * 8}.tmp"):
-        with contextlib.suppress(FileNotFoundError):
-            tmp.unlink()
-    t0 = time.perf_counter()
-    grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
-    prior = {}
-    if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
-        prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
-    record["prior"] = bool(prior)
-    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
-    t_estimate = time.perf_counter()
-    disparity, state, applied = plan.temporal.apply(
-        result.disparity,
-        grey,
-        confidence,
-        None if confidence is None else previous,
-        relative=result.units == "relative",
-    )
-    if disparity is not result.disparity:
-        result = dataclasses.replace(result, disparity=disparity, depth=depth_of(disparity))
-    t_temporal = time.perf_counter()
-    stat = job.input.stat()
-    source = {
-        "path": str(job.input),
-        "size": stat.st_size,
-        "mtime_ns": stat.st_mtime_ns,
-        "rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest(),
-    }
-    extra = {
-        "input": source,
-        "frame": {"index": frame.index, "time": frame.time, "video": str(plan.source.path)},
-        "temporal": {"mode": plan.temporal.mode, **record, **applied},
-        "batch": {"fingerprint": plan.fingerprint, "run": plan.run_id},
-    }
-    if plan.temporal.mode != "none":
-        state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
-    save(
-        result,
-        job.stem,
-        formats=plan.formats,
-        preview=plan.preview,
-        extra=extra,
-        confidence=plan.confidence,
-    )
-    t_write = time.perf_counter()
-    timings = {
-        **{k: v for k, v in result.timings.items() if k != "total"},
-        "estimate": t_estimate - t0,
-        "temporal": t_temporal - t_estimate,
-        "write": t_write - t_temporal,
-    }
-    return state, timings
-
-
-def _estimate_keywords() -> set[str]:
-    """List the keyword names :func:`m360.estimate` takes (its own and its keyword lists')."""
-    import inspect
-
-    from ..pipeline.estimate import estimate
-
-    names = set(inspect.signature(estimate).parameters)
-    return names | set(definition(EstimateKeywords))
-
-
 def run(
     src: str | os.PathLike[str],
     out_dir: str | os.PathLike[str],
@@ -256,6 +148,12 @@ def run(
     resume: bool = True,
     progress: bool = True,
     on_outcome: Callable[[ImageOutcome], None] | None = None,
+    engine: str = "local",
+    workers: int = 1,
+    chunk: int | None = None,
+    overlap: int | None = None,
+    gpus_per_model: float | None = None,
+    cpus_per_stitch: float = 1.0,
     **keywords: Unpack[EstimateKeywords],
 ) -> VideoReport:
     """Estimate the depth of every (selected) frame of a 360° video into ``out_dir``.
@@ -293,6 +191,25 @@ def run(
         Show a progress bar with frames per second and the time left.
     on_outcome : callable, optional
         Called with each frame's :class:`m360.batch.ImageOutcome` as it arrives.
+    engine : {"local", "ray"}
+        Where frames run: in this process, in order (default), or on a Ray cluster
+        (``pip install "m360[ray]"``; the cluster in ``RAY_ADDRESS``, else a local one) in
+        chunks of consecutive frames (:mod:`m360.video.chunks`). Same files, resume, failures
+        and exit codes either way; each engine resumes the other's frames.
+    workers : int
+        Ray only: chunk workers (Ray actors, one estimator each) running at once.
+    chunk : int, optional
+        Frames per chunk (Ray default :data:`~m360.video.chunks.DEFAULT_CHUNK`, 32). With the
+        local engine, ``chunk=`` runs the same chunks in this process (the Ray engine's bytes);
+        without it the whole video is one sequence.
+    overlap : int, optional
+        Warm-up frames each chunk starts before its own, on which its gauge is fitted to the
+        previous chunk's (default :data:`~m360.video.chunks.DEFAULT_OVERLAP`, 4; at most
+        ``chunk``).
+    gpus_per_model : float, optional
+        Ray only: GPUs per chunk worker (default 1 if ``providers`` asks for CUDA, else 0).
+    cpus_per_stitch : float
+        Ray only: CPUs per chunk worker (also the core's threads in it).
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones
         (:class:`m360.pipeline.options.EstimateKeywords`).
@@ -331,6 +248,16 @@ def run(
     job_options = resolved(job_keywords, JobKeywords)
     opts = build(options, **stitch_keywords)
     chosen = check_formats(formats)
+    workers = integer(workers, "workers", low=1, high=MAX_THREADS)
+    ray_resources = _ray_resources(
+        engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
+    )
+    if ray_resources is None and workers != 1:
+        raise InputError(
+            "the local video engine runs frames in order in one process: workers apply to "
+            "engine='ray' only"
+        )
+    chunking = _chunking(chunk, overlap, ray=ray_resources is not None)
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
@@ -367,6 +294,8 @@ def run(
         resume=bool(resume),
         temporal=temporal,
         tangent_model=estimator_kind(estimator) != "panoramic",
+        model=model,
+        model_options=model_opts,
     )
     _make_output_folder(out)
     report = VideoReport(
@@ -378,7 +307,11 @@ def run(
             report.outcomes.append(ImageOutcome(str(src), str(out), "busy"))
             report.seconds = time.perf_counter() - started
             return report
-        _run_frames(plan, src, (every, start, end, fps), report, progress, on_outcome)
+        selection = (every, start, end, fps)
+        if chunking is None:
+            _run_frames(plan, src, selection, report, progress, on_outcome)
+        else:
+            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, ray_resources)
         if preview_video and not report.interrupted:
             stems = [out / o.stem for o in report.outcomes if o.status in ("done", "skipped")]
             rate = (source.fps or 30.0) / every
@@ -388,7 +321,10 @@ def run(
                 )
             except M360Error as exc:
                 report.notes.append(f"the preview video could not be written: {exc}")
-        _write_run_file(plan, report, (every, start, end, fps))
+        ran: dict[str, Any] = {"engine": "local" if ray_resources is None else "ray"}
+        if chunking is not None:
+            ran.update(chunk=chunking[0], overlap=chunking[1])
+        _write_run_file(plan, report, (every, start, end, fps), ran)
     report.seconds = time.perf_counter() - started
     return report
 
@@ -463,6 +399,88 @@ def _run_frames(
     except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
         name = "video" if job is None else f"after {job.name}"
         record(_failure(plan.source.path, name, exc))
+    finally:
+        bar.close()
+
+
+def _chunking(chunk: Any, overlap: Any, *, ray: bool) -> tuple[int, int] | None:
+    """(chunk, overlap) of a chunked run, or None for the local engine's one sequence."""
+    from .chunks import DEFAULT_CHUNK, DEFAULT_OVERLAP
+
+    if chunk is None and not ray:
+        if overlap is not None:
+            raise InputError("overlap applies to chunked runs only (engine='ray' or chunk=)")
+        return None
+    size = DEFAULT_CHUNK if chunk is None else integer(chunk, "chunk", low=1)
+    warm = min(DEFAULT_OVERLAP, size) if overlap is None else integer(overlap, "overlap", low=0)
+    if warm > size:
+        raise InputError(f"overlap must be at most chunk ({size}), got {warm}")
+    return size, warm
+
+
+def _run_chunks(
+    plan: _Plan,
+    src: str | os.PathLike[str],
+    selection: tuple[Any, ...],
+    report: VideoReport,
+    progress: bool,
+    on_outcome: Callable[[ImageOutcome], None] | None,
+    chunking: tuple[int, int],
+    resources: Any,
+) -> None:
+    """Run the frames in chunks (:mod:`m360.video.chunks`), in this process or on Ray."""
+    from ..batch._interrupt import MainThreadInterrupts
+    from .chunks import chunks_of, run_local, run_ray
+
+    every, start, end, fps = selection
+    bar = _progress_bar(_expected_frames(plan.source, every, start, end), progress)
+    last: list[str] = []
+    tried: list[bool] = []  # whether a frame reached the model yet
+
+    def record(outcome: ImageOutcome) -> None:
+        if outcome.status in ("done", "failed") and outcome.error != "ReadError" and not tried:
+            tried.append(True)
+            if outcome.error == "ModelError" and not report.done:
+                # As the local engine: the model failing on the first frame stops the run.
+                raise ModelError(outcome.message or "the model failed")
+        report.outcomes.append(outcome)
+        bar.update(1)
+        last[:] = [outcome.stem]
+        if outcome.status == "failed":
+            try:
+                _append_failure(report.failures_file, outcome, plan.run_id)
+            except OSError as exc:
+                report.notes.append(f"failures.jsonl could not be written ({exc})")
+        if on_outcome is not None:
+            on_outcome(outcome)
+
+    read_error: list[M360Error] = []
+
+    def selected() -> Iterator[Frame]:
+        try:
+            yield from frames(src, every, start, end, fps=fps, on_error="yield")
+        except M360Error as exc:  # a damaged container: the frames after it are lost
+            read_error.append(exc)
+
+    size, overlap = chunking
+    if plan.temporal.mode == "none":
+        overlap = 0  # frames on their own: nothing to warm up or fit
+    chunks = chunks_of(prefetch(selected(), READ_AHEAD), size, overlap)
+    try:
+        with MainThreadInterrupts(_keyboard_interrupt_once()):
+            if resources is None:
+                run_local(plan, chunks, overlap, record)
+            else:
+                run_ray(plan, chunks, overlap, record, resources)
+            if read_error:
+                name = f"after {last[0]}" if last else "video"
+                record(_failure(plan.source.path, name, read_error[0]))
+    except KeyboardInterrupt:
+        report.interrupted = True
+    except ModelError as exc:
+        if report.done:
+            raise
+        report.model_error = str(exc)
     finally:
         bar.close()
 
@@ -551,7 +569,9 @@ def _write_preview_video(
     return path, (lo, hi)
 
 
-def _write_run_file(plan: _Plan, report: VideoReport, selection: tuple[Any, ...]) -> None:
+def _write_run_file(
+    plan: _Plan, report: VideoReport, selection: tuple[Any, ...], engine: dict[str, Any]
+) -> None:
     """Write ``OUT/video.json``: the source, the selection, the run's counts and scale."""
     every, start, end, fps = selection
     record = {
@@ -565,6 +585,7 @@ def _write_run_file(plan: _Plan, report: VideoReport, selection: tuple[Any, ...]
         },
         "selection": {"every": every, "start": start, "end": end, "fps": fps},
         "temporal": plan.temporal.mode,
+        "engine": engine,  # how this run ran (chunk and overlap when chunked)
         "frames": sorted(o.stem for o in report.outcomes if o.status in ("done", "skipped")),
         "failed": sorted(o.stem for o in report.failed),
         "preview_video": None

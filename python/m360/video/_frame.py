@@ -1,0 +1,183 @@
+"""One frame of a video run: estimate and smooth (:func:`_compute`), then write (:func:`_write`).
+
+Shared by the local engine (:mod:`m360.video.runner`) and the chunked / Ray engine
+(:mod:`m360.video.chunks`), so both write the same files, state and sidecar.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import dataclasses
+import glob
+import hashlib
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from .._keywords import definition
+from ..batch.image import Job, is_done
+from ..estimators.options import ModelOptions
+from ..io import remove_stale_temporaries, save
+from ..io.files import temporary_prefix
+from ..pipeline.options import EstimateKeywords
+from ..stitching.depth import depth_of
+from ..stitching.options import StitchOptions
+from .reader import Frame, Source
+from .temporal import Temporal, TemporalState
+
+#: Suffix of a frame's temporal state (``OUT/000123.temporal.npy``).
+STATE_SUFFIX = ".temporal.npy"
+
+
+def frame_stem(index: int) -> str:
+    """Give the output stem of frame ``index``: six digits at least (``000123``)."""
+    return f"{index:06d}"
+
+
+@dataclass(frozen=True)
+class _Plan:
+    """What every frame of a run shares."""
+
+    out: Path
+    source: Source
+    estimator: Any
+    options: StitchOptions
+    job: dict[str, Any]
+    formats: tuple[str, ...]
+    preview: bool
+    confidence: bool
+    fingerprint: dict[str, Any]
+    run_id: str
+    resume: bool
+    temporal: Temporal
+    tangent_model: bool = True  # a panoramic model runs alone: no prior goes with it
+    model: Any = None  # what a chunk worker loads its estimator from (the run's ``model``)
+    model_options: ModelOptions | None = None
+
+
+def _input_of(plan: _Plan, frame: Frame) -> Path:
+    """Give the file a frame comes from (its image in a folder, else the video)."""
+    return frame.path if frame.path is not None else plan.source.path
+
+
+def _job(plan: _Plan, frame: Frame) -> Job:
+    name = frame_stem(frame.index)
+    return Job(_input_of(plan, frame), plan.out / name, name, f"{plan.source.path}#{frame.index}")
+
+
+def _state_path(stem: Path) -> Path:
+    return stem.with_name(stem.name + STATE_SUFFIX)
+
+
+def _done(plan: _Plan, job: Job) -> bool:
+    done = is_done(job, plan.fingerprint)
+    return done and (plan.temporal.mode == "none" or _state_path(job.stem).is_file())
+
+
+@dataclass
+class _Computed:
+    """A frame estimated and smoothed, not yet written (what :func:`_write` takes)."""
+
+    result: Any
+    state: TemporalState
+    extra: dict[str, Any]
+    timings: dict[str, float]
+
+    def with_gauge(self, a: float, b: float) -> _Computed:
+        """The same frame in another gauge: disparity and state mapped by ``a·D + b``."""
+        if (a, b) == (1.0, 0.0):
+            return self
+        disparity = self.result.disparity * np.float32(a) + np.float32(b)
+        result = dataclasses.replace(self.result, disparity=disparity, depth=depth_of(disparity))
+        state = self.state
+        state = TemporalState(
+            state.disparity * np.float32(a) + np.float32(b),
+            state.grey,
+            None if state.velocity is None else state.velocity * np.float32(a),
+        )
+        return _Computed(result, state, self.extra, self.timings)
+
+
+def _compute(
+    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
+) -> _Computed:
+    """Estimate and smooth one frame (nothing written)."""
+    from ..pipeline.estimate import estimate
+
+    assert frame.rgb is not None
+    t0 = time.perf_counter()
+    grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
+    prior = {}
+    if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
+        prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
+    record["prior"] = bool(prior)
+    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
+    t_estimate = time.perf_counter()
+    disparity, state, applied = plan.temporal.apply(
+        result.disparity,
+        grey,
+        confidence,
+        None if confidence is None else previous,
+        relative=result.units == "relative",
+    )
+    if disparity is not result.disparity:
+        result = dataclasses.replace(result, disparity=disparity, depth=depth_of(disparity))
+    t_temporal = time.perf_counter()
+    extra = {
+        "input": {"rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest()},
+        "frame": {"index": frame.index, "time": frame.time, "video": str(plan.source.path)},
+        "temporal": {"mode": plan.temporal.mode, **record, **applied},
+        "batch": {"fingerprint": plan.fingerprint, "run": plan.run_id},
+    }
+    timings = {
+        **{k: v for k, v in result.timings.items() if k != "total"},
+        "estimate": t_estimate - t0,
+        "temporal": t_temporal - t_estimate,
+    }
+    return _Computed(result, state, extra, timings)
+
+
+def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
+    """Write one computed frame atomically, its sidecar last; its timings."""
+    t0 = time.perf_counter()
+    # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
+    remove_stale_temporaries(job.stem)
+    state_name = _state_path(job.stem).name
+    for tmp in job.stem.parent.glob(f"{glob.escape(temporary_prefix(state_name))}{'?' * 8}.tmp"):
+        with contextlib.suppress(FileNotFoundError):
+            tmp.unlink()
+    stat = job.input.stat()
+    source = {"path": str(job.input), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
+    extra = {**frame.extra, "input": {**source, **frame.extra["input"]}}
+    if plan.temporal.mode != "none":
+        frame.state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
+    save(
+        frame.result,
+        job.stem,
+        formats=plan.formats,
+        preview=plan.preview,
+        extra=extra,
+        confidence=plan.confidence,
+    )
+    return {**frame.timings, "write": time.perf_counter() - t0}
+
+
+def _process(
+    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
+) -> tuple[TemporalState, dict[str, float]]:
+    """Estimate, smooth and write one frame; its state for the next one and its timings."""
+    computed = _compute(plan, frame, job, previous, missing)
+    return computed.state, _write(plan, job, computed)
+
+
+def _estimate_keywords() -> set[str]:
+    """List the keyword names :func:`m360.estimate` takes (its own and its keyword lists')."""
+    import inspect
+
+    from ..pipeline.estimate import estimate
+
+    names = set(inspect.signature(estimate).parameters)
+    return names | set(definition(EstimateKeywords))
