@@ -119,20 +119,4 @@ def oracle(path: Path, transform: str) -> Path:
         "scaled_depth": 40.0 * z + 100.0,  # grows with depth, far from metres
         "flat": np.full_like(z, 2.0),
     }[transform].astype(np.float32)
-    inits = [
-        numpy_helper.from_array(value[None], "value"),
-        numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
-    ]
-    nodes = [
-        helper.make_node("ReduceMean", ["x"], ["m"], keepdims=0),
-        helper.make_node("Mul", ["m", "zero"], ["m0"]),
-        helper.make_node("Add", ["value", "m0"], ["y"]),
-    ]
-    graph = helper.make_graph(
-        nodes,
-        "oracle",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, *ORACLE_SIZE])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, *ORACLE_SIZE])],
-        initializer=inits,
-    )
-    return _save(graph, path)
+    return g.constant_output(path, value, "oracle")

@@ -173,6 +173,16 @@ def erp_oracle(path: Path, transform: str, size: tuple[int, int] = (32, 64)) -> 
         "scaled_distance": 40.0 * d + 100.0,
         "scaled_disparity": 3.0 / d + 0.5,
     }[transform].astype(np.float32)
+    return constant_output(path, value, "erp_oracle")
+
+
+def constant_output(path: Path, value: np.ndarray, name: str) -> Path:
+    """A fixed-size graph, input (1, 3, h, w), output (1, h, w) = ``value`` (float32 (h, w)).
+
+    The image is ignored (0 x its mean is added so that the input is used): a perfect network's
+    output on the scene ``value`` was computed from.
+    """
+    size = list(value.shape)
     inits = [
         numpy_helper.from_array(value[None], "value"),
         numpy_helper.from_array(np.array(0.0, np.float32), "zero"),
@@ -184,7 +194,7 @@ def erp_oracle(path: Path, transform: str, size: tuple[int, int] = (32, 64)) -> 
     ]
     graph = helper.make_graph(
         nodes,
-        "erp_oracle",
+        name,
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, *size])],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, *size])],
         initializer=inits,

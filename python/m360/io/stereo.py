@@ -38,6 +38,7 @@ from .._validate import as_array, number
 from ..errors import InputError
 from . import gpano
 from .files import STEREO_FILES, atomic_path
+from .mesh import erp_float_map
 
 __all__ = [
     "DEFAULT_IPD",
@@ -194,13 +195,7 @@ def _depth_of(source: Any) -> tuple[np.ndarray, str]:
         )
     else:
         values, units, name = source, "metres", "depth"
-    array = as_array(values, name)
-    if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
-        raise InputError(
-            f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}"
-        )
-    if array.dtype.kind != "f":
-        raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
+    array = erp_float_map(values, name)
     with np.errstate(over="ignore"):
         return np.ascontiguousarray(array, dtype=np.float32), units
 
