@@ -1034,34 +1034,16 @@ impl Problem {
 
         let prior_blocks = self.prior_blocks();
 
-        // Node-level coupling pattern: nodes of one group, smoothness edges, the diagonal.
-        let mut pairs: Vec<(u32, u32)> =
-            Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
-        for (nd, _) in &group_blocks {
-            for &p in nd {
-                pairs.extend(nd.iter().map(|&q| (p, q)));
-            }
-        }
-        for (nd, _) in &prior_blocks {
-            for &p in nd {
-                pairs.extend(nd.iter().map(|&q| (p, q)));
-            }
-        }
-        for &(p, q, _) in &self.edges {
-            pairs.extend([(p, q), (q, p)]);
-        }
-        pairs.extend((0..nodes_total as u32).map(|i| (i, i)));
-        pairs.par_sort_unstable();
-        pairs.dedup();
-        let mut block_start = vec![0usize; nodes_total + 1];
-        for &(p, _) in &pairs {
-            block_start[p as usize + 1] += 1;
-        }
-        for p in 0..nodes_total {
-            block_start[p + 1] += block_start[p];
-        }
-        let block_col: Vec<u32> = pairs.iter().map(|&(_, q)| q).collect();
-        drop(pairs);
+        // The pattern depends only on the samples' cells, the prior nodes and the edges, not
+        // on the weights: built once, reused when a reweighting reassembles.
+        let (block_start, block_col) = if self.block_col.is_empty() {
+            self.pattern(&group_blocks, &prior_blocks)
+        } else {
+            (
+                std::mem::take(&mut self.block_start),
+                std::mem::take(&mut self.block_col),
+            )
+        };
         let mut blocks = vec![[0.0f64; 4]; block_col.len()];
         let at = |p: u32, q: u32| -> usize {
             let (lo, hi) = (block_start[p as usize], block_start[p as usize + 1]);
@@ -1103,6 +1085,43 @@ impl Problem {
         self.block_start = block_start;
         self.block_col = block_col;
         self.blocks = blocks;
+    }
+
+    /// The node-level coupling pattern (row starts and columns of the 2×2 node blocks): the
+    /// nodes of one group, smoothness edges, the diagonal.
+    fn pattern(
+        &self,
+        group_blocks: &[([u32; 8], [f64; 256])],
+        prior_blocks: &[([u32; 5], [f64; 100])],
+    ) -> (Vec<usize>, Vec<u32>) {
+        let nodes_total = self.len() / 2;
+        let mut pairs: Vec<(u32, u32)> =
+            Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
+        for (nd, _) in group_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
+        }
+        for (nd, _) in prior_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
+        }
+        for &(p, q, _) in &self.edges {
+            pairs.extend([(p, q), (q, p)]);
+        }
+        pairs.extend((0..nodes_total as u32).map(|i| (i, i)));
+        pairs.par_sort_unstable();
+        pairs.dedup();
+        let mut block_start = vec![0usize; nodes_total + 1];
+        for &(p, _) in &pairs {
+            block_start[p as usize + 1] += 1;
+        }
+        for p in 0..nodes_total {
+            block_start[p + 1] += block_start[p];
+        }
+        let block_col: Vec<u32> = pairs.iter().map(|&(_, q)| q).collect();
+        (block_start, block_col)
     }
 
     /// The prior term's Hessian contributions: per group of samples sharing a cell, the 5 nodes
