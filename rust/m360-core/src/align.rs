@@ -765,11 +765,25 @@ impl Problem {
     /// [`Problem::from_values`] with the prior term of `prior` = (samples, weight λ) when
     /// given (its (α, β) node comes after the tangents' nodes).
     #[must_use]
+    pub fn with_prior<M: MapValues + ?Sized>(
+        layout: &Layout,
+        maps: &M,
+        overlaps: &Overlaps,
+        params: LevelParams,
+        prior: Option<(&PriorSamples, f64)>,
+    ) -> Self {
+        let mut problem = Self::unassembled(layout, maps, overlaps, params, prior);
+        problem.assemble();
+        problem
+    }
+
+    /// [`Problem::with_prior`] without the Hessian: for a caller that reweights (and so
+    /// assembles) before anything reads it.
     #[expect(
         clippy::too_many_lines,
         reason = "sample filter, edges and weights of one problem read best together"
     )]
-    pub fn with_prior<M: MapValues + ?Sized>(
+    fn unassembled<M: MapValues + ?Sized>(
         layout: &Layout,
         maps: &M,
         overlaps: &Overlaps,
@@ -945,7 +959,7 @@ impl Problem {
                 node,
             }
         });
-        let mut problem = Self {
+        Self {
             prior,
             params,
             tangents: n,
@@ -959,9 +973,7 @@ impl Problem {
             block_start: Vec::new(),
             block_col: Vec::new(),
             blocks: Vec::new(),
-        };
-        problem.assemble();
-        problem
+        }
     }
 
     /// The data term's Hessian contributions: per group of samples sharing their a-cell and
@@ -1022,34 +1034,16 @@ impl Problem {
 
         let prior_blocks = self.prior_blocks();
 
-        // Node-level coupling pattern: nodes of one group, smoothness edges, the diagonal.
-        let mut pairs: Vec<(u32, u32)> =
-            Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
-        for (nd, _) in &group_blocks {
-            for &p in nd {
-                pairs.extend(nd.iter().map(|&q| (p, q)));
-            }
-        }
-        for (nd, _) in &prior_blocks {
-            for &p in nd {
-                pairs.extend(nd.iter().map(|&q| (p, q)));
-            }
-        }
-        for &(p, q, _) in &self.edges {
-            pairs.extend([(p, q), (q, p)]);
-        }
-        pairs.extend((0..nodes_total as u32).map(|i| (i, i)));
-        pairs.par_sort_unstable();
-        pairs.dedup();
-        let mut block_start = vec![0usize; nodes_total + 1];
-        for &(p, _) in &pairs {
-            block_start[p as usize + 1] += 1;
-        }
-        for p in 0..nodes_total {
-            block_start[p + 1] += block_start[p];
-        }
-        let block_col: Vec<u32> = pairs.iter().map(|&(_, q)| q).collect();
-        drop(pairs);
+        // The pattern depends only on the samples' cells, the prior nodes and the edges, not
+        // on the weights: built once, reused when a reweighting reassembles.
+        let (block_start, block_col) = if self.block_col.is_empty() {
+            self.pattern(&group_blocks, &prior_blocks)
+        } else {
+            (
+                std::mem::take(&mut self.block_start),
+                std::mem::take(&mut self.block_col),
+            )
+        };
         let mut blocks = vec![[0.0f64; 4]; block_col.len()];
         let at = |p: u32, q: u32| -> usize {
             let (lo, hi) = (block_start[p as usize], block_start[p as usize + 1]);
@@ -1091,6 +1085,43 @@ impl Problem {
         self.block_start = block_start;
         self.block_col = block_col;
         self.blocks = blocks;
+    }
+
+    /// The node-level coupling pattern (row starts and columns of the 2×2 node blocks): the
+    /// nodes of one group, smoothness edges, the diagonal.
+    fn pattern(
+        &self,
+        group_blocks: &[([u32; 8], [f64; 256])],
+        prior_blocks: &[([u32; 5], [f64; 100])],
+    ) -> (Vec<usize>, Vec<u32>) {
+        let nodes_total = self.len() / 2;
+        let mut pairs: Vec<(u32, u32)> =
+            Vec::with_capacity(group_blocks.len() * 64 + 2 * self.edges.len() + nodes_total);
+        for (nd, _) in group_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
+        }
+        for (nd, _) in prior_blocks {
+            for &p in nd {
+                pairs.extend(nd.iter().map(|&q| (p, q)));
+            }
+        }
+        for &(p, q, _) in &self.edges {
+            pairs.extend([(p, q), (q, p)]);
+        }
+        pairs.extend((0..nodes_total as u32).map(|i| (i, i)));
+        pairs.par_sort_unstable();
+        pairs.dedup();
+        let mut block_start = vec![0usize; nodes_total + 1];
+        for &(p, _) in &pairs {
+            block_start[p as usize + 1] += 1;
+        }
+        for p in 0..nodes_total {
+            block_start[p + 1] += block_start[p];
+        }
+        let block_col: Vec<u32> = pairs.iter().map(|&(_, q)| q).collect();
+        (block_start, block_col)
     }
 
     /// The prior term's Hessian contributions: per group of samples sharing a cell, the 5 nodes
@@ -1223,6 +1254,14 @@ impl Problem {
     /// 0: for a level where nothing else would resist their pull.
     /// Returns σ (0 without a prior).
     pub fn reweight_prior(&mut self, x: &[f64], hard: bool) -> f64 {
+        let sigma = self.set_prior_weights(x, hard);
+        self.assemble();
+        sigma
+    }
+
+    /// [`Problem::reweight_prior`] without reassembling (for a caller that reweights the data
+    /// term next, which reassembles once for both).
+    fn set_prior_weights(&mut self, x: &[f64], hard: bool) -> f64 {
         let cols = self.params.cols;
         let residuals: Vec<f64> = self.prior.as_ref().map_or_else(Vec::new, |prior| {
             (0..prior.samples.len())
@@ -1246,7 +1285,6 @@ impl Problem {
                 }
             }
         }
-        self.assemble();
         sigma
     }
 
@@ -2261,7 +2299,12 @@ fn level_problem(
     prior: Option<(&PriorSamples, f64)>,
 ) -> Problem {
     let view = Transformed { maps, transform };
-    Problem::with_prior(layout, &view, overlaps, params, prior)
+    // With a prior, `solve_level` reweights it (and so assembles) before the first solve.
+    let mut problem = Problem::unassembled(layout, &view, overlaps, params, prior);
+    if prior.is_none() {
+        problem.assemble();
+    }
+    problem
 }
 
 /// The prior-only level of the frequency split: grid nodes `prior_scale_deg` apart over a
@@ -2366,11 +2409,14 @@ fn solve_level(
     let has_prior = problem.prior.is_some();
     if (options.loss != Loss::Squared || has_prior) && !prior_only {
         for _ in 0..ROBUST_ROUNDS {
-            if options.loss != Loss::Squared {
-                robust_scale = problem.reweight(&fields, options.loss);
-            }
-            if has_prior {
+            // Both weights depend on `fields` only: the Hessian is assembled once for both.
+            if options.loss == Loss::Squared {
                 problem.reweight_prior(&fields, false);
+            } else {
+                if has_prior {
+                    problem.set_prior_weights(&fields, false);
+                }
+                robust_scale = problem.reweight(&fields, options.loss);
             }
             let (next, next_report) = solve(
                 &problem,
