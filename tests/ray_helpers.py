@@ -3,8 +3,10 @@ put tests/ on their PYTHONPATH)."""
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
+from collections.abc import Iterator
 from pathlib import Path
 from typing import Any
 
@@ -145,3 +147,25 @@ def assert_clean(out: Path) -> None:
     """No temporary or lock file is left."""
     leftovers = [p.name for p in out.rglob(".*")]
     assert not leftovers, leftovers
+
+
+@contextlib.contextmanager
+def local_ray(num_cpus: int = 2) -> Iterator[str]:
+    """A local Ray of ``num_cpus`` CPUs whose workers can import the test helpers; its address.
+
+    "local": always a new Ray, never one a stale /tmp/ray/ray_current_cluster points at.
+    """
+    import ray
+
+    saved = os.environ.get("PYTHONPATH")
+    here = str(Path(__file__).resolve().parent)
+    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [here, saved]))
+    ray.init(address="local", num_cpus=num_cpus, include_dashboard=False, log_to_driver=False)
+    try:
+        yield ray.get_runtime_context().gcs_address
+    finally:
+        ray.shutdown()
+        if saved is None:
+            os.environ.pop("PYTHONPATH", None)
+        else:
+            os.environ["PYTHONPATH"] = saved

@@ -11,7 +11,6 @@ from __future__ import annotations
 import hashlib
 import inspect
 import json
-import os
 from pathlib import Path
 from typing import Any
 
@@ -20,6 +19,7 @@ import m360
 import numpy as np
 import onnx_graphs as g
 import pytest
+import ray_helpers
 import real_data
 from m360.cli import main
 from m360.errors import InputError, ModelError
@@ -454,20 +454,9 @@ except ImportError:  # the extra m360[ray] is not installed
 
 @pytest.fixture(scope="module")
 def local_ray() -> Any:
-    if ray is None:
-        pytest.skip("Ray is not installed (extra m360[ray])")
-    here = str(Path(__file__).resolve().parent)
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [here, saved]))
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        yield
-    finally:
-        ray.shutdown()
-        if saved is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = saved
+    """A local Ray of 2 CPUs whose workers can import the test helpers; yields its address."""
+    with ray_helpers.local_ray() as address:
+        yield address
 
 
 def test_ray_engine_panoramic_model_and_prior_equal_the_local_engine(

@@ -34,18 +34,8 @@ GATED = {"align": "none", "blend": "frustum", "progress": False}
 @pytest.fixture(scope="module")
 def local_ray() -> Iterator[str]:
     """A local Ray of 2 CPUs whose workers can import the test helpers; yields its address."""
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE), saved]))
-    # "local": always a new Ray, never one a stale /tmp/ray/ray_current_cluster points at
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        yield ray.get_runtime_context().gcs_address
-    finally:
-        ray.shutdown()
-        if saved is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = saved
+    with h.local_ray() as address:
+        yield address
 
 
 @pytest.fixture(scope="module")

@@ -14,12 +14,12 @@ import cv2
 import m360
 import numpy as np
 import pytest
+import ray_helpers
 from m360.evaluation import sequence as sq
 from m360.geometry import default_layout
 
 ray = pytest.importorskip("ray")
 
-HERE = Path(__file__).resolve().parent
 WIDTH, FRAMES, SEED = 256, 12, 2
 CHUNKS = {"chunk": 4, "overlap": 2}  # 3 chunks: boundaries between frames 3|4 and 7|8
 OPTIONS = {"progress": False, "blend": "mean"}
@@ -33,17 +33,8 @@ def isolated_home(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
 @pytest.fixture(scope="module")
 def local_ray() -> Iterator[str]:
     """A local Ray of 2 CPUs whose workers can import the test helpers; yields its address."""
-    saved = os.environ.get("PYTHONPATH")
-    os.environ["PYTHONPATH"] = os.pathsep.join(filter(None, [str(HERE), saved]))
-    ray.init(address="local", num_cpus=2, include_dashboard=False, log_to_driver=False)
-    try:
-        yield ray.get_runtime_context().gcs_address
-    finally:
-        ray.shutdown()
-        if saved is None:
-            os.environ.pop("PYTHONPATH", None)
-        else:
-            os.environ["PYTHONPATH"] = saved
+    with ray_helpers.local_ray() as address:
+        yield address
 
 
 @pytest.fixture(scope="module")
