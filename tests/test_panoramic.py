@@ -395,3 +395,15 @@ def test_a_broken_panoramic_model_is_a_model_error(
     with pytest.raises(ModelError, match="too few valid pixels"):
         m360.estimate(photo, Empty())
     assert _probe.erp_views((8, 16))[0][0].shape == (8, 16, 3)
+
+
+@pytest.mark.parametrize("kind", [np.array(["a", "b"]), np.array(["metric_depth"] * 2), 3, None])
+def test_an_output_kind_that_is_no_string_is_an_input_error(kind: object) -> None:
+    # An array compared with == gives an array, whose truth value raised ValueError (found by
+    # tests/test_fuzz.py): the kind checks must answer InputError for any object.
+    from m360.estimators.kinds import check_output_kind, check_panoramic_output_kind
+
+    with pytest.raises(InputError, match="output_kind"):
+        check_output_kind(kind)
+    with pytest.raises(InputError, match="output_kind"):
+        check_panoramic_output_kind(kind)

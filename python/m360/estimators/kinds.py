@@ -126,7 +126,7 @@ def check_output_kind(kind: Any, name: str = "output_kind") -> OutputKind:
         options = ", ".join(repr(k) for k in OUTPUT_KINDS)
         also = (
             " ('disparity' is for panoramic models, kind='panoramic')"
-            if kind == "disparity"
+            if isinstance(kind, str) and kind == "disparity"
             else ""
         )
         raise InputError(f"{name}={kind!r} is not supported; choose one of {options}{also}")
@@ -158,7 +158,7 @@ def check_panoramic_output_kind(kind: Any, name: str = "output_kind") -> str:
     ``"metric_depth"`` gets its own message: a z-depth needs an optical axis, which an ERP map
     has not; a metric panoramic network outputs ``"distance"`` (radial metres).
     """
-    if kind == "metric_depth":
+    if isinstance(kind, str) and kind == "metric_depth":
         raise InputError(
             f"{name}='metric_depth' (z-depth) has no meaning for a panoramic (ERP) output: an ERP "
             "pixel has no optical axis to measure z along. A metric panoramic network outputs "
