@@ -149,7 +149,7 @@ def test_a_partial_panorama_aligns_to_its_prior(room: tuple) -> None:
     ("prior", "kwargs", "message"),
     [
         (np.ones((10, 10), np.float32), {}, "width = 2 x height"),
-        (np.ones((4, 8, 1), np.float32), {}, "(H, W) ERP map"),
+        (np.ones((4, 8, 1), np.float32), {}, "ERP map of shape (H, W)"),
         (np.ones((8, 16), bool), {}, "dtype"),
         (np.full((8, 16), np.nan, np.float32), {}, "no usable value"),
         (np.ones((8, 16), np.float32), {"prior_kind": "depth"}, "choose one of"),

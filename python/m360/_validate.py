@@ -176,6 +176,20 @@ def check_erp_shape(height: int, width: int, name: str) -> None:
         )
 
 
+def erp_map(value: Any, name: str, *, integers: bool = False, shape: str = "(H, W)") -> np.ndarray:
+    """``value`` as a 2D ERP array (W == 2H, H >= 2) of a float (or with ``integers``, an integer)
+    dtype, not converted; else an InputError naming ``name`` and the ``shape`` expected."""
+    array = as_array(value, name)
+    if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
+        raise InputError(
+            f"{name} must be an ERP map of shape {shape} with W == 2H (width = 2 x height, at "
+            f"least 2 x 4), got {array.shape}"
+        )
+    if array.dtype.kind not in ("fiu" if integers else "f"):
+        raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
+    return array
+
+
 def float32_array(array: np.ndarray, name: str, *, allow_nan: bool = True) -> np.ndarray:
     """A C-contiguous float32 copy or view; float64/float16 are converted, infinities refused."""
     if array.dtype.kind != "f":

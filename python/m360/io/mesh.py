@@ -29,7 +29,7 @@ from typing import Any
 
 import numpy as np
 
-from .._validate import as_array, flag, integer, number
+from .._validate import as_array, erp_map, flag, integer, number
 from ..errors import InputError
 from ..stitching.depth import depth_of
 
@@ -139,19 +139,7 @@ def _depth_source(source: Any, quantity: str | None) -> tuple[np.ndarray, str, s
         name = "depth" if quantity in (None, "depth") else "disparity"
         if quantity not in (None, "depth", "disparity"):
             raise InputError(f"quantity must be 'depth' or 'disparity', got {quantity!r}")
-    return erp_float_map(values, name), name, units
-
-
-def erp_float_map(values: Any, name: str) -> np.ndarray:
-    """``values`` as an (H, W) float ERP map, W == 2H (NaN = invalid), else an InputError."""
-    array = as_array(values, name)
-    if array.ndim != 2 or array.shape[0] < 2 or array.shape[1] != 2 * array.shape[0]:
-        raise InputError(
-            f"{name} must be an ERP map of shape (H, W) with W == 2H, got {array.shape}"
-        )
-    if array.dtype.kind != "f":
-        raise InputError(f"{name} must be a float array (NaN = invalid), got dtype {array.dtype}")
-    return array
+    return erp_map(values, name), name, units
 
 
 def _sanitised(array: np.ndarray, name: str) -> np.ndarray:

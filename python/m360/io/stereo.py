@@ -34,11 +34,10 @@ import cv2
 import numpy as np
 
 from .._keywords import Option, document, resolved
-from .._validate import as_array, number
+from .._validate import as_array, erp_map, number
 from ..errors import InputError
 from . import gpano
 from .files import STEREO_FILES, atomic_path
-from .mesh import erp_float_map
 
 __all__ = [
     "DEFAULT_IPD",
@@ -195,7 +194,7 @@ def _depth_of(source: Any) -> tuple[np.ndarray, str]:
         )
     else:
         values, units, name = source, "metres", "depth"
-    array = erp_float_map(values, name)
+    array = erp_map(values, name)
     with np.errstate(over="ignore"):
         return np.ascontiguousarray(array, dtype=np.float32), units
 

@@ -19,7 +19,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from .._validate import as_array
+from .._validate import erp_map
 from ..errors import InputError, M360Error, ModelError
 from ..estimators import OnnxEstimator, estimator_kind, load_estimator
 from ..estimators.kinds import PANORAMIC_METRIC_KINDS, PANORAMIC_OUTPUT_KINDS
@@ -75,13 +75,7 @@ class Prior:
 
 
 def _erp_map(value: Any, name: str) -> np.ndarray:
-    array = as_array(value, name)
-    if array.ndim != 2 or array.shape[1] != 2 * array.shape[0] or array.shape[0] < 2:
-        raise InputError(
-            f"{name} must be an ERP map of shape (Hp, 2 Hp), any resolution, got {array.shape}"
-        )
-    if array.dtype.kind not in "fiu" or array.dtype == np.bool_:
-        raise InputError(f"{name} must be a float map (NaN = unknown), got dtype {array.dtype}")
+    array = erp_map(value, name, integers=True, shape="(Hp, 2 Hp), any resolution")
     with np.errstate(over="ignore", invalid="ignore"):
         out = np.array(array, dtype=np.float32)
     if np.isinf(out).any():

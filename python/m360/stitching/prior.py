@@ -25,7 +25,7 @@ from typing import Any, Literal, TypedDict
 
 import numpy as np
 
-from .._validate import as_array
+from .._validate import as_array, erp_map
 from ..errors import InputError
 from ..estimators.kinds import AFFINE_DEPTH_FLOOR
 
@@ -64,21 +64,6 @@ class PriorReport(TypedDict):
     residual: float
 
 
-def _erp(value: Any, name: str) -> np.ndarray:
-    array = as_array(value, name)
-    if array.ndim != 2:
-        raise InputError(f"{name} must be an (H, W) ERP map, got shape {array.shape}")
-    height, width = array.shape
-    if height < 2 or width != 2 * height:
-        raise InputError(
-            f"{name} must be an ERP map with width = 2 x height (at least 2 x 4), got shape "
-            f"{array.shape}"
-        )
-    if array.dtype.kind not in "fiu" or array.dtype.kind == "b":
-        raise InputError(f"{name} must be a float array, got dtype {array.dtype}")
-    return array
-
-
 def check_prior(
     prior: Any, kind: Any, confidence: Any = None
 ) -> tuple[np.ndarray, np.ndarray | None, bool]:
@@ -108,7 +93,7 @@ def check_prior(
     if not isinstance(kind, str) or kind not in PRIOR_KINDS:
         choices = ", ".join(repr(k) for k in PRIOR_KINDS)
         raise InputError(f"prior_kind={kind!r} is not supported; choose one of {choices}")
-    array = _erp(prior, "prior")
+    array = erp_map(prior, "prior", integers=True)
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         values = np.asarray(array, np.float64)
         values = np.where(np.isfinite(values), values, np.nan)
