@@ -183,6 +183,22 @@ pub(crate) fn align_with_prior<'py>(
     Ok((out, reports, grids, fallback, fit))
 }
 
+/// The options of one level on `grid` (the rest from `options`), its parameters and a copy of
+/// `maps` to standardise: what the inspection functions below share.
+fn single_level(
+    plan: &Plan,
+    maps: &PyReadonlyArray3<'_, f32>,
+    grid: (usize, usize),
+    options: &Bound<'_, PyDict>,
+) -> PyResult<(align::Options, LevelParams, Vec<f32>)> {
+    let shape = plan.layout().tangent_shape();
+    let mut options = align_options(options, Some(shape))?;
+    options.levels = vec![grid];
+    let options = core(options.validate(Some(shape)))?;
+    let params = options.level_params()[0];
+    Ok((options, params, contiguous(maps, "maps")?.to_vec()))
+}
+
 pub(crate) fn alignment_problem<'py>(
     py: Python<'py>,
     plan: &Plan,
@@ -191,11 +207,7 @@ pub(crate) fn alignment_problem<'py>(
     options: &Bound<'py, PyDict>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let layout = plan.layout();
-    let mut options = align_options(options, Some(layout.tangent_shape()))?;
-    options.levels = vec![grid];
-    let options = core(options.validate(Some(layout.tangent_shape())))?;
-    let params: LevelParams = options.level_params()[0];
-    let mut data = contiguous(maps, "maps")?.to_vec();
+    let (options, params, mut data) = single_level(plan, maps, grid, options)?;
     let needs = [Need::Overlaps(
         options.sample_fraction,
         options.pole_cap_deg,
@@ -245,11 +257,7 @@ pub(crate) fn alignment_energy<'py>(
     Bound<'py, PyArrayDyn<f64>>,
 )> {
     let layout = plan.layout();
-    let mut options = align_options(options, Some(layout.tangent_shape()))?;
-    options.levels = vec![grid];
-    let options = core(options.validate(Some(layout.tangent_shape())))?;
-    let params: LevelParams = options.level_params()[0];
-    let mut data = contiguous(maps, "maps")?.to_vec();
+    let (options, params, mut data) = single_level(plan, maps, grid, options)?;
     let needs = [Need::Overlaps(
         options.sample_fraction,
         options.pole_cap_deg,
