@@ -110,7 +110,13 @@ class Plan:
         self, maps: npt.NDArray[np.float32], grid: tuple[int, int], align: dict[str, Any]
     ) -> dict[str, Any]: ...
     def blend(
-        self, tangents: npt.NDArray[np.float32], blend: dict[str, Any], confidence: bool = True
+        self,
+        tangents: npt.NDArray[np.float32],
+        blend: dict[str, Any],
+        confidence: bool = True,
+        prior: npt.NDArray[np.float32] | None = None,
+        prior_confidence: npt.NDArray[np.float32] | None = None,
+        prior_affine: tuple[float, float] = (1.0, 0.0),
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None, dict[str, Any]]: ...
     def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
 

@@ -266,8 +266,13 @@ def stitch(
             )
     t2 = time.perf_counter()
     # The confidence costs a second pass: only computed when returned.
+    vote: dict[str, Any] = {}
+    if fit is not None:
+        # The prior votes among the faces where they disagree (docs/method.md, "Global prior").
+        vote = {"prior": prior_map, "prior_confidence": prior_conf}
+        vote["prior_affine"] = (float(fit["affine"][0]), float(fit["affine"][1]))
     disparity, confidence, raw_blend = plan.blend(
-        spherical, dict(opts.blend), confidence=return_details
+        spherical, dict(opts.blend), confidence=return_details, **vote
     )
     t3 = time.perf_counter()
     blend_report: BlendReport = {**raw_blend, "seconds": t3 - t2}  # type: ignore[typeddict-item]

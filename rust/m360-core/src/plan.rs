@@ -323,6 +323,25 @@ impl Plan {
         disparity: &mut [f32],
         confidence: Option<&mut [f32]>,
     ) -> Result<BlendReport> {
+        self.blend_with_prior(tangents, method, None, disparity, confidence)
+    }
+
+    /// [`Plan::blend`] with the global prior's vote (the consensus blend's, and the Poisson
+    /// blend's consensus target: [`blend::PriorVote`]); the other methods ignore it.
+    ///
+    /// # Errors
+    /// Those of [`Plan::blend`].
+    ///
+    /// # Panics
+    /// If the slices do not have the plan's sizes.
+    pub fn blend_with_prior(
+        &self,
+        tangents: &[f32],
+        method: &Method,
+        prior: Option<&blend::PriorVote<'_>>,
+        disparity: &mut [f32],
+        confidence: Option<&mut [f32]>,
+    ) -> Result<BlendReport> {
         let (taps, layout) = (self.erp_taps(), &self.layout);
         let poisson = match method {
             Method::Mean => {
@@ -345,7 +364,9 @@ impl Plan {
             }
             Method::Consensus => {
                 let weights = self.weight_maps(Weighting::Frustum);
-                blend::consensus_blend(taps, layout, tangents, weights, disparity, confidence);
+                blend::consensus_blend_with_prior(
+                    taps, layout, tangents, weights, prior, disparity, confidence,
+                );
                 None
             }
             Method::Median => {
@@ -355,8 +376,8 @@ impl Plan {
             }
             Method::Poisson(params) => {
                 let weights = self.weight_maps(Weighting::Frustum);
-                let report = blend::poisson_blend(
-                    taps, layout, tangents, weights, params, disparity, confidence,
+                let report = blend::poisson_blend_with_prior(
+                    taps, layout, tangents, weights, params, prior, disparity, confidence,
                 )?;
                 Some(report)
             }

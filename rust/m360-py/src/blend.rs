@@ -21,6 +21,7 @@ pub(crate) fn blend<'py>(
     tangents: &PyReadonlyArray3<'py, f32>,
     options: &Bound<'py, PyDict>,
     confidence: bool,
+    prior: Option<&core_blend::PriorVote<'_>>,
 ) -> PyResult<(
     Bound<'py, PyArrayDyn<f32>>,
     Option<Bound<'py, PyArrayDyn<f32>>>,
@@ -39,7 +40,7 @@ pub(crate) fn blend<'py>(
         let dst_s = rw_s.as_mut().map(writable).transpose()?;
         let needs = Plan::blend_needs(&method);
         core(on_pool(py, Some((plan, &needs)), || {
-            plan.blend(data, &method, dst_d, dst_s)
+            plan.blend_with_prior(data, &method, prior, dst_d, dst_s)
         })?)?
     };
     let dict = PyDict::new(py);

@@ -352,22 +352,37 @@ impl Plan {
 
     /// Blend per-tangent maps (N,h,w) float32 (NaN = invalid) onto the ERP grid with the
     /// method and options in the dict `blend` (see `stitch_options`): (disparity (H,W)
-    /// float32, confidence (H,W) float32 or None without `confidence`, report dict).
-    #[pyo3(signature = (tangents, blend, confidence=true))]
-    #[allow(clippy::type_complexity)]
+    /// float32, confidence (H,W) float32 or None without `confidence`, report dict). With
+    /// `prior` (Hp, 2·Hp) float32 (and optionally `prior_confidence`), the prior mapped into
+    /// the tangents' units by `prior_affine` = (a, b) (a·P + b, the alignment's fit) votes in
+    /// the consensus blend (docs/method.md, "Global prior").
+    #[pyo3(signature = (tangents, blend, confidence=true, prior=None, prior_confidence=None, prior_affine=(1.0, 0.0)))]
+    #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn blend<'py>(
         &self,
         py: Python<'py>,
         tangents: PyReadonlyArray3<'py, f32>,
         blend: &Bound<'py, PyDict>,
         confidence: bool,
+        prior: Option<PyReadonlyArray2<'py, f32>>,
+        prior_confidence: Option<PyReadonlyArray2<'py, f32>>,
+        prior_affine: (f64, f64),
     ) -> PyResult<(
         Bound<'py, PyArrayDyn<f32>>,
         Option<Bound<'py, PyArrayDyn<f32>>>,
         Bound<'py, PyDict>,
     )> {
         self.check_tangents("tangents", tangents.shape())?;
-        blend::blend(py, &self.inner, &tangents, blend, confidence)
+        let prior = prior
+            .as_ref()
+            .map(|p| align::prior_from(p, prior_confidence.as_ref(), false))
+            .transpose()?;
+        let vote = prior.as_ref().map(|prior| m360_core::blend::PriorVote {
+            prior,
+            scale: prior_affine.0,
+            offset: prior_affine.1,
+        });
+        blend::blend(py, &self.inner, &tangents, blend, confidence, vote.as_ref())
     }
 
     /// Per-face blending weights (N,h,w) float32 of `kind` (one of `CHOICES["weights"]`), on

@@ -18,9 +18,13 @@ pub mod weights;
 mod tests;
 
 pub use poisson::{
-    poisson_blend, poisson_blend_layers, Fidelity, PoissonParams, PoissonReport, PoissonSolver,
+    poisson_blend, poisson_blend_layers, poisson_blend_with_prior, Fidelity, PoissonParams,
+    PoissonReport, PoissonSolver,
 };
-pub use rows::{consensus_blend, mean_blend, median_blend, nearest_blend, weighted_blend};
+pub use rows::{
+    consensus_blend, consensus_blend_with_prior, mean_blend, median_blend, nearest_blend,
+    weighted_blend, PriorVote,
+};
 pub use weights::{weight_maps, WeightMaps, Weighting};
 
 use crate::error::{CoreError, Result};

@@ -5,6 +5,7 @@
 //! `confidence` output) comes from the same single pass.
 
 use super::WeightMaps;
+use crate::align::Prior;
 use crate::layout::Layout;
 use crate::resample::{ErpTaps, Run};
 use rayon::prelude::*;
@@ -483,22 +484,173 @@ pub fn consensus_blend(
     disparity: &mut [f32],
     confidence: Option<&mut [f32]>,
 ) -> f32 {
-    let (eh, ew) = (layout.erp_height, layout.erp_width);
-    assert!(disparity.len() == eh * ew);
-    assert!(confidence
-        .as_ref()
-        .is_none_or(|s| s.len() == disparity.len()));
-    // σ: rows in parallel, their subsamples concatenated in row order (thread-count independent).
+    consensus_blend_with_prior(taps, layout, tangents, weights, None, disparity, confidence)
+}
+
+/// The global prior's vote in [`consensus_blend_with_prior`] (docs/method.md, "Global prior"):
+/// the prior map and the affine map that puts it in the tangents' units (the alignment's fit).
+#[derive(Debug, Clone, Copy)]
+pub struct PriorVote<'a> {
+    /// The prior (any ERP resolution, NaN = unknown, with its confidence).
+    pub prior: &'a Prior,
+    /// The prior P in the tangents' units is `scale`·P + `offset`.
+    pub scale: f64,
+    /// See `scale`.
+    pub offset: f64,
+}
+
+impl PriorVote<'_> {
+    /// The bilinear taps along a row of an `ew`-column ERP grid: per column, the prior's two
+    /// columns (wrapping in longitude) and the second one's weight.
+    fn columns(&self, ew: usize) -> Vec<(u32, u32, f32)> {
+        let wp = self.prior.width;
+        let step = wp as f64 / ew as f64;
+        (0..ew)
+            .map(|j| {
+                let col = ((j as f64 + 0.5) * step - 0.5).rem_euclid(wp as f64);
+                let c0 = (col as usize).min(wp - 1);
+                (c0 as u32, ((c0 + 1) % wp) as u32, (col - c0 as f64) as f32)
+            })
+            .collect()
+    }
+
+    /// Row `i` of an `eh`-row ERP grid with the column taps `columns`: the prior in the
+    /// tangents' units (bilinear, NaN where a tap is unknown) into `value`, its confidence (0
+    /// where unknown) into `trust`.
+    fn row(
+        &self,
+        i: usize,
+        eh: usize,
+        columns: &[(u32, u32, f32)],
+        value: &mut Vec<f32>,
+        trust: &mut Vec<f32>,
+    ) {
+        let p = self.prior;
+        let (hp, wp) = (p.height, p.width);
+        let row = ((i as f64 + 0.5) * hp as f64 / eh as f64 - 0.5).clamp(0.0, (hp - 1) as f64);
+        let r0 = (row as usize).min(hp - 2);
+        let fy = (row - r0 as f64) as f32;
+        let (top, bottom) = (&p.values[r0 * wp..][..wp], &p.values[(r0 + 1) * wp..][..wp]);
+        let (scale, offset) = (self.scale as f32, self.offset as f32);
+        let lerp = |a: &[f32], c0: u32, c1: u32, fx: f32| {
+            let (a0, a1) = (a[c0 as usize], a[c1 as usize]);
+            a0 + fx * (a1 - a0)
+        };
+        value.clear();
+        value.extend(columns.iter().map(|&(c0, c1, fx)| {
+            let (t, b) = (lerp(top, c0, c1, fx), lerp(bottom, c0, c1, fx));
+            scale * (t + fy * (b - t)) + offset // NaN when a tap is
+        }));
+        trust.clear();
+        match &p.confidence {
+            None => trust.extend(value.iter().map(|v| f32::from(u8::from(v.is_finite())))),
+            Some(c) => {
+                let (top, bottom) = (&c[r0 * wp..][..wp], &c[(r0 + 1) * wp..][..wp]);
+                trust.extend(columns.iter().zip(value.iter()).map(|(&(c0, c1, fx), v)| {
+                    let (t, b) = (lerp(top, c0, c1, fx), lerp(bottom, c0, c1, fx));
+                    if v.is_finite() {
+                        t + fy * (b - t)
+                    } else {
+                        0.0
+                    }
+                }));
+            }
+        }
+    }
+}
+
+/// The prior's vote scale c_P, in units of the robust scale of the distance between the
+/// prior and the tangents' weighted mean (1.4826 × its median): with 0.5, 1, 2 and 4 measured
+/// on synthetic rooms with content errors (benches/bench_prior.py), 1 was within 2 % of the
+/// best and the least sensitive.
+const PRIOR_VOTE_SCALE: f32 = 1.0;
+/// The prior's trust at a pixel is the Cauchy weight of its distance from the nearest face, at
+/// this many c_P: a prior that no face agrees with (a window, a mirror, a wrong region) does
+/// not vote there.
+const PRIOR_TRUST_SCALE: f32 = 2.0;
+
+/// The least factor the prior's vote gives a face: its Cauchy weight times the consensus
+/// rounds' would otherwise reach subnormal floats, whose arithmetic made the blend 5x slower.
+const MIN_PRIOR_VOTE: f32 = 1e-3;
+
+/// Multiply each valid sample's weight of `row` by its agreement with the prior:
+/// (1 − t) + t/(1 + ((v − P)/c_P)²), with t the prior's trust at the pixel (its confidence
+/// times the Cauchy weight of the nearest sample's distance at [`PRIOR_TRUST_SCALE`] c_P).
+/// Only the weights change: the consensus is still a mean of the faces' own values, so the
+/// prior picks among the faces where they disagree and never blurs their detail.
+fn prior_vote(
+    row: &mut RowSamples,
+    prior: &[f32],
+    trust: &mut [f32],
+    nearest: &mut [f32],
+    inv_c: f32,
+) {
+    nearest.fill(0.0);
+    for run in &row.runs {
+        let values = &row.values[run.taps()];
+        for (&v, j) in values.iter().zip(run.columns()) {
+            let e = (v - prior[j]) * inv_c * (1.0 / PRIOR_TRUST_SCALE);
+            if e.is_finite() {
+                nearest[j] = nearest[j].max(1.0 / (1.0 + e * e));
+            }
+        }
+    }
+    for (t, n) in trust.iter_mut().zip(nearest.iter()) {
+        *t *= n;
+    }
+    for run in &row.runs {
+        let taps = run.taps();
+        let (values, weights) = (&row.values[taps.clone()], &mut row.weights[taps]);
+        for ((&v, w), j) in values.iter().zip(weights.iter_mut()).zip(run.columns()) {
+            let e = (v - prior[j]) * inv_c;
+            if e.is_finite() {
+                let t = trust[j];
+                *w *= ((1.0 - t) + t / (1.0 + e * e)).max(MIN_PRIOR_VOTE);
+            }
+        }
+    }
+}
+
+/// The distances the consensus blend's scales come from, over a regular subsample (thread-count
+/// independent: rows in parallel, concatenated in row order): of each sample from its pixel's
+/// weighted mean where two or more faces see it (σ), and of the weighted mean from the prior
+/// (its vote's scale; empty without a prior).
+fn consensus_distances(
+    taps: &ErpTaps,
+    tangents: &[f32],
+    weights: &WeightMaps,
+    prior: Option<&PriorVote<'_>>,
+    prior_columns: &[(u32, u32, f32)],
+    eh: usize,
+    ew: usize,
+) -> (Vec<f32>, Vec<f32>) {
     let row_stride = (eh / SCALE_ROWS).max(1);
-    let distances: Vec<Vec<f32>> = (0..eh)
+    let distances: Vec<(Vec<f32>, Vec<f32>)> = (0..eh)
         .into_par_iter()
         .step_by(row_stride)
         .map_init(
-            || (RowSamples::default(), RowStats::default()),
-            |(row, stats), i| {
+            || {
+                (
+                    RowSamples::default(),
+                    RowStats::default(),
+                    Vec::new(),
+                    Vec::new(),
+                )
+            },
+            |(row, stats, prior_row, trust_row), i| {
                 row.fill_from_taps(taps, tangents, Some(weights), false, i);
                 stats.compute(row, ew, false);
                 let mut out = Vec::new();
+                let mut from_prior = Vec::new();
+                if let Some(vote) = prior {
+                    vote.row(i, eh, prior_columns, prior_row, trust_row);
+                    for (j, (&m, &p)) in stats.weighted.iter().zip(prior_row.iter()).enumerate() {
+                        let d = (m - p).abs();
+                        if j.is_multiple_of(SCALE_STRIDE) && d.is_finite() {
+                            from_prior.push(d);
+                        }
+                    }
+                }
                 for run in &row.runs {
                     let values = &row.values[run.taps()];
                     let cols = run.columns();
@@ -512,19 +664,47 @@ pub fn consensus_blend(
                         }
                     }
                 }
-                out
+                (out, from_prior)
             },
         )
         .collect();
-    let mut all: Vec<f32> = distances.into_iter().flatten().collect();
-    let sigma = if all.is_empty() {
-        1.0
-    } else {
-        let mid = all.len() / 2;
-        let (_, &mut median, _) = all.select_nth_unstable_by(mid, f32::total_cmp);
-        (1.4826 * median).max(f32::MIN_POSITIVE)
-    };
+    distances
+        .into_iter()
+        .fold((Vec::new(), Vec::new()), |(mut a, mut b), (x, y)| {
+            a.extend(x);
+            b.extend(y);
+            (a, b)
+        })
+}
+
+/// [`consensus_blend`] with the global prior's vote, if any ([`prior_vote`]): where the faces
+/// disagree, those nearer the prior (where it is trusted) weigh more from the first estimate
+/// on.
+///
+/// # Panics
+/// If the outputs are not H·W long.
+pub fn consensus_blend_with_prior(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: &WeightMaps,
+    prior: Option<&PriorVote<'_>>,
+    disparity: &mut [f32],
+    confidence: Option<&mut [f32]>,
+) -> f32 {
+    let (eh, ew) = (layout.erp_height, layout.erp_width);
+    assert!(disparity.len() == eh * ew);
+    assert!(confidence
+        .as_ref()
+        .is_none_or(|s| s.len() == disparity.len()));
+    let prior_columns = prior.map_or_else(Vec::new, |vote| vote.columns(ew));
+    let (mut all, mut from_prior) =
+        consensus_distances(taps, tangents, weights, prior, &prior_columns, eh, ew);
+    let sigma = robust_scale(&mut all).unwrap_or(1.0);
     let inv_c = 1.0 / (CONSENSUS_CAUCHY * sigma);
+    // The prior votes only where its scale is known (some pixel where both are finite).
+    let prior = prior.zip(robust_scale(&mut from_prior));
+    let inv_c_prior = prior.map_or(0.0, |(_, s)| 1.0 / (PRIOR_VOTE_SCALE * s));
     disparity
         .par_chunks_mut(ew)
         .zip(optional_chunks(confidence, ew, eh))
@@ -536,10 +716,16 @@ pub fn consensus_blend(
                     RowStats::default(),
                     vec![0.0f32; ew],
                     vec![0.0f32; ew],
+                    (Vec::new(), Vec::new(), vec![0.0f32; ew]),
                 )
             },
-            |(row, stats, num, den), (i, (out, out_confidence))| {
+            |(row, stats, num, den, (prior_row, trust_row, nearest)),
+             (i, (out, out_confidence))| {
                 row.fill_from_taps(taps, tangents, Some(weights), false, i);
+                if let Some((vote, _)) = prior {
+                    vote.row(i, eh, &prior_columns, prior_row, trust_row);
+                    prior_vote(row, prior_row, trust_row, nearest, inv_c_prior);
+                }
                 stats.compute(row, ew, false);
                 out.copy_from_slice(&stats.weighted);
                 for _ in 0..CONSENSUS_ROUNDS {
@@ -576,6 +762,17 @@ pub fn consensus_blend(
             },
         );
     sigma
+}
+
+/// 1.4826 × the median of `distances` (reordered), at least the smallest positive f32; None
+/// when there are none.
+fn robust_scale(distances: &mut [f32]) -> Option<f32> {
+    if distances.is_empty() {
+        return None;
+    }
+    let mid = distances.len() / 2;
+    let (_, &mut median, _) = distances.select_nth_unstable_by(mid, f32::total_cmp);
+    Some((1.4826 * median).max(f32::MIN_POSITIVE))
 }
 
 /// Fewest valid samples at a pixel for [`median_blend`] to take their weighted median (below it

@@ -193,6 +193,27 @@ pub fn poisson_blend(
     disparity: &mut [f32],
     spread: Option<&mut [f32]>,
 ) -> Result<PoissonReport> {
+    poisson_blend_with_prior(
+        taps, layout, tangents, weights, params, None, disparity, spread,
+    )
+}
+
+/// [`poisson_blend`] whose consensus target (with [`Fidelity::Consensus`]) takes the global
+/// prior's vote ([`crate::blend::consensus_blend_with_prior`]); other targets ignore it.
+///
+/// # Errors
+/// Those of [`poisson_blend`].
+#[allow(clippy::too_many_arguments)]
+pub fn poisson_blend_with_prior(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    weights: &WeightMaps,
+    params: &PoissonParams,
+    prior: Option<&crate::blend::PriorVote<'_>>,
+    disparity: &mut [f32],
+    spread: Option<&mut [f32]>,
+) -> Result<PoissonReport> {
     params.validate()?;
     let t0 = Instant::now();
     let source = TapSource {
@@ -204,7 +225,15 @@ pub fn poisson_blend(
     let (h, w) = (layout.erp_height, layout.erp_width);
     let system = if params.fidelity == Fidelity::Consensus {
         let mut consensus = vec![0.0f32; h * w];
-        crate::blend::consensus_blend(taps, layout, tangents, weights, &mut consensus, spread);
+        crate::blend::consensus_blend_with_prior(
+            taps,
+            layout,
+            tangents,
+            weights,
+            prior,
+            &mut consensus,
+            spread,
+        );
         assemble(&source, h, w, params.lam, Target::Given(&consensus), None)
     } else {
         assemble(
