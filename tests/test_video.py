@@ -341,13 +341,13 @@ def test_a_video_that_is_not_equirectangular_is_refused_before_any_frame(tmp_pat
 
 
 def test_a_second_run_into_a_busy_folder_is_refused(tmp_path: Path) -> None:
-    from m360.batch.image import _claim
+    from m360.batch.image import claim
 
     folder = tmp_path / "frames"
     _walk_frames(folder, 1, 2)
     out = tmp_path / "out"
     out.mkdir()
-    with _claim(out / "video") as claimed:
+    with claim(out / "video") as claimed:
         assert claimed
         report = m360.video.run(folder, out, model=batch_helpers.Gated(None), progress=False)
     assert report.exit_code == 3 and not list(out.glob("*.json"))

@@ -18,7 +18,7 @@ from typing import Any
 import numpy as np
 
 from .._keywords import definition
-from ..batch.image import Job, is_done
+from ..batch import Job, is_done
 from ..estimators.options import ModelOptions
 from ..io import remove_stale_temporaries, save
 from ..io.files import temporary_prefix

@@ -46,15 +46,21 @@ import numpy as np
 
 from .._keywords import definition, resolved, split
 from .._validate import MAX_THREADS, integer
-from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure
-from ..batch.runner import (
+from ..batch import (
     FAILURES_FILE,
     BatchReport,
-    _append_failure,
-    _keyboard_interrupt_once,
-    _make_output_folder,
-    _ray_resources,
+    ImageOutcome,
+    Job,
+    MainThreadInterrupts,
+    NoBar,
+    append_failure,
+    claim,
+    error_outcome,
+    failure_outcome,
     fingerprint,
+    keyboard_interrupt_once,
+    make_output_folder,
+    ray_resources,
 )
 from ..errors import InputError, M360Error, ModelError, ReadError
 from ..estimators import estimator_kind
@@ -249,15 +255,15 @@ def run(
     opts = build(options, **stitch_keywords)
     chosen = check_formats(formats)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
-    ray_resources = _ray_resources(
+    resources = ray_resources(
         engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
     )
-    if ray_resources is None and workers != 1:
+    if resources is None and workers != 1:
         raise InputError(
             "the local video engine runs frames in order in one process: workers apply to "
             "engine='ray' only"
         )
-    chunking = _chunking(chunk, overlap, ray=ray_resources is not None)
+    chunking = _chunking(chunk, overlap, ray=resources is not None)
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
@@ -297,13 +303,13 @@ def run(
         model=model,
         model_options=model_opts,
     )
-    _make_output_folder(out)
+    make_output_folder(out)
     report = VideoReport(
         outcomes=[], seconds=0.0, interrupted=False, failures_file=out / FAILURES_FILE
     )
     report.source = source
     with contextlib.ExitStack() as stack:
-        if not stack.enter_context(_claim(out / "video")):
+        if not stack.enter_context(claim(out / "video")):
             report.outcomes.append(ImageOutcome(str(src), str(out), "busy"))
             report.seconds = time.perf_counter() - started
             return report
@@ -311,7 +317,7 @@ def run(
         if chunking is None:
             _run_frames(plan, src, selection, report, progress, on_outcome)
         else:
-            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, ray_resources)
+            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, resources)
         if preview_video and not report.interrupted:
             stems = [out / o.stem for o in report.outcomes if o.status in ("done", "skipped")]
             rate = (source.fps or 30.0) / every
@@ -321,7 +327,7 @@ def run(
                 )
             except M360Error as exc:
                 report.notes.append(f"the preview video could not be written: {exc}")
-        ran: dict[str, Any] = {"engine": "local" if ray_resources is None else "ray"}
+        ran: dict[str, Any] = {"engine": "local" if resources is None else "ray"}
         if chunking is not None:
             ran.update(chunk=chunking[0], overlap=chunking[1])
         _write_run_file(plan, report, (every, start, end, fps), ran)
@@ -338,8 +344,6 @@ def _run_frames(
     on_outcome: Callable[[ImageOutcome], None] | None,
 ) -> None:
     """Process the frames in order, recording each outcome in ``report``."""
-    from ..batch._interrupt import MainThreadInterrupts
-
     every, start, end, fps = selection
     total = _expected_frames(plan.source, every, start, end)
     bar = _progress_bar(total, progress)
@@ -354,20 +358,20 @@ def _run_frames(
         bar.update(1)
         if outcome.status == "failed":
             try:
-                _append_failure(report.failures_file, outcome, plan.run_id)
+                append_failure(report.failures_file, outcome, plan.run_id)
             except OSError as exc:
                 report.notes.append(f"failures.jsonl could not be written ({exc})")
         if on_outcome is not None:
             on_outcome(outcome)
 
     try:
-        with MainThreadInterrupts(_keyboard_interrupt_once()):
+        with MainThreadInterrupts(keyboard_interrupt_once()):
             reader = frames(src, every, start, end, fps=fps, on_error="yield")
             for frame in prefetch(reader, READ_AHEAD):
                 job = _job(plan, frame)
                 if frame.error is not None or frame.rgb is None:
                     error = frame.error or ReadError(f"frame {frame.index} could not be read")
-                    record(_failure(job.input, job.name, error))
+                    record(failure_outcome(job.input, job.name, error))
                     state, done_before, missing = None, None, "previous frame failed"
                     continue
                 if plan.resume and _done(plan, job):
@@ -386,10 +390,10 @@ def _run_frames(
                     if not tried and not report.done:
                         report.model_error = str(exc)
                         return
-                    record(_error_outcome(job, exc))
+                    record(error_outcome(job, exc))
                     state, missing = None, "previous frame failed"
                 except Exception as exc:  # a frame fails alone
-                    record(_error_outcome(job, exc))
+                    record(error_outcome(job, exc))
                     state, missing = None, "previous frame failed"
                 else:
                     record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
@@ -398,7 +402,7 @@ def _run_frames(
         report.interrupted = True
     except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
         name = "video" if job is None else f"after {job.name}"
-        record(_failure(plan.source.path, name, exc))
+        record(failure_outcome(plan.source.path, name, exc))
     finally:
         bar.close()
 
@@ -429,7 +433,6 @@ def _run_chunks(
     resources: Any,
 ) -> None:
     """Run the frames in chunks (:mod:`m360.video.chunks`), in this process or on Ray."""
-    from ..batch._interrupt import MainThreadInterrupts
     from .chunks import chunks_of, run_local, run_ray
 
     every, start, end, fps = selection
@@ -448,7 +451,7 @@ def _run_chunks(
         last[:] = [outcome.stem]
         if outcome.status == "failed":
             try:
-                _append_failure(report.failures_file, outcome, plan.run_id)
+                append_failure(report.failures_file, outcome, plan.run_id)
             except OSError as exc:
                 report.notes.append(f"failures.jsonl could not be written ({exc})")
         if on_outcome is not None:
@@ -467,14 +470,14 @@ def _run_chunks(
         overlap = 0  # frames on their own: nothing to warm up or fit
     chunks = chunks_of(prefetch(selected(), READ_AHEAD), size, overlap)
     try:
-        with MainThreadInterrupts(_keyboard_interrupt_once()):
+        with MainThreadInterrupts(keyboard_interrupt_once()):
             if resources is None:
                 run_local(plan, chunks, overlap, record)
             else:
                 run_ray(plan, chunks, overlap, record, resources)
             if read_error:
                 name = f"after {last[0]}" if last else "video"
-                record(_failure(plan.source.path, name, read_error[0]))
+                record(failure_outcome(plan.source.path, name, read_error[0]))
     except KeyboardInterrupt:
         report.interrupted = True
     except ModelError as exc:
@@ -496,9 +499,7 @@ def _expected_frames(source: Source, every: int, start: Any, end: Any) -> int | 
 
 def _progress_bar(total: int | None, show: bool) -> Any:
     if not show:
-        from ..batch.runner import _NoBar
-
-        return _NoBar()
+        return NoBar()
     from tqdm import tqdm
 
     # tqdm shows frames per second and, with a total, the time left.
