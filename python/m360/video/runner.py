@@ -71,6 +71,7 @@ from ..io import check_formats
 from ..io.files import atomic_path, save_json
 from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
+from ._ahead import MAX_FRAME_BATCH, Ahead, FrameBatcher
 from ._frame import (
     STATE_SUFFIX,
     _done,
@@ -160,6 +161,7 @@ def run(
     overlap: int | None = None,
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
+    frame_batch: int = 1,
     **keywords: Unpack[EstimateKeywords],
 ) -> VideoReport:
     """Estimate the depth of every (selected) frame of a 360° video into ``out_dir``.
@@ -216,6 +218,15 @@ def run(
         Ray only: GPUs per chunk worker (default 1 if ``providers`` asks for CUDA, else 0).
     cpus_per_stitch : float
         Ray only: CPUs per chunk worker (also the core's threads in it).
+    frame_batch : int
+        Local engine, tangent models: frames whose tangents go to the estimator in ONE call
+        (K·N tangents), decoded and projected ahead, then finished one by one in order with the
+        temporal term: the bytes of ``frame_batch=1``, and the same resume fingerprint. Default
+        1: on CPU the ONNX models run one tangent at a time, so a larger call gains nothing and
+        holds K frames' tangents (docs/video.md, "Throughput"); on a GPU with a batched model
+        (``batch_size``) it fills the device. Lowered to what fits in memory (a note says so);
+        a failed call is retried frame by frame, so a bad frame fails alone. Not with
+        ``engine="ray"`` or ``chunk=``; a panoramic model runs per frame.
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones
         (:class:`m360.pipeline.options.EstimateKeywords`).
@@ -264,6 +275,12 @@ def run(
             "engine='ray' only"
         )
     chunking = _chunking(chunk, overlap, ray=resources is not None)
+    frame_batch = integer(frame_batch, "frame_batch", low=1, high=MAX_FRAME_BATCH)
+    if chunking is not None and frame_batch != 1:
+        raise InputError(
+            "frame_batch applies to the local engine's one sequence, not to chunked runs "
+            "(engine='ray' or chunk=)"
+        )
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
@@ -315,7 +332,7 @@ def run(
             return report
         selection = (every, start, end, fps)
         if chunking is None:
-            _run_frames(plan, src, selection, report, progress, on_outcome)
+            _run_frames(plan, src, selection, report, progress, on_outcome, frame_batch)
         else:
             _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, resources)
         if preview_video and not report.interrupted:
@@ -330,6 +347,8 @@ def run(
         ran: dict[str, Any] = {"engine": "local" if resources is None else "ray"}
         if chunking is not None:
             ran.update(chunk=chunking[0], overlap=chunking[1])
+        else:
+            ran["frame_batch"] = frame_batch  # asked for (a cap or a fallback is in the notes)
         _write_run_file(plan, report, (every, start, end, fps), ran)
     report.seconds = time.perf_counter() - started
     return report
@@ -342,8 +361,13 @@ def _run_frames(
     report: VideoReport,
     progress: bool,
     on_outcome: Callable[[ImageOutcome], None] | None,
+    frame_batch: int = 1,
 ) -> None:
-    """Process the frames in order, recording each outcome in ``report``."""
+    """Process the frames in order, recording each outcome in ``report``.
+
+    With ``frame_batch`` K > 1 (tangent models), K frames are read, prepared and predicted in
+    one network call before they are finished in order (:mod:`m360.video._ahead`).
+    """
     every, start, end, fps = selection
     total = _expected_frames(plan.source, every, start, end)
     bar = _progress_bar(total, progress)
@@ -352,6 +376,13 @@ def _run_frames(
     done_before: Path | None = None  # the last frame skipped as done: its state, if needed
     tried = False
     job: Job | None = None
+    batcher = None
+    if frame_batch > 1 and plan.tangent_model:
+        batcher = FrameBatcher(plan, frame_batch, report.notes)
+    elif frame_batch > 1:
+        report.notes.append(
+            "frame_batch applies to tangent models: a panoramic model runs per frame"
+        )
 
     def record(outcome: ImageOutcome) -> None:
         report.outcomes.append(outcome)
@@ -364,43 +395,87 @@ def _run_frames(
         if on_outcome is not None:
             on_outcome(outcome)
 
+    def one(frame: Frame, ahead: Ahead | None) -> bool:
+        """Run one frame in its turn; False when the run must stop (the model failed first)."""
+        nonlocal state, missing, done_before, tried, job
+        job = _job(plan, frame)
+        if frame.error is not None or frame.rgb is None:
+            error = frame.error or ReadError(f"frame {frame.index} could not be read")
+            record(failure_outcome(job.input, job.name, error))
+            state, done_before, missing = None, None, "previous frame failed"
+            return True
+        if plan.resume and _done(plan, job):
+            record(ImageOutcome(str(job.input), job.name, "skipped"))
+            state, done_before = None, job.stem
+            return True
+        if state is None and done_before is not None and plan.temporal.mode != "none":
+            try:
+                state = TemporalState.load(_state_path(done_before))
+            except ReadError:
+                missing = "previous frame's state unreadable"
+        done_before = None
+        try:
+            state, timings = _process(plan, frame, job, state, missing, ahead)
+        except ModelError as exc:
+            if not tried and not report.done:
+                report.model_error = str(exc)
+                return False
+            record(error_outcome(job, exc))
+            state, missing = None, "previous frame failed"
+        except Exception as exc:  # a frame fails alone
+            record(error_outcome(job, exc))
+            state, missing = None, "previous frame failed"
+        else:
+            record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
+        tried = True
+        return True
+
+    def run_group(group: list[Frame]) -> bool:
+        """Run frames read ahead: one network call for them all, then each in order."""
+        aheads: dict[int, Ahead] = {}
+        if batcher is not None and len(group) > 1:
+            aheads = batcher.predict([(frame, _job(plan, frame)) for frame in group])
+        statuses = []  # of the frames prepared ahead
+        for frame in group:
+            ahead = aheads.get(frame.index)
+            if not one(frame, ahead):
+                return False
+            if ahead is not None:
+                statuses.append(report.outcomes[-1].status)
+        if batcher is not None:
+            batcher.settle(statuses)
+        group.clear()
+        return True
+
+    read_error: M360Error | None = None
     try:
         with MainThreadInterrupts(keyboard_interrupt_once()):
             reader = frames(src, every, start, end, fps=fps, on_error="yield")
-            for frame in prefetch(reader, READ_AHEAD):
-                job = _job(plan, frame)
-                if frame.error is not None or frame.rgb is None:
-                    error = frame.error or ReadError(f"frame {frame.index} could not be read")
-                    record(failure_outcome(job.input, job.name, error))
-                    state, done_before, missing = None, None, "previous frame failed"
-                    continue
-                if plan.resume and _done(plan, job):
-                    record(ImageOutcome(str(job.input), job.name, "skipped"))
-                    state, done_before = None, job.stem
-                    continue
-                if state is None and done_before is not None and plan.temporal.mode != "none":
+            ahead = READ_AHEAD if batcher is None else max(READ_AHEAD, batcher.size)
+            group: list[Frame] = []
+            with contextlib.closing(prefetch(reader, ahead)) as stream:
+                while True:
                     try:
-                        state = TemporalState.load(_state_path(done_before))
-                    except ReadError:
-                        missing = "previous frame's state unreadable"
-                done_before = None
-                try:
-                    state, timings = _process(plan, frame, job, state, missing)
-                except ModelError as exc:
-                    if not tried and not report.done:
-                        report.model_error = str(exc)
-                        return
-                    record(error_outcome(job, exc))
-                    state, missing = None, "previous frame failed"
-                except Exception as exc:  # a frame fails alone
-                    record(error_outcome(job, exc))
-                    state, missing = None, "previous frame failed"
-                else:
-                    record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
-                tried = True
+                        frame = next(stream)
+                    except StopIteration:
+                        break
+                    except M360Error as exc:  # a damaged container: the frames after it are lost
+                        read_error = exc
+                        break
+                    group.append(frame)
+                    if batcher is not None:
+                        batcher.cap(frame)
+                    if len(group) >= (1 if batcher is None else batcher.size):
+                        if not run_group(group):
+                            return
+            if group and not run_group(group):
+                return
+            if read_error is not None:
+                name = "video" if job is None else f"after {job.name}"
+                record(failure_outcome(plan.source.path, name, read_error))
     except KeyboardInterrupt:
         report.interrupted = True
-    except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
+    except M360Error as exc:  # the reader cannot go on: the rest is lost
         name = "video" if job is None else f"after {job.name}"
         record(failure_outcome(plan.source.path, name, exc))
     finally:
