@@ -364,7 +364,7 @@ def test_cli_video(tmp_path: Path) -> None:
     g.affine_of_mean(model, 1.0, 3.0)
     argv = ["video", str(clip), "-o", str(out), "--model", str(model), "--every", "2"]
     argv += ["--start", "1", "--formats", "png16", "--no-progress", "--align", "none"]
-    argv += ["--blend", "mean", "--input-size", "64", "96", "--threads", "1"]
+    argv += ["--blend", "mean", "--input-size", "64", "96", "--threads", "1", "--frame-batch", "2"]
     assert main(argv) == 0
     assert sorted(p.name for p in out.glob("*.json")) == [
         "000001.json",
@@ -372,6 +372,7 @@ def test_cli_video(tmp_path: Path) -> None:
         "000005.json",
         "video.json",
     ]
+    assert json.loads((out / "video.json").read_text())["engine"]["frame_batch"] == 2
     assert main([*argv[:3], "--start", "0.1s", *argv[3:5], "--end", "x"]) == 2
 
 
