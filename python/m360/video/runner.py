@@ -23,6 +23,9 @@ Frame by frame, with the batch's guarantees (docs/architecture.md, "Batch guaran
 - **One failure is one line** in ``OUT/failures.jsonl``; the next frame starts afresh (no
   temporal term across a failed frame) and the run goes on.
 - **Progress** with frames per second and the time left (tqdm).
+- **Network calls across frames** (``frame_batch=K``): K frames decoded and projected ahead,
+  one network call for their tangents, then each finished in order with the temporal term
+  (:mod:`m360.video._ahead`): the same bytes as frame by frame.
 
 ``engine="ray"`` runs the frames in chunks on a Ray cluster, each chunk started a few frames
 early with its gauge fitted to the previous chunk's on them (:mod:`m360.video.chunks`), with
