@@ -95,6 +95,7 @@ def main() -> None:
         "--model", type=Path, default=None, help="an ONNX file timed in table 2 instead"
     )
     parser.add_argument("--output-kind", default=None, help="--model's output kind")
+    parser.add_argument("--threads", type=int, default=None, help="--model's threads")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args()
     batches = [int(k) for k in args.frame_batches.split(",")]
@@ -170,8 +171,10 @@ def throughput_table(
     count = min(args.throughput_frames, args.frames)
     network = "simulated (cached)"
     if args.model is not None:
-        estimator = m360.estimators.load_estimator(args.model, output_kind=args.output_kind)
-        network = args.model.name
+        estimator = m360.estimators.load_estimator(
+            args.model, output_kind=args.output_kind, threads=args.threads
+        )
+        network = f"{args.model.name}, threads {args.threads or 'all'}"
 
     def loop(save: bool) -> None:
         out = work / "loop"

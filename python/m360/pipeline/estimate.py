@@ -246,7 +246,7 @@ def estimate(
         ``confidence``, ``tangents``, ``timings`` per stage and what ran.
     """
     t_start = time.perf_counter()
-    call = _check_call(erp, model, model_options, keywords, "estimate")
+    call = _check_call(erp, model_options, keywords, "estimate")
     if _role(model, call.model_options) == "panoramic":
         if layout is not None or call.job["padding"] is not None:
             raise InputError(
@@ -278,9 +278,8 @@ class _Call:
     model_options: ModelOptions
 
 
-def _check_call(
-    erp: Any, model: Any, model_options: ModelOptions | None, keywords: Any, where: str
-) -> _Call:
+def _check_call(erp: Any, model_options: ModelOptions | None, keywords: Any, where: str) -> _Call:
+    """Check what :func:`estimate` and :func:`prepare` take before the model's role is known."""
     stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
         keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where=where
     )
@@ -363,7 +362,7 @@ def prepare(
     Prepared
     """
     t_start = time.perf_counter()
-    call = _check_call(erp, model, model_options, keywords, "prepare")
+    call = _check_call(erp, model_options, keywords, "prepare")
     if _role(model, call.model_options) == "panoramic":
         raise InputError(
             "prepare/finish are for tangent models; a panoramic model runs once on the whole "
