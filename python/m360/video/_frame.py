@@ -126,9 +126,13 @@ def _compute(
     if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
         prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
     record["prior"] = bool(prior)
+    earlier = 0.0  # seconds of this frame's estimate spent before its turn (frame_batch)
     if ahead is None:
         result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
     else:
+        earlier = sum(ahead.prepared.timings.values())
+        if ahead.raw is not None:
+            earlier += ahead.seconds
         raw, seconds = ahead.predict()
         result = finish(ahead.prepared, raw, seconds=seconds, **prior)
     t_estimate = time.perf_counter()
@@ -150,7 +154,7 @@ def _compute(
     }
     timings = {
         **{k: v for k, v in result.timings.items() if k != "total"},
-        "estimate": t_estimate - t0,
+        "estimate": t_estimate - t0 + earlier,
         "temporal": t_temporal - t_estimate,
     }
     return _Computed(result, state, extra, timings)

@@ -454,9 +454,8 @@ def _run_frames(
     try:
         with MainThreadInterrupts(keyboard_interrupt_once()):
             reader = frames(src, every, start, end, fps=fps, on_error="yield")
-            ahead = READ_AHEAD if batcher is None else max(READ_AHEAD, batcher.size)
-            group: list[Frame] = []
-            with contextlib.closing(prefetch(reader, ahead)) as stream:
+            group: list[Frame] = []  # the frames read, held while the group is read
+            with contextlib.closing(prefetch(reader, READ_AHEAD)) as stream:
                 while True:
                     try:
                         frame = next(stream)
