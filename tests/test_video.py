@@ -262,8 +262,9 @@ def test_preview_video_has_every_frame_and_one_colour_scale(tmp_path: Path) -> N
 _GATED_VIDEO = """
 import sys, m360, batch_helpers
 gate = sys.argv[3] or None
+batch = int(sys.argv[4]) if len(sys.argv) > 4 else 1
 report = m360.video.run(sys.argv[1], sys.argv[2], model=batch_helpers.Gated(gate),
-                        align="none", blend="mean", progress=False)
+                        align="none", blend="mean", progress=False, frame_batch=batch)
 print(report.summary(), file=sys.stderr)
 sys.exit(report.exit_code)
 """
@@ -279,9 +280,14 @@ def _read_exactly(fd: int, count: int, proc: subprocess.Popen) -> None:
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="needs FIFOs and process groups")
-def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("batch", [1, 3])
+def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
+    tmp_path: Path, batch: int
+) -> None:
     """SIGKILL with 3 frames done and the 4th in the network; the rerun does the other 5 from
-    the 3rd frame's state and writes what a run never stopped writes."""
+    the 3rd frame's state and writes what a run never stopped writes. With frame_batch=3 the
+    network's second call (frames 3-5) is the one stopped, and a frame_batch=1 run is the
+    reference."""
     folder = tmp_path / "frames"
     _walk_frames(folder, 4, 8)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
@@ -299,11 +305,12 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
     started, tokens = batch_helpers.make_gate(str(gate))
     cmd = [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
     proc = subprocess.Popen(
-        [*cmd, str(gate)], env=env, stderr=subprocess.PIPE, start_new_session=True
+        [*cmd, str(gate), str(batch)], env=env, stderr=subprocess.PIPE, start_new_session=True
     )
+    calls = 3 // batch  # the network calls of the first 3 frames
     try:
-        os.write(tokens, b"t" * 3)
-        _read_exactly(started, 4, proc)  # the 4th frame waits in the network
+        os.write(tokens, b"t" * calls)
+        _read_exactly(started, calls + 1, proc)  # the 4th frame waits in the network
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=120)
     finally:
@@ -315,7 +322,7 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
     # What a writer killed half-way leaves: temporaries of the 4th frame's files.
     for name in ("000003.disparity.npy", "000003.temporal.npy"):
         (out / f".{name}.abcdefgh.tmp").write_bytes(b"partial")
-    rerun = subprocess.run([*cmd, ""], env=env, capture_output=True, timeout=300)
+    rerun = subprocess.run([*cmd, "", str(batch)], env=env, capture_output=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr.decode()
     assert "5 done, 3 already done, 0 failed" in rerun.stderr.decode()
     assert {k: (out / k).stat().st_mtime_ns for k in finished} == finished  # not redone
