@@ -490,7 +490,7 @@ def finish(
     layout, estimator = prepared.layout, prepared.estimator
     raw = _checked_output(estimator, raw, layout)
     prior = prepared.prior
-    given = checked(dict(prior_keywords), PriorKeywords)
+    given = {k: v for k, v in checked(dict(prior_keywords), PriorKeywords).items() if v is not None}
     if given.get("prior") is not None:
         if prior is not None:
             raise InputError("the prior was given to prepare() already: give it once")
