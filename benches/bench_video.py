@@ -18,10 +18,15 @@ Tables:
 2. Throughput on the first ``--throughput-frames`` frames, runs interleaved, median of
    ``--repeats``: a loop of ``m360.estimate`` over the decoded frames (``m360.video.frames``),
    with and without ``m360.save`` of each result, against ``m360.video.run`` (npy, no
-   previews) with ``temporal="none"`` and ``"smooth"``. Goal: ``video.run`` / loop with save ≥ 1.0.
+   previews) with ``temporal="none"`` and ``"smooth"``, the latter with each ``frame_batch``
+   of ``--frame-batches`` (frames whose tangents go to the network in one call). Goal:
+   ``video.run`` / loop with save ≥ 1.0. ``--model FILE.onnx`` (with ``--output-kind``) times
+   that network instead of the simulated one, whose outputs are cached (a network of no cost:
+   what is left is m360's own work).
 
 Run: ``.venv/bin/python benches/bench_video.py [--width 1024] [--frames 60] [--repeats 3]``
-(``--width 2048`` is the issue's size; about 4 s a frame on 2 cores).
+(``--width 2048`` is the issue's size; about 4 s a frame on 2 cores); ``--no-quality`` runs
+table 2 alone (``--frames 16 --throughput-frames 16 --no-quality``: a few minutes).
 """
 
 from __future__ import annotations
@@ -82,8 +87,18 @@ def main() -> None:
     parser.add_argument("--seed", type=int, default=2, help="room and error seed (default 2)")
     parser.add_argument("--repeats", type=int, default=3, help="throughput repeats (default 3)")
     parser.add_argument("--throughput-frames", type=int, default=20, help="(default 20)")
+    parser.add_argument(
+        "--frame-batches", default="1,2,4", help="video.run frame_batch values (default 1,2,4)"
+    )
+    parser.add_argument("--no-quality", action="store_true", help="table 2 (throughput) only")
+    parser.add_argument(
+        "--model", type=Path, default=None, help="an ONNX file timed in table 2 instead"
+    )
+    parser.add_argument("--output-kind", default=None, help="--model's output kind")
+    parser.add_argument("--threads", type=int, default=None, help="--model's threads")
     parser.add_argument("--json", type=Path, default=None, help="also write the rows here")
     args = parser.parse_args()
+    batches = [int(k) for k in args.frame_batches.split(",")]
 
     t0 = time.perf_counter()
     walk = sq.walk(args.seed, args.frames, erp_width=args.width)
@@ -105,10 +120,25 @@ def main() -> None:
         f"{np.linalg.norm(walk.positions[-1]):.2f} m; prepared in {time.perf_counter() - t0:.0f} s"
     )
     rows = []
+    if not args.no_quality:
+        quality_table(args, clip, estimator, truth, walk, rows)
+    throughput_table(args, clip, estimator, layout, work, batches, rows)
+    if args.json is not None:
+        write_json(args.json, rows, metadata())
+    shutil.rmtree(work, ignore_errors=True)
 
+
+def quality_table(
+    args: argparse.Namespace,
+    clip: Path,
+    estimator: sq.SequenceEstimator,
+    truth: list[np.ndarray],
+    walk: sq.Sequence,
+    rows: list[dict],
+) -> None:
     results = {}
     for mode in ("none", "smooth"):
-        out = work / f"quality_{mode}"
+        out = clip.parent / f"quality_{mode}"
         report = m360.video.run(clip, out, model=estimator, temporal=mode, progress=False)
         assert report.exit_code == 0 and len(report.done) == args.frames, report.summary()
         results[mode] = quality(out, truth, walk.positions)
@@ -128,7 +158,23 @@ def main() -> None:
         f"{smooth['abs_rel'] - base['abs_rel']:+.4f} (goal <= +0.002)"
     )
 
+
+def throughput_table(
+    args: argparse.Namespace,
+    clip: Path,
+    estimator: object,
+    layout: object,
+    work: Path,
+    batches: list[int],
+    rows: list[dict],
+) -> None:
     count = min(args.throughput_frames, args.frames)
+    network = "simulated (cached)"
+    if args.model is not None:
+        estimator = m360.estimators.load_estimator(
+            args.model, output_kind=args.output_kind, threads=args.threads
+        )
+        network = f"{args.model.name}, threads {args.threads or 'all'}"
 
     def loop(save: bool) -> None:
         out = work / "loop"
@@ -138,17 +184,23 @@ def main() -> None:
             if save:
                 m360.save(result, out / f"{frame.index:06d}", preview=False)
 
-    def video(mode: str) -> None:
-        out = work / f"video_{mode}"
+    def video(mode: str, batch: int = 1) -> None:
+        out = work / f"video_{mode}_{batch}"
         shutil.rmtree(out, ignore_errors=True)
-        m360.video.run(clip, out, model=estimator, temporal=mode, end=count, progress=False)
+        report = m360.video.run(
+            clip, out, model=estimator, temporal=mode, end=count, progress=False, frame_batch=batch
+        )
+        assert report.exit_code == 0 and not report.notes, report.summary()
 
     cases = {
         "loop: estimate": lambda: loop(False),
         "loop: estimate + save": lambda: loop(True),
         "video.run, temporal none": lambda: video("none"),
-        "video.run, temporal smooth": lambda: video("smooth"),
     }
+    for batch in batches:
+        cases[f"video.run, temporal smooth, frame_batch {batch}"] = lambda b=batch: video(
+            "smooth", b
+        )
     times: dict[str, list[float]] = {name: [] for name in cases}
     for _ in range(args.repeats):  # interleaved: the machine's noise hits every case alike
         for name, case in cases.items():
@@ -160,15 +212,15 @@ def main() -> None:
     for name, runs in times.items():
         median = statistics.median(runs)
         table.append([name, median / count, count / median, reference / median])
-        rows.append({"table": "throughput", "case": name, "runs": runs, "frames": count})
+        rows.append(
+            {"table": "throughput", "case": name, "runs": runs, "frames": count, "net": network}
+        )
     print_table(
-        f"2. throughput ({count} frames, median of {args.repeats}, interleaved)",
+        f"2. throughput ({count} frames of {args.width} px, network {network}, median of "
+        f"{args.repeats}, interleaved)",
         ["case", "s/frame", "frames/s", "vs loop with save"],
         table,
     )
-    if args.json is not None:
-        write_json(args.json, rows, metadata())
-    shutil.rmtree(work, ignore_errors=True)
 
 
 if __name__ == "__main__":

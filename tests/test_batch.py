@@ -402,12 +402,12 @@ def test_eval_prints_the_metrics_of_an_output(tmp_path: Path) -> None:
 
 def test_a_claim_is_exclusive_and_leaves_nothing_behind(tmp_path: Path) -> None:
     stem = tmp_path / "sub" / "pano"
-    with m360.batch.image._claim(stem) as first:
-        with m360.batch.image._claim(stem) as second:  # another open file: as another process
+    with m360.batch.image.claim(stem) as first:
+        with m360.batch.image.claim(stem) as second:  # another open file: as another process
             assert first and not second
         assert (tmp_path / "sub" / ".pano.lock").exists()
     assert not list((tmp_path / "sub").iterdir())
-    with m360.batch.image._claim(stem) as again:
+    with m360.batch.image.claim(stem) as again:
         assert again
 
 
@@ -436,12 +436,12 @@ def test_ctrl_c_while_a_claim_is_taken_or_released_leaves_no_lock_file(
     else:
         monkeypatch.setattr(m360.batch.image.os, "unlink", ctrl_c_after(os.unlink))
     run_handler = (
-        m360.batch._interrupt.MainThreadInterrupts(m360.batch.runner._keyboard_interrupt_once())
+        m360.batch._interrupt.MainThreadInterrupts(m360.batch.runner.keyboard_interrupt_once())
         if handler == "m360"
         else contextlib.nullcontext()
     )
     with pytest.raises(KeyboardInterrupt), run_handler:
-        with m360.batch.image._claim(stem) as claimed:
+        with m360.batch.image.claim(stem) as claimed:
             body_ran = claimed
             if moment == "unlinked":
                 assert claimed
@@ -741,8 +741,8 @@ def test_temporary_names_and_locks_of_long_names_are_hashed(tmp_path: Path) -> N
     other.unlink()
     # The claim of a 250-byte stem: its lock is hashed, exclusive, and removed afterwards.
     stem = tmp_path / ("c" * 250)
-    with m360.batch.image._claim(stem) as first:
-        with m360.batch.image._claim(stem) as second:
+    with m360.batch.image.claim(stem) as first:
+        with m360.batch.image.claim(stem) as second:
             assert first and not second
         (lock,) = tmp_path.iterdir()
         assert lock.name == "." + hashlib.sha1(stem.name.encode()).hexdigest()[:16] + ".lock"
@@ -908,7 +908,7 @@ def test_images_busy_in_another_run_give_exit_3_unless_done_by_the_end(
     out = tmp_path / "out"
     args = ["run", str(tmp_path / "in"), "-o", str(out), "--model", str(model), *FAST,
             "--input-size", "32", "48", "--no-progress"]  # fmt: skip
-    with m360.batch.image._claim(out / "pano_01"):
+    with m360.batch.image.claim(out / "pano_01"):
         assert main(args) == 3
     err = capsys.readouterr().err
     assert "1 done, 0 already done, 0 failed, 1 busy in another run" in err
@@ -926,7 +926,7 @@ def test_images_busy_in_another_run_give_exit_3_unless_done_by_the_end(
             for path in finished.glob("pano_01.*"):
                 (again / path.name).write_bytes(path.read_bytes())
 
-    with m360.batch.image._claim(again / "pano_01"):
+    with m360.batch.image.claim(again / "pano_01"):
         report = m360.batch.run(inputs, again, on_outcome=other_run_finishes, **options)
     assert [o.status for o in report.outcomes] == ["done", "skipped"] and report.exit_code == 0
 
@@ -974,7 +974,7 @@ def test_a_disk_too_full_for_locks_or_failures_jsonl_still_reports_every_image(
         raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
 
     monkeypatch.setattr(m360.batch.image, "_lock_current", no_space)
-    monkeypatch.setattr(m360.batch.runner, "_append_failure", no_space)
+    monkeypatch.setattr(m360.batch.runner, "append_failure", no_space)
     report = m360.batch.run(inputs, tmp_path / "out", **_fast(model))
     assert [o.stem for o in report.failed] == ["pano_00", "pano_01"]
     assert all("no space left on device" in (o.message or "") for o in report.failed)

@@ -262,8 +262,9 @@ def test_preview_video_has_every_frame_and_one_colour_scale(tmp_path: Path) -> N
 _GATED_VIDEO = """
 import sys, m360, batch_helpers
 gate = sys.argv[3] or None
+batch = int(sys.argv[4]) if len(sys.argv) > 4 else 1
 report = m360.video.run(sys.argv[1], sys.argv[2], model=batch_helpers.Gated(gate),
-                        align="none", blend="mean", progress=False)
+                        align="none", blend="mean", progress=False, frame_batch=batch)
 print(report.summary(), file=sys.stderr)
 sys.exit(report.exit_code)
 """
@@ -279,9 +280,14 @@ def _read_exactly(fd: int, count: int, proc: subprocess.Popen) -> None:
 
 
 @pytest.mark.skipif(sys.platform == "win32", reason="needs FIFOs and process groups")
-def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path: Path) -> None:
+@pytest.mark.parametrize("batch", [1, 3])
+def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
+    tmp_path: Path, batch: int
+) -> None:
     """SIGKILL with 3 frames done and the 4th in the network; the rerun does the other 5 from
-    the 3rd frame's state and writes what a run never stopped writes."""
+    the 3rd frame's state and writes what a run never stopped writes. With frame_batch=3 the
+    network's second call (frames 3-5) is the one stopped, and a frame_batch=1 run is the
+    reference."""
     folder = tmp_path / "frames"
     _walk_frames(folder, 4, 8)
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
@@ -299,11 +305,12 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
     started, tokens = batch_helpers.make_gate(str(gate))
     cmd = [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
     proc = subprocess.Popen(
-        [*cmd, str(gate)], env=env, stderr=subprocess.PIPE, start_new_session=True
+        [*cmd, str(gate), str(batch)], env=env, stderr=subprocess.PIPE, start_new_session=True
     )
+    calls = 3 // batch  # the network calls of the first 3 frames
     try:
-        os.write(tokens, b"t" * 3)
-        _read_exactly(started, 4, proc)  # the 4th frame waits in the network
+        os.write(tokens, b"t" * calls)
+        _read_exactly(started, calls + 1, proc)  # the 4th frame waits in the network
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=120)
     finally:
@@ -315,7 +322,7 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(tmp_path
     # What a writer killed half-way leaves: temporaries of the 4th frame's files.
     for name in ("000003.disparity.npy", "000003.temporal.npy"):
         (out / f".{name}.abcdefgh.tmp").write_bytes(b"partial")
-    rerun = subprocess.run([*cmd, ""], env=env, capture_output=True, timeout=300)
+    rerun = subprocess.run([*cmd, "", str(batch)], env=env, capture_output=True, timeout=300)
     assert rerun.returncode == 0, rerun.stderr.decode()
     assert "5 done, 3 already done, 0 failed" in rerun.stderr.decode()
     assert {k: (out / k).stat().st_mtime_ns for k in finished} == finished  # not redone
@@ -341,13 +348,13 @@ def test_a_video_that_is_not_equirectangular_is_refused_before_any_frame(tmp_pat
 
 
 def test_a_second_run_into_a_busy_folder_is_refused(tmp_path: Path) -> None:
-    from m360.batch.image import _claim
+    from m360.batch.image import claim
 
     folder = tmp_path / "frames"
     _walk_frames(folder, 1, 2)
     out = tmp_path / "out"
     out.mkdir()
-    with _claim(out / "video") as claimed:
+    with claim(out / "video") as claimed:
         assert claimed
         report = m360.video.run(folder, out, model=batch_helpers.Gated(None), progress=False)
     assert report.exit_code == 3 and not list(out.glob("*.json"))
@@ -364,7 +371,7 @@ def test_cli_video(tmp_path: Path) -> None:
     g.affine_of_mean(model, 1.0, 3.0)
     argv = ["video", str(clip), "-o", str(out), "--model", str(model), "--every", "2"]
     argv += ["--start", "1", "--formats", "png16", "--no-progress", "--align", "none"]
-    argv += ["--blend", "mean", "--input-size", "64", "96", "--threads", "1"]
+    argv += ["--blend", "mean", "--input-size", "64", "96", "--threads", "1", "--frame-batch", "2"]
     assert main(argv) == 0
     assert sorted(p.name for p in out.glob("*.json")) == [
         "000001.json",
@@ -372,6 +379,7 @@ def test_cli_video(tmp_path: Path) -> None:
         "000005.json",
         "video.json",
     ]
+    assert json.loads((out / "video.json").read_text())["engine"]["frame_batch"] == 2
     assert main([*argv[:3], "--start", "0.1s", *argv[3:5], "--end", "x"]) == 2
 
 
@@ -497,3 +505,160 @@ def test_a_damaged_packet_of_a_video_fails_its_frame_alone(tmp_path: Path) -> No
     failures = (out / "failures.jsonl").read_text().splitlines()
     assert len(failures) == 1 and json.loads(failures[0])["output"] == "000020"
     assert _sidecar(out, 21)["temporal"]["reset"] == "previous frame failed"
+
+
+# --------------------------------------------------------------------------------------------
+# Frame batches: one network call for several frames, then each frame in order.
+
+
+class _Counted:
+    """Wraps an estimator: records the tangents of every call; refuses frame ``bad`` (any
+    call holding its tangents raises) and, with ``one_frame``, any call of several frames."""
+
+    output_kind = "affine_disparity"
+    name = "counted"
+
+    def __init__(self, inner: sq.SequenceEstimator, bad: int | None = None, one_frame=False):
+        self.inner, self.bad, self.one_frame = inner, bad, one_frame
+        self.layout = inner.layout
+        self.calls: list[list[int]] = []  # the frames of each call
+
+    def predict(self, tangents: np.ndarray) -> np.ndarray:
+        n = len(self.layout)
+        shown = [self.inner.frame_of(tangents[k : k + n]) for k in range(0, len(tangents), n)]
+        self.calls.append(shown)
+        if self.bad in shown:
+            raise RuntimeError(f"frame {self.bad} breaks the network")
+        if self.one_frame and len(shown) > 1:
+            raise RuntimeError("one frame at a time")
+        return self.inner.predict(tangents)
+
+
+def _walk_run(tmp_path: Path, count: int = 7, seed: int = 4) -> tuple[Path, sq.SequenceEstimator]:
+    folder = tmp_path / "frames"
+    _walk_frames(folder, seed, count)
+    walk = sq.walk(seed, count, erp_width=256)
+    images = [cv2.imread(str(p))[:, :, ::-1] for p in sorted(folder.iterdir())]
+    return folder, sq.SequenceEstimator(walk, default_layout(256), images=images)
+
+
+@pytest.mark.parametrize("temporal", ["smooth", "prior"])
+def test_frame_batches_write_the_bytes_of_frame_by_frame(tmp_path: Path, temporal: str) -> None:
+    """frame_batch=3 on 7 frames: calls of frames [0, 1, 2], [3, 4, 5], then 6 alone, and every
+    array and temporal state byte for byte as frame_batch=1 (m360.estimate per frame), with
+    the previous frame as the stitch's prior too (given to finish, not to prepare)."""
+    folder, inner = _walk_run(tmp_path)
+    mode = m360.video.Temporal("smooth", prior=True) if temporal == "prior" else temporal
+    outs, calls = {}, {}
+    for batch in (1, 3):
+        model = _Counted(inner)
+        out = tmp_path / f"out{batch}"
+        report = m360.video.run(
+            folder, out, model=model, temporal=mode, progress=False, frame_batch=batch
+        )
+        assert report.exit_code == 0 and len(report.done) == 7 and not report.notes
+        outs[batch], calls[batch] = _arrays(out), model.calls
+    assert calls[1] == [[k] for k in range(7)]
+    assert calls[3] == [[0, 1, 2], [3, 4, 5], [6]]
+    assert len(outs[3]) == 7 * 3 and outs[3] == outs[1]
+    if temporal == "prior":
+        assert [_sidecar(tmp_path / "out3", k)["temporal"]["prior"] for k in range(3)] == [
+            False,
+            True,
+            True,
+        ]
+    # The same outputs, the same fingerprint: a run with another frame_batch skips them all.
+    for k in range(7):
+        assert (
+            _sidecar(tmp_path / "out3", k)["batch"]["fingerprint"]
+            == (_sidecar(tmp_path / "out1", k)["batch"]["fingerprint"])
+        )
+    again = m360.video.run(
+        folder, tmp_path / "out3", model=_Counted(inner), temporal=mode, progress=False
+    )
+    assert len(again.skipped) == 7 and not again.done
+
+
+def test_a_frame_whose_prediction_fails_fails_alone_in_a_batch(tmp_path: Path) -> None:
+    """The call of frames [3, 4, 5] raises: each of them runs its own call, only frame 4 fails,
+    and the run writes what frame_batch=1 writes with the same network."""
+    folder, inner = _walk_run(tmp_path)
+    outs = {}
+    for batch in (1, 3):
+        model = _Counted(inner, bad=4)
+        out = tmp_path / f"out{batch}"
+        report = m360.video.run(folder, out, model=model, progress=False, frame_batch=batch)
+        assert report.exit_code == 1 and [o.stem for o in report.failed] == ["000004"]
+        assert len(report.done) == 6 and not report.notes
+        lines = (out / "failures.jsonl").read_text().splitlines()
+        assert [json.loads(line)["output"] for line in lines] == ["000004"]
+        assert _sidecar(out, 5)["temporal"]["reset"] == "previous frame failed"
+        outs[batch] = _arrays(out)
+    assert model.calls == [[0, 1, 2], [3, 4, 5], [3], [4], [5], [6]]  # batching goes on
+    assert len(outs[3]) == 6 * 3 and outs[3] == outs[1]
+
+
+def test_an_estimator_of_one_frame_at_a_time_goes_on_frame_by_frame(tmp_path: Path) -> None:
+    folder, inner = _walk_run(tmp_path)
+    reference = m360.video.run(folder, tmp_path / "ref", model=_Counted(inner), progress=False)
+    model = _Counted(inner, one_frame=True)
+    report = m360.video.run(folder, tmp_path / "out", model=model, progress=False, frame_batch=3)
+    assert report.exit_code == reference.exit_code == 0
+    assert model.calls == [[0, 1, 2], *([k] for k in range(7))]
+    assert len(report.notes) == 1 and "one frame at a time" in report.notes[0]
+    assert _arrays(tmp_path / "out") == _arrays(tmp_path / "ref")
+
+
+def test_frame_batch_is_capped_by_memory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """With memory for one frame's estimate and no more, frames go one at a time (a note)."""
+    from m360.pipeline.memory import estimate_memory
+
+    folder, inner = _walk_run(tmp_path, count=3)
+    one = estimate_memory(256, 256, "consensus", default_layout(256))
+    monkeypatch.setenv("M360_MEMORY_LIMIT", str(one + 1000))
+    model = _Counted(inner)
+    report = m360.video.run(folder, tmp_path / "out", model=model, progress=False, frame_batch=3)
+    assert report.exit_code == 0 and model.calls == [[0], [1], [2]]
+    assert len(report.notes) == 1 and "frame_batch 3 lowered to 1" in report.notes[0]
+    monkeypatch.setenv("M360_MEMORY_LIMIT", str(one + 10 * 2**30))  # room to spare
+    model = _Counted(inner)
+    report = m360.video.run(folder, tmp_path / "more", model=model, progress=False, frame_batch=3)
+    assert model.calls == [[0, 1, 2]] and not report.notes
+
+
+def test_frame_batch_options(tmp_path: Path) -> None:
+    folder, inner = _walk_run(tmp_path, count=2)
+    for bad in (0, 1.5, "2"):
+        with pytest.raises(m360.InputError, match="frame_batch"):
+            m360.video.run(folder, tmp_path / "out", model=inner, frame_batch=bad)
+    with pytest.raises(m360.InputError, match="not to chunked runs"):
+        m360.video.run(folder, tmp_path / "out", model=inner, chunk=4, frame_batch=2)
+
+
+def test_prepare_then_finish_is_estimate(tmp_path: Path) -> None:
+    """m360.estimate split in two around its network call: the same bytes, also with a prior
+    given only to finish; misuse is an InputError."""
+    from m360.pipeline.estimate import finish, prepare
+
+    folder, inner = _walk_run(tmp_path, count=2)
+    rgb = cv2.imread(str(next(folder.iterdir())))[:, :, ::-1].copy()
+    prior = np.full((32, 64), 0.5, np.float32)
+    whole = m360.estimate(rgb, inner, prior=prior, prior_kind="affine_disparity", sky="nan")
+    prepared = prepare(rgb, inner, sky="nan")
+    assert prepared.tangents.shape == (20, *prepared.layout.tangent_shape, 3)
+    raw = inner.predict(prepared.release())
+    split = finish(prepared, raw, prior=prior, prior_kind="affine_disparity")
+    for name in ("disparity", "depth", "confidence", "tangents"):
+        np.testing.assert_array_equal(getattr(split, name), getattr(whole, name))
+    assert split.options == whole.options and set(split.timings) == set(whole.timings)
+    with pytest.raises(m360.InputError, match="already released"):
+        prepared.release()
+    early = prepare(rgb, inner, prior=prior, prior_kind="affine_disparity")
+    with pytest.raises(m360.InputError, match="give it once"):
+        finish(early, raw, prior=prior, prior_kind="affine_disparity")
+    with pytest.raises(m360.ModelError, match="expected float"):
+        finish(prepare(rgb, inner), raw[:3])
+    with pytest.raises(m360.InputError, match="acts through the alignment"):
+        finish(prepare(rgb, inner, align="none"), raw, prior=prior, prior_kind="disparity")
+    with pytest.raises(m360.InputError, match="panoramic"):
+        prepare(rgb, inner, kind="panoramic")

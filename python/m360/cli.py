@@ -801,6 +801,14 @@ def _add_video_parser(commands: Any) -> None:
         default=1.0,
         help="--engine ray: CPUs per chunk worker (default 1)",
     )
+    video.add_argument(
+        "--frame-batch",
+        type=int,
+        default=1,
+        metavar="K",
+        help="local engine: frames whose tangents go to the network in one call, then finished "
+        "in order (the same outputs; default 1: on CPU a larger call gains nothing)",
+    )
     video.add_argument("--confidence", action="store_true", help="also write confidence maps")
     video.add_argument("--overwrite", dest="resume", action="store_false", help="redo every frame")
     video.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -839,6 +847,7 @@ def _video(args: argparse.Namespace) -> int:
         overlap=args.overlap,
         gpus_per_model=args.gpus_per_model,
         cpus_per_stitch=args.cpus_per_stitch,
+        frame_batch=args.frame_batch,
         model_options=ModelOptions(**from_args(args, ModelKeywords)),
         **from_args(args, JobKeywords),
     )

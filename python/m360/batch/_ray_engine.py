@@ -132,7 +132,7 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
         tangents = erp_to_tangents(working, _layout(work_width, settings.job["padding"]))
         t_project = time.perf_counter()
     except Exception as exc:
-        return _image._error_outcome(job, exc), None
+        return _image.error_outcome(job, exc), None
     timings = {"read": t_read - t0, "project": t_project - t_read}
     keep = _image._needs_rgb(settings) or work_width != width
     read.rgb = rgb if keep else None
@@ -209,7 +209,7 @@ def _stitch_write(
 
     _use_threads(threads)
     if isinstance(network_meta, Exception):
-        return _image._error_outcome(job, network_meta)
+        return _image.error_outcome(job, network_meta)
     read, erp_shape, work_width, timings = read_meta
     info, kind, network_seconds, extra = network_meta
     try:
@@ -263,7 +263,7 @@ def _stitch_write(
         _image._write_job(job, result, read.records, settings, read.rgb)
         write = time.perf_counter() - t_write
     except Exception as exc:
-        return _image._error_outcome(job, exc)
+        return _image.error_outcome(job, exc)
     stages = {"read": timings["read"], **result.timings, "write": write}
     stages.pop("total")
     return ImageOutcome(str(job.input), job.name, "done", timings=stages)
@@ -425,7 +425,7 @@ class _Driver:
             claim = contextlib.ExitStack()
             self.claims.add(claim)  # first: Ctrl-C from here on still releases it
             with deferred():  # Ctrl-C lands once the claim is in the stack, not halfway
-                claimed = claim.enter_context(_image._claim(job.stem))
+                claimed = claim.enter_context(_image.claim(job.stem))
             if not claimed:
                 self._release(claim)
                 self.record(job, ImageOutcome(str(job.input), job.name, "busy"))

@@ -78,7 +78,8 @@ class ImageOutcome:
     timings: dict[str, float] = field(default_factory=dict)
 
 
-def _failure(source: Path, stem: str, exc: BaseException) -> ImageOutcome:
+def failure_outcome(source: Path, stem: str, exc: BaseException) -> ImageOutcome:
+    """Make the failed outcome of output ``stem`` of ``source``: the error's class and text."""
     return ImageOutcome(str(source), stem, "failed", type(exc).__name__, str(exc))
 
 
@@ -171,11 +172,11 @@ class _Worker:
         unusable = _make_job_folder(job)
         if unusable is not None:
             return unusable
-        with contextlib.ExitStack() as claim:
+        with contextlib.ExitStack() as held:
             try:
-                claimed = claim.enter_context(_claim(job.stem))
+                claimed = held.enter_context(claim(job.stem))
             except OSError as exc:  # the lock file cannot be made: a full or read-only disk
-                return _error_outcome(job, exc)
+                return error_outcome(job, exc)
             if not claimed:
                 return ImageOutcome(str(job.input), job.name, "busy")
             if s.resume and is_done(job, s.fingerprint):
@@ -198,7 +199,7 @@ class _Worker:
                 _write_job(job, result, read.records, s, read.rgb)
                 t_write = time.perf_counter()
             except Exception as exc:
-                return _error_outcome(job, exc)
+                return error_outcome(job, exc)
         timings = {"read": t_read - t0, **result.timings, "write": t_write - t_estimate}
         timings.pop("total", None)
         return ImageOutcome(str(job.input), job.name, "done", timings=timings)
@@ -240,12 +241,12 @@ def _make_job_folder(job: Job) -> ImageOutcome | None:
     except (OSError, ValueError) as exc:  # a name too long, a NUL, no permission
         is_file, problem = False, f"cannot be read: {getattr(exc, 'strerror', None) or exc}"
     if not is_file:
-        return _failure(job.input, job.name, ReadError(f"input image {job.input} {problem}"))
+        return failure_outcome(job.input, job.name, ReadError(f"input image {job.input} {problem}"))
     try:
         job.stem.parent.mkdir(parents=True, exist_ok=True)
     except OSError as exc:  # e.g. a manifest output "a/b" where OUT/a is a file
         message = f"cannot create the folder of output {job.name}: {exc.strerror or exc}"
-        return _failure(job.input, job.name, InputError(message))
+        return failure_outcome(job.input, job.name, InputError(message))
     return None
 
 
@@ -410,14 +411,14 @@ if hasattr(errno, "EDQUOT"):  # not on Windows
     _DISK_ERRORS[errno.EDQUOT] = ("disk quota exceeded", "free space and rerun")
 
 
-def _error_outcome(job: Job, exc: Exception) -> ImageOutcome:
+def error_outcome(job: Job, exc: Exception) -> ImageOutcome:
     """Make the failed outcome of ``job`` for an exception raised while processing it.
 
     A full disk (ENOSPC, EDQUOT) or a read-only one (EROFS) is named as such; the image's
     temporary and partial files are already gone (:func:`m360.io.files.atomic_path`,
     :func:`m360.save`).
     """
-    outcome = _failure(job.input, job.name, exc)
+    outcome = failure_outcome(job.input, job.name, exc)
     if isinstance(exc, OSError) and exc.errno in _DISK_ERRORS:
         what, todo = _DISK_ERRORS[exc.errno]
         code = errno.errorcode.get(exc.errno, str(exc.errno))
@@ -543,7 +544,7 @@ def is_done(job: Job, fingerprint: Mapping[str, Any]) -> bool:
 
 
 @contextlib.contextmanager
-def _claim(stem: Path) -> Iterator[bool]:
+def claim(stem: Path) -> Iterator[bool]:
     """Hold an exclusive OS lock on ``.NAME.lock`` next to ``stem`` (hashed if long).
 
     Yields False if another process holds it. The OS releases the lock when its process dies,

@@ -85,10 +85,10 @@ from .image import (
     Job,
     _check_masks,
     _describe_masks,
-    _failure,
     _Settings,
     _Worker,
     check_output_names,
+    failure_outcome,
     is_done,
     name_limits,
 )
@@ -100,10 +100,15 @@ __all__ = [
     "BatchReport",
     "ImageOutcome",
     "Job",
+    "NoBar",
     "RunKeywords",
+    "append_failure",
     "collect",
     "fingerprint",
     "is_done",
+    "keyboard_interrupt_once",
+    "make_output_folder",
+    "ray_resources",
     "run",
 ]
 
@@ -297,14 +302,14 @@ def collect(
         try:
             stem = _inside(out, rel, where)
         except InputError as exc:
-            problems.append(_failure(source, rel.as_posix(), exc))
+            problems.append(failure_outcome(source, rel.as_posix(), exc))
             return
         if stem in claimed:
             clash = InputError(
                 f"{where}: output {rel} is already the output of {claimed[stem]}; name it "
                 "differently in a manifest"
             )
-            problems.append(_failure(source, rel.as_posix(), clash))
+            problems.append(failure_outcome(source, rel.as_posix(), clash))
             return
         claimed[stem] = source
         jobs.append(Job(source, stem, rel.as_posix(), where))
@@ -356,7 +361,7 @@ def _check_names(
         if problem is None:
             kept.append(job)
         else:
-            problems.append(_failure(job.input, job.name, problem))
+            problems.append(failure_outcome(job.input, job.name, problem))
     return kept
 
 
@@ -491,7 +496,7 @@ def run(
     model_opts = ModelOptions.build(model_options, **model_keywords)
     job_options = resolved(job_keywords, JobKeywords)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
-    ray_resources = _ray_resources(
+    resources = ray_resources(
         engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
     )
     chosen = check_formats(formats)
@@ -591,9 +596,9 @@ def run(
     # default (no key) is redone, and one written with --padding 0.7 is kept.
     padding = job_options["padding"]
     settings.fingerprint["padding"] = DEFAULT_PADDING if padding is None else padding
-    if workers > 1 or ray_resources is not None:
+    if workers > 1 or resources is not None:
         _check_picklable(settings)
-    _make_output_folder(out)
+    make_output_folder(out)
     failures = out / FAILURES_FILE
     order = {job: k for k, job in enumerate(jobs)}
     outcomes: dict[int, ImageOutcome] = {}
@@ -605,7 +610,7 @@ def run(
     def record(outcome: ImageOutcome, index: int | None) -> None:
         if outcome.status == "failed":
             try:
-                _append_failure(failures, outcome, settings.run_id)
+                append_failure(failures, outcome, settings.run_id)
             except OSError as exc:  # a full disk: the failure is still reported here
                 if not notes:
                     notes.append(f"{failures} could not be written: {exc.strerror or exc}")
@@ -632,15 +637,15 @@ def run(
     try:
         for problem in problems:
             record(problem, None)
-        if ray_resources is not None:
+        if resources is not None:
             from ._ray_engine import run_jobs
 
             del estimator, prior  # each model actor loads its own
-            with MainThreadInterrupts(_keyboard_interrupt_once()):  # the driver has many threads
-                run_jobs(jobs, settings, lambda job, o: record(o, order[job]), ray_resources)
+            with MainThreadInterrupts(keyboard_interrupt_once()):  # the driver has many threads
+                run_jobs(jobs, settings, lambda job, o: record(o, order[job]), resources)
         elif workers == 1 or len(jobs) <= 1:
             worker = _Worker(settings, estimator, prior)
-            with MainThreadInterrupts(_keyboard_interrupt_once()):
+            with MainThreadInterrupts(keyboard_interrupt_once()):
                 for job in jobs:
                     record(worker.process(job), order[job])
         else:
@@ -694,7 +699,7 @@ def _recheck_busy(outcomes: dict[int, ImageOutcome], jobs: list[Job], settings: 
             outcomes[index] = ImageOutcome(outcome.input, outcome.stem, "skipped")
 
 
-def _ray_resources(
+def ray_resources(
     engine: Any,
     workers: int,
     gpus_per_model: float | None,
@@ -735,7 +740,7 @@ def _positive(value: Any, name: str, *, zero: bool = False) -> float:
     return float(value)
 
 
-def _make_output_folder(out: Path) -> None:
+def make_output_folder(out: Path) -> None:
     """Create OUT, or tell why it cannot be written to (an InputError: exit 2, no image run)."""
     try:
         out.mkdir(parents=True, exist_ok=True)
@@ -830,7 +835,7 @@ def _check_picklable(settings: _Settings) -> None:
         ) from exc
 
 
-def _append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
+def append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
     """Append one JSON line for a failure, in a single write.
 
     O_APPEND keeps lines whole even when two runs share the folder.
@@ -852,13 +857,20 @@ def _append_failure(path: Path, outcome: ImageOutcome, run_id: str) -> None:
         os.close(fd)
 
 
-class _NoBar:
-    def update(self, n: int) -> None: ...
-    def set_postfix(self, values: Mapping[str, int], refresh: bool) -> None: ...
-    def close(self) -> None: ...
+class NoBar:
+    """A progress bar that shows nothing (``progress=False``): tqdm's methods, doing nothing."""
+
+    def update(self, n: int) -> None:
+        """Count ``n`` more items (nothing shown)."""
+
+    def set_postfix(self, values: Mapping[str, int], refresh: bool) -> None:
+        """Show counts after the bar (nothing shown)."""
+
+    def close(self) -> None:
+        """End the bar (nothing to end)."""
 
 
-def _keyboard_interrupt_once() -> Callable[[int, Any], None]:
+def keyboard_interrupt_once() -> Callable[[int, Any], None]:
     """SIGINT handler of an in-process run: KeyboardInterrupt once, then nothing.
 
     Once is enough, and a second one could break the clean-up of the first (the handler may
@@ -877,7 +889,7 @@ def _keyboard_interrupt_once() -> Callable[[int, Any], None]:
 
 def _progress_bar(total: int, show: bool) -> Any:
     if not show:
-        return _NoBar()
+        return NoBar()
     from tqdm import tqdm
 
     return tqdm(total=total, unit="img", desc="m360", dynamic_ncols=True, smoothing=0.1)

@@ -60,11 +60,15 @@ class SimulatedEstimator:
 
     @renamed(tiles="tangents")
     def predict(self, tangents: np.ndarray) -> np.ndarray:
-        """Return the distorted exact disparities (N, h, w) float32 of the layout's tangents."""
-        shape = (len(self.layout), *self.layout.tangent_shape)
-        if tuple(np.shape(tangents)[:3]) != shape:
+        """Return the distorted exact disparities (N, h, w) float32 of the layout's tangents.
+
+        K panoramas' tangents in one call (K·N of them) give the same N maps K times.
+        """
+        n, tile = len(self.layout), self.layout.tangent_shape
+        shape = tuple(np.shape(tangents)[:3])
+        if len(shape) != 3 or not shape[0] or shape[0] % n or shape[1:] != tile:
             raise InputError(
-                f"SimulatedEstimator was built for tangents of shape {shape}, "
-                f"got {np.shape(tangents)}"
+                f"SimulatedEstimator was built for tangents of shape {(n, *tile)} (or K "
+                f"panoramas': K·{n}), got {np.shape(tangents)}"
             )
-        return self._tangents.copy()  # type: ignore[no-any-return]  # numpy stubs: Any
+        return np.tile(self._tangents, (shape[0] // n, 1, 1))

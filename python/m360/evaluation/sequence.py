@@ -236,14 +236,33 @@ class SequenceEstimator:
         return self.frames[int(np.argmin(distance))]
 
     def predict(self, tangents: np.ndarray) -> np.ndarray:
-        """Return the simulated output (N, h, w) float32 of the frame these tangents show."""
-        shape = (len(self.layout), *self.layout.tangent_shape)
-        if tuple(np.shape(tangents)[:3]) != shape:
-            raise InputError(f"expected tangents of shape {shape}, got {np.shape(tangents)}")
-        index = self.frame_of(np.asarray(tangents))
-        if index not in self._cache:
-            self._cache[index] = self.sequence.tangents(index, self.layout)
-        output: np.ndarray = self._cache[index].copy()
+        """Return the simulated output (N, h, w) float32 of the frame these tangents show.
+
+        Several frames' tangents one after the other (K·N of them, one network call for K
+        frames) give each frame's output in turn: each group of N is recognised on its own,
+        so the output does not depend on how frames are grouped into calls.
+        """
+        n = len(self.layout)
+        shape = tuple(np.shape(tangents)[:3])
+        if (
+            len(shape) != 3
+            or shape[0] % n
+            or shape[0] == 0
+            or shape[1:] != self.layout.tangent_shape
+        ):
+            expected = (n, *self.layout.tangent_shape)
+            raise InputError(
+                f"expected tangents of shape {expected} (or K frames': K·{n}), got "
+                f"{np.shape(tangents)}"
+            )
+        array = np.asarray(tangents)
+        outputs = []
+        for start in range(0, shape[0], n):
+            index = self.frame_of(array[start : start + n])
+            if index not in self._cache:
+                self._cache[index] = self.sequence.tangents(index, self.layout)
+            outputs.append(self._cache[index])
+        output: np.ndarray = np.concatenate(outputs) if len(outputs) > 1 else outputs[0].copy()
         return output
 
 

@@ -4,7 +4,10 @@
 (:mod:`m360.estimators`), converts its output to perspective disparity and stitches
 (:func:`m360.stitch`), with a global prior when one is given (:mod:`m360.pipeline.prior`). A
 panoramic estimator instead runs once on the whole ERP at its own size, and its map is
-upsampled along the photo's edges. The estimators lived here before; their old names still
+upsampled along the photo's edges. :func:`prepare` and :func:`finish` are :func:`estimate` split
+around its network call (``estimate`` is ``prepare``, the network, ``finish``), for engines that
+run the network for several panoramas at once (``m360.video.run``'s ``frame_batch``) or
+elsewhere. The estimators lived here before; their old names still
 import from here, with a DeprecationWarning pointing to :mod:`m360.estimators`.
 """
 
@@ -41,7 +44,7 @@ from .scale import depth_of, scale_disparity
 if TYPE_CHECKING:
     from typing_extensions import Unpack
 
-__all__ = ["EstimateResult", "estimate"]
+__all__ = ["EstimateResult", "Prepared", "estimate", "finish", "prepare"]
 
 _log = logging.getLogger("m360")
 
@@ -243,29 +246,145 @@ def estimate(
         ``confidence``, ``tangents``, ``timings`` per stage and what ran.
     """
     t_start = time.perf_counter()
-    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
-        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where="estimate"
-    )
-    rgb = _check_erp_rgb(erp)
-    height, width = rgb.shape[:2]
-    job = resolved(job_keywords, JobKeywords)
-    prior_given = checked(prior_keywords, PriorKeywords)
-    model_opts = ModelOptions.build(model_options, **model_keywords)
-    if _role(model, model_opts) == "panoramic":
-        if layout is not None or job["padding"] is not None:
+    call = _check_call(erp, model_options, keywords, "estimate")
+    if _role(model, call.model_options) == "panoramic":
+        if layout is not None or call.job["padding"] is not None:
             raise InputError(
                 "a panoramic model runs once on the whole ERP: layout and padding do not apply"
             )
-        if prior_given:
+        if call.prior_given:
             raise InputError(
                 "a prior goes with a tangent model (the tangents give the detail, the prior the "
                 "low frequencies); a panoramic model is used alone: model=<panoramic model>, or "
                 "model=<tangent model>, prior=<panoramic model>"
             )
-        return _estimate_panoramic(rgb, model, model_opts, t_start, mask=mask, scale=scale, job=job)
+        return _estimate_panoramic(
+            call.rgb, model, call.model_options, t_start, mask=mask, scale=scale, job=call.job
+        )
+    prepared = _prepare(call, model, options, layout, mask, scale, t_start)
+    t_project = time.perf_counter()
+    raw = _predict(prepared.estimator, prepared.release(), prepared.layout)
+    return finish(prepared, raw, seconds=time.perf_counter() - t_project)
+
+
+@dataclass
+class _Call:
+    """The checked arguments of :func:`estimate` / :func:`prepare` (before the model's role)."""
+
+    rgb: np.ndarray
+    stitch_keywords: dict[str, Any]
+    job: dict[str, Any]
+    prior_given: dict[str, Any]
+    model_options: ModelOptions
+
+
+def _check_call(erp: Any, model_options: ModelOptions | None, keywords: Any, where: str) -> _Call:
+    """Check what :func:`estimate` and :func:`prepare` take before the model's role is known."""
+    stitch_keywords, model_keywords, job_keywords, prior_keywords = split(
+        keywords, StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords, where=where
+    )
+    rgb = _check_erp_rgb(erp)
+    job = resolved(job_keywords, JobKeywords)
+    prior_given = checked(prior_keywords, PriorKeywords)
+    model_opts = ModelOptions.build(model_options, **model_keywords)
+    return _Call(rgb, dict(stitch_keywords), job, prior_given, model_opts)
+
+
+@dataclass
+class Prepared:
+    """A panorama made ready for a tangent network by :func:`prepare`; :func:`finish` does the rest.
+
+    Everything :func:`estimate` does before its network call: the checks, the working-width
+    resize, the layout, the masks, the projection and the memory check. An engine that runs
+    the network elsewhere or for many panoramas at once (``m360.video.run``'s ``frame_batch``)
+    prepares each panorama, runs the network on their tangents and finishes each; the result
+    has the bytes :func:`estimate` gives.
+
+    Attributes
+    ----------
+    tangents : (N, h, w, 3) or None
+        The network's input (RGB tangent images); None once :meth:`release` gave them away.
+    estimator : object
+        The loaded tangent estimator (:func:`m360.estimators.load_estimator`).
+    layout : Layout
+        The tangent layout, at the working width.
+    erp_shape : (int, int)
+        The output's (H, W), the input's.
+    timings : dict
+        Seconds of ``load`` (checks, resize, model) and ``project``.
+    """
+
+    tangents: np.ndarray | None
+    estimator: Any
+    layout: Layout
+    erp_shape: tuple[int, int]
+    timings: dict[str, float]
+    options: StitchOptions = field(repr=False)
+    photo: np.ndarray = field(repr=False)  # the working-resolution RGB (a prior model's input)
+    guide: np.ndarray | None = field(repr=False)  # the full-resolution RGB, to upsample
+    mask: np.ndarray | None = field(repr=False)
+    erp_valid: np.ndarray | None = field(repr=False)
+    job: dict[str, Any] = field(repr=False)
+    scale: Any = field(repr=False)
+    prior: _prior.Prior | None = field(repr=False)
+    model_options: ModelOptions | None = field(repr=False, default=None)
+
+    def release(self) -> np.ndarray:
+        """Give the tangents away (to the network) and drop them here.
+
+        The RGB tiles are not needed by the stitch (133 MB at 8K): dropped before it.
+        """
+        if self.tangents is None:
+            raise InputError("the tangents of this prepared panorama were already released")
+        tangents, self.tangents = self.tangents, None
+        return tangents
+
+
+def prepare(
+    erp: np.ndarray,
+    model: str | os.PathLike[str] | _estimators.Estimator = _models.DEFAULT_MODEL,
+    *,
+    options: StitchOptions | None = None,
+    model_options: ModelOptions | None = None,
+    layout: Layout | None = None,
+    mask: Any = None,
+    scale: Any = None,
+    **keywords: Unpack[EstimateKeywords],
+) -> Prepared:
+    """Do the part of :func:`estimate` before its network: checks, resize, layout, projection.
+
+    Takes the arguments of :func:`estimate` (tangent models only: a panoramic model is an
+    :class:`InputError`). Run the network on :attr:`Prepared.tangents` (several panoramas'
+    tangents may go in one call), then :func:`finish` each with its share of the output.
+
+    Returns
+    -------
+    Prepared
+    """
+    t_start = time.perf_counter()
+    call = _check_call(erp, model_options, keywords, "prepare")
+    if _role(model, call.model_options) == "panoramic":
+        raise InputError(
+            "prepare/finish are for tangent models; a panoramic model runs once on the whole "
+            "ERP: use m360.estimate"
+        )
+    return _prepare(call, model, options, layout, mask, scale, t_start)
+
+
+def _prepare(
+    call: _Call,
+    model: Any,
+    options: StitchOptions | None,
+    layout: Layout | None,
+    mask: Any,
+    scale: Any,
+    t_start: float,
+) -> Prepared:
+    rgb, job = call.rgb, call.job
+    height, width = rgb.shape[:2]
     working_width, padding = job["working_width"], job["padding"]
     work_width = _memory.working_width_for(working_width, width)
-    opts = build(options, **stitch_keywords)
+    opts = build(options, **call.stitch_keywords)
     if layout is None:
         layout = default_layout(work_width, padding)
     elif padding is not None:
@@ -278,62 +397,134 @@ def estimate(
         )
     else:
         work_width = layout.erp_shape[1]
-    if prior_given.get("prior") is not None and opts.align is None:
-        raise InputError("a prior acts through the alignment: give align other than 'none'")
-    prior = _prior.load_prior(
-        prior_given.get("prior"),
-        prior_given.get("prior_kind"),
-        prior_given.get("prior_confidence"),
-        providers=model_opts.providers,
-        threads=model_opts.threads,
+    prior = _load_prior(call.prior_given, opts, call.model_options)
+    _check_memory(rgb, work_width, opts, layout, prior)
+    mask, erp_valid = _split_mask(mask, layout, (height, width))
+    guide = None
+    if work_width != width:
+        guide = rgb  # the full-resolution photo guides the upsampling
+        rgb = cv2.resize(rgb, (work_width, work_width // 2), interpolation=cv2.INTER_AREA)
+    estimator = _estimators.load_estimator(model, model_options=call.model_options)
+    t_load = time.perf_counter()
+    tangents = erp_to_tangents(rgb, layout)
+    t_project = time.perf_counter()
+    return Prepared(
+        tangents=tangents,
+        estimator=estimator,
+        layout=layout,
+        erp_shape=(height, width),
+        timings={"load": t_load - t_start, "project": t_project - t_load},
+        options=opts,
+        photo=rgb,
+        guide=guide,
+        mask=mask,
+        erp_valid=erp_valid,
+        job=job,
+        scale=scale,
+        prior=prior,
+        model_options=call.model_options,
     )
+
+
+def _load_prior(
+    given: dict[str, Any], opts: StitchOptions, model_opts: ModelOptions | None
+) -> _prior.Prior | None:
+    if given.get("prior") is not None and opts.align is None:
+        raise InputError("a prior acts through the alignment: give align other than 'none'")
+    return _prior.load_prior(
+        given.get("prior"),
+        given.get("prior_kind"),
+        given.get("prior_confidence"),
+        providers=None if model_opts is None else model_opts.providers,
+        threads=None if model_opts is None else model_opts.threads,
+    )
+
+
+def _check_memory(
+    rgb: np.ndarray,
+    work_width: int,
+    opts: StitchOptions,
+    layout: Layout,
+    prior: _prior.Prior | None,
+) -> None:
+    height, width = rgb.shape[:2]
     _memory.check_memory(
         _memory.estimate_memory(
             width, work_width, opts.method, layout, prior_pixels=_prior_pixels(prior, rgb)
         ),
         f"m360.estimate of a {width}x{height} panorama at working width {work_width}",
     )
-    sky_mode = job["sky"]
-    mask, erp_valid = _split_mask(mask, layout, (height, width))
-    guide = None
-    if work_width != width:
-        guide = rgb  # the full-resolution photo guides the upsampling
-        rgb = cv2.resize(rgb, (work_width, work_width // 2), interpolation=cv2.INTER_AREA)
-    estimator = _estimators.load_estimator(model, model_options=model_opts)
-    t_load = time.perf_counter()
-    tangents = erp_to_tangents(rgb, layout)
-    t_project = time.perf_counter()
-    raw = _predict(estimator, tangents, layout)
-    del tangents  # the RGB tiles are not needed by the stitch: 133 MB at 8K, freed before it
-    t_network = time.perf_counter()
-    timings = {
-        "load": t_load - t_start,
-        "project": t_project - t_load,
-        "network": t_network - t_project,
-    }
+
+
+def finish(
+    prepared: Prepared,
+    raw: np.ndarray,
+    *,
+    seconds: float = 0.0,
+    **prior_keywords: Unpack[PriorKeywords],
+) -> EstimateResult:
+    """Do the part of :func:`estimate` after its network: convert, stitch, upsample, scale.
+
+    Parameters
+    ----------
+    prepared : Prepared
+        From :func:`prepare`.
+    raw : (N, h, w) float
+        The network's output on ``prepared``'s tangents (its share of a larger call).
+    seconds : float
+        The network's time for this panorama (its share of a larger call), for ``timings``.
+    **prior_keywords
+        A global prior known only now (:class:`m360.pipeline.options.PriorKeywords`: the
+        previous video frame's result), when :func:`prepare` was given none; the same as
+        giving it to :func:`estimate`.
+
+    Returns
+    -------
+    EstimateResult
+        The bytes :func:`estimate` gives for the same arguments; ``timings["total"]`` is the
+        sum of the stages (time at work on this panorama, not waiting for the others).
+    """
+    if not isinstance(prepared, Prepared):
+        raise InputError(f"prepared must come from prepare(), got {type(prepared).__name__}")
+    t_finish = time.perf_counter()
+    layout, estimator = prepared.layout, prepared.estimator
+    raw = _checked_output(estimator, raw, layout)
+    prior = prepared.prior
+    given = {k: v for k, v in checked(dict(prior_keywords), PriorKeywords).items() if v is not None}
+    if given.get("prior") is not None:
+        if prior is not None:
+            raise InputError("the prior was given to prepare() already: give it once")
+        prior = _load_prior(given, prepared.options, prepared.model_options)
+        photo = prepared.guide if prepared.guide is not None else prepared.photo
+        _check_memory(photo, prepared.layout.erp_shape[1], prepared.options, layout, prior)
+    elif given:
+        raise InputError(f"{', '.join(sorted(given))} without a prior: give prior= too")
+    timings = {**prepared.timings, "network": float(seconds)}
     prior_map = None
     if prior is not None:
         # The prior model sees the working-resolution photo (as the Ray engine ships it to
         # its model actors), resized to the network's size.
-        prior_map = _prior_map(prior, rgb, prior_input=None)
-        timings["prior"] = time.perf_counter() - t_network
+        t_prior = time.perf_counter()
+        prior_map = _prior_map(prior, prepared.photo, prior_input=None)
+        timings["prior"] = time.perf_counter() - t_prior
     result = _from_network(
         raw,
         estimator.output_kind,
         layout,
-        opts,
-        (height, width),
+        prepared.options,
+        prepared.erp_shape,
         _model_info(estimator, layout),
         timings,
-        mask=mask,
-        erp_valid=erp_valid,
-        sky_mode=sky_mode,
-        scale=scale,
-        guide=guide,
-        upsample=job["upsample"],
+        mask=prepared.mask,
+        erp_valid=prepared.erp_valid,
+        sky_mode=prepared.job["sky"],
+        scale=prepared.scale,
+        guide=prepared.guide,
+        upsample=prepared.job["upsample"],
         prior=prior_map,
     )
-    result.timings["total"] = time.perf_counter() - t_start
+    stages = sum(prepared.timings.values()) + float(seconds)
+    result.timings["total"] = stages + time.perf_counter() - t_finish
     return result
 
 
@@ -549,9 +740,11 @@ def _split_mask(
     return mask, None
 
 
-def _predict(estimator: Any, tangents: np.ndarray, layout: Layout) -> np.ndarray:
+def _predict(estimator: Any, tangents: np.ndarray, layout: Layout, frames: int = 1) -> np.ndarray:
     """Run the network on the tangents; any failure or a wrong output is a ModelError.
 
+    ``tangents`` hold ``frames`` panoramas' tangents one after the other (one network call
+    for several panoramas; the output is checked for all of them).
     An estimator made for one layout (it has a ``layout``, as the simulated network does) is
     refused for another: tangents of the same shape would pass unnoticed with wrong values.
     """
@@ -568,13 +761,19 @@ def _predict(estimator: Any, tangents: np.ndarray, layout: Layout) -> np.ndarray
     except Exception as exc:  # a user estimator may raise anything; a batch loop needs M360Error
         name = getattr(estimator, "name", type(estimator).__name__)
         raise ModelError(f"estimator {name} failed: {type(exc).__name__}: {exc}") from exc
+    return _checked_output(estimator, raw, layout, frames)
+
+
+def _checked_output(estimator: Any, raw: Any, layout: Layout, frames: int = 1) -> np.ndarray:
+    """Give the network's output as an array; a ModelError unless (frames·N, h, w) float."""
     h, w = layout.tangent_shape
     raw_array = np.asarray(raw)
-    if raw_array.shape != (len(layout), h, w) or raw_array.dtype.kind != "f":
+    expected = (frames * len(layout), h, w)
+    if raw_array.shape != expected or raw_array.dtype.kind != "f":
         raise ModelError(
             f"estimator {getattr(estimator, 'name', type(estimator).__name__)} returned "
             f"{raw_array.dtype} of shape {raw_array.shape}; expected float (N, h, w) = "
-            f"{(len(layout), h, w)}"
+            f"{expected}"
         )
     return raw_array
 

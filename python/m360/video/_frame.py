@@ -13,12 +13,12 @@ import hashlib
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
 from .._keywords import definition
-from ..batch.image import Job, is_done
+from ..batch import Job, is_done
 from ..estimators.options import ModelOptions
 from ..io import remove_stale_temporaries, save
 from ..io.files import temporary_prefix
@@ -27,6 +27,9 @@ from ..stitching.depth import depth_of
 from ..stitching.options import StitchOptions
 from .reader import Frame, Source
 from .temporal import Temporal, TemporalState
+
+if TYPE_CHECKING:
+    from ._ahead import Ahead
 
 #: Suffix of a frame's temporal state (``OUT/000123.temporal.npy``).
 STATE_SUFFIX = ".temporal.npy"
@@ -102,10 +105,19 @@ class _Computed:
 
 
 def _compute(
-    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
+    plan: _Plan,
+    frame: Frame,
+    job: Job,
+    previous: TemporalState | None,
+    missing: str,
+    ahead: Ahead | None = None,
 ) -> _Computed:
-    """Estimate and smooth one frame (nothing written)."""
-    from ..pipeline.estimate import estimate
+    """Estimate and smooth one frame (nothing written).
+
+    ``ahead``: the frame prepared, and usually predicted, with others before its turn
+    (:mod:`m360.video._ahead`); it is finished here as :func:`m360.estimate` would.
+    """
+    from ..pipeline.estimate import estimate, finish
 
     assert frame.rgb is not None
     t0 = time.perf_counter()
@@ -114,7 +126,15 @@ def _compute(
     if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
         prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
     record["prior"] = bool(prior)
-    result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
+    earlier = 0.0  # seconds of this frame's estimate spent before its turn (frame_batch)
+    if ahead is None:
+        result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
+    else:
+        earlier = sum(ahead.prepared.timings.values())
+        if ahead.raw is not None:
+            earlier += ahead.seconds
+        raw, seconds = ahead.predict()
+        result = finish(ahead.prepared, raw, seconds=seconds, **prior)
     t_estimate = time.perf_counter()
     disparity, state, applied = plan.temporal.apply(
         result.disparity,
@@ -134,7 +154,7 @@ def _compute(
     }
     timings = {
         **{k: v for k, v in result.timings.items() if k != "total"},
-        "estimate": t_estimate - t0,
+        "estimate": t_estimate - t0 + earlier,
         "temporal": t_temporal - t_estimate,
     }
     return _Computed(result, state, extra, timings)
@@ -166,10 +186,15 @@ def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
 
 
 def _process(
-    plan: _Plan, frame: Frame, job: Job, previous: TemporalState | None, missing: str
+    plan: _Plan,
+    frame: Frame,
+    job: Job,
+    previous: TemporalState | None,
+    missing: str,
+    ahead: Ahead | None = None,
 ) -> tuple[TemporalState, dict[str, float]]:
     """Estimate, smooth and write one frame; its state for the next one and its timings."""
-    computed = _compute(plan, frame, job, previous, missing)
+    computed = _compute(plan, frame, job, previous, missing, ahead)
     return computed.state, _write(plan, job, computed)
 
 

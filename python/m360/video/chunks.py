@@ -37,7 +37,7 @@ from typing import Any
 
 import numpy as np
 
-from ..batch.image import ImageOutcome, _error_outcome, _failure
+from ..batch import ImageOutcome, error_outcome, failure_outcome
 from ..errors import ModelError, ReadError
 from ._frame import _compute, _Computed, _done, _job, _Plan, _state_path, _write, frame_stem
 from .reader import Frame
@@ -133,12 +133,12 @@ class ChunkRunner:
             computed: _Computed | None = None
             if frame.error is not None or frame.rgb is None:
                 error = frame.error or ReadError(f"frame {frame.index} could not be read")
-                outcome: ImageOutcome = _failure(job.input, job.name, error)
+                outcome: ImageOutcome = failure_outcome(job.input, job.name, error)
             else:
                 try:
                     computed = _compute(plan, frame, job, state, missing)
                 except Exception as exc:  # a frame fails alone
-                    outcome = _error_outcome(job, exc)
+                    outcome = error_outcome(job, exc)
             if computed is None:
                 state, missing, anchored = None, "previous frame failed", False
                 if own:
@@ -181,7 +181,7 @@ class ChunkRunner:
             try:
                 timings = _write(plan, job, frame)
             except Exception as exc:  # a frame fails alone
-                outcomes.append(_error_outcome(job, exc))
+                outcomes.append(error_outcome(job, exc))
                 continue
             outcomes.append(ImageOutcome(str(job.input), job.name, "done", timings=timings))
             if index in last:
@@ -225,7 +225,7 @@ def _skippable(plan: _Plan, chunk: Chunk) -> list[ImageOutcome] | None:
         job = _job(plan, frame)
         if frame.error is not None or frame.rgb is None:
             error = frame.error or ReadError(f"frame {frame.index} could not be read")
-            outcomes.append(_failure(job.input, job.name, error))
+            outcomes.append(failure_outcome(job.input, job.name, error))
         elif _done(plan, job):
             outcomes.append(ImageOutcome(str(job.input), job.name, "skipped"))
         else:

@@ -22,7 +22,7 @@ import queue
 import re
 import stat
 import threading
-from collections.abc import Callable, Iterable, Iterator
+from collections.abc import Callable, Generator, Iterable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any, TypeVar
@@ -381,7 +381,7 @@ def _packets(container: Any, stream: Any, path: Path) -> Iterator[Any]:
 _DONE = object()
 
 
-def prefetch(items: Iterable[_T], size: int = 4) -> Iterator[_T]:
+def prefetch(items: Iterable[_T], size: int = 4) -> Generator[_T, None, None]:
     """Iterate ``items`` on a background thread, at most ``size`` ahead of the consumer.
 
     Decoding runs ahead of the network this way (PyAV and OpenCV release the GIL while they

@@ -23,6 +23,9 @@ Frame by frame, with the batch's guarantees (docs/architecture.md, "Batch guaran
 - **One failure is one line** in ``OUT/failures.jsonl``; the next frame starts afresh (no
   temporal term across a failed frame) and the run goes on.
 - **Progress** with frames per second and the time left (tqdm).
+- **Network calls across frames** (``frame_batch=K``): K frames decoded and projected ahead,
+  one network call for their tangents, then each finished in order with the temporal term
+  (:mod:`m360.video._ahead`): the same bytes as frame by frame.
 
 ``engine="ray"`` runs the frames in chunks on a Ray cluster, each chunk started a few frames
 early with its gauge fitted to the previous chunk's on them (:mod:`m360.video.chunks`), with
@@ -46,15 +49,21 @@ import numpy as np
 
 from .._keywords import definition, resolved, split
 from .._validate import MAX_THREADS, integer
-from ..batch.image import ImageOutcome, Job, _claim, _error_outcome, _failure
-from ..batch.runner import (
+from ..batch import (
     FAILURES_FILE,
     BatchReport,
-    _append_failure,
-    _keyboard_interrupt_once,
-    _make_output_folder,
-    _ray_resources,
+    ImageOutcome,
+    Job,
+    MainThreadInterrupts,
+    NoBar,
+    append_failure,
+    claim,
+    error_outcome,
+    failure_outcome,
     fingerprint,
+    keyboard_interrupt_once,
+    make_output_folder,
+    ray_resources,
 )
 from ..errors import InputError, M360Error, ModelError, ReadError
 from ..estimators import estimator_kind
@@ -65,6 +74,7 @@ from ..io import check_formats
 from ..io.files import atomic_path, save_json
 from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
+from ._ahead import MAX_FRAME_BATCH, Ahead, FrameBatcher
 from ._frame import (
     STATE_SUFFIX,
     _done,
@@ -154,6 +164,7 @@ def run(
     overlap: int | None = None,
     gpus_per_model: float | None = None,
     cpus_per_stitch: float = 1.0,
+    frame_batch: int = 1,
     **keywords: Unpack[EstimateKeywords],
 ) -> VideoReport:
     """Estimate the depth of every (selected) frame of a 360° video into ``out_dir``.
@@ -210,6 +221,15 @@ def run(
         Ray only: GPUs per chunk worker (default 1 if ``providers`` asks for CUDA, else 0).
     cpus_per_stitch : float
         Ray only: CPUs per chunk worker (also the core's threads in it).
+    frame_batch : int
+        Local engine, tangent models: frames whose tangents go to the estimator in ONE call
+        (K·N tangents), decoded and projected ahead, then finished one by one in order with the
+        temporal term: the bytes of ``frame_batch=1``, and the same resume fingerprint. Default
+        1: on CPU the ONNX models run one tangent at a time, so a larger call gains nothing and
+        holds K frames' tangents (docs/video.md, "Throughput"); on a GPU with a batched model
+        (``batch_size``) it fills the device. Lowered to what fits in memory (a note says so);
+        a failed call is retried frame by frame, so a bad frame fails alone. Not with
+        ``engine="ray"`` or ``chunk=``; a panoramic model runs per frame.
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones
         (:class:`m360.pipeline.options.EstimateKeywords`).
@@ -249,15 +269,21 @@ def run(
     opts = build(options, **stitch_keywords)
     chosen = check_formats(formats)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
-    ray_resources = _ray_resources(
+    resources = ray_resources(
         engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
     )
-    if ray_resources is None and workers != 1:
+    if resources is None and workers != 1:
         raise InputError(
             "the local video engine runs frames in order in one process: workers apply to "
             "engine='ray' only"
         )
-    chunking = _chunking(chunk, overlap, ray=ray_resources is not None)
+    chunking = _chunking(chunk, overlap, ray=resources is not None)
+    frame_batch = integer(frame_batch, "frame_batch", low=1, high=MAX_FRAME_BATCH)
+    if chunking is not None and frame_batch != 1:
+        raise InputError(
+            "frame_batch applies to the local engine's one sequence, not to chunked runs "
+            "(engine='ray' or chunk=)"
+        )
     # The selection is checked (and the source opened) before anything is made.
     every, start, end = check_selection(every, start, end, fps)
     source = probe(src, fps=fps)
@@ -297,21 +323,21 @@ def run(
         model=model,
         model_options=model_opts,
     )
-    _make_output_folder(out)
+    make_output_folder(out)
     report = VideoReport(
         outcomes=[], seconds=0.0, interrupted=False, failures_file=out / FAILURES_FILE
     )
     report.source = source
     with contextlib.ExitStack() as stack:
-        if not stack.enter_context(_claim(out / "video")):
+        if not stack.enter_context(claim(out / "video")):
             report.outcomes.append(ImageOutcome(str(src), str(out), "busy"))
             report.seconds = time.perf_counter() - started
             return report
         selection = (every, start, end, fps)
         if chunking is None:
-            _run_frames(plan, src, selection, report, progress, on_outcome)
+            _run_frames(plan, src, selection, report, progress, on_outcome, frame_batch)
         else:
-            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, ray_resources)
+            _run_chunks(plan, src, selection, report, progress, on_outcome, chunking, resources)
         if preview_video and not report.interrupted:
             stems = [out / o.stem for o in report.outcomes if o.status in ("done", "skipped")]
             rate = (source.fps or 30.0) / every
@@ -321,9 +347,11 @@ def run(
                 )
             except M360Error as exc:
                 report.notes.append(f"the preview video could not be written: {exc}")
-        ran: dict[str, Any] = {"engine": "local" if ray_resources is None else "ray"}
+        ran: dict[str, Any] = {"engine": "local" if resources is None else "ray"}
         if chunking is not None:
             ran.update(chunk=chunking[0], overlap=chunking[1])
+        else:
+            ran["frame_batch"] = frame_batch  # asked for (a cap or a fallback is in the notes)
         _write_run_file(plan, report, (every, start, end, fps), ran)
     report.seconds = time.perf_counter() - started
     return report
@@ -336,10 +364,13 @@ def _run_frames(
     report: VideoReport,
     progress: bool,
     on_outcome: Callable[[ImageOutcome], None] | None,
+    frame_batch: int = 1,
 ) -> None:
-    """Process the frames in order, recording each outcome in ``report``."""
-    from ..batch._interrupt import MainThreadInterrupts
+    """Process the frames in order, recording each outcome in ``report``.
 
+    With ``frame_batch`` K > 1 (tangent models), K frames are read, prepared and predicted in
+    one network call before they are finished in order (:mod:`m360.video._ahead`).
+    """
     every, start, end, fps = selection
     total = _expected_frames(plan.source, every, start, end)
     bar = _progress_bar(total, progress)
@@ -348,57 +379,107 @@ def _run_frames(
     done_before: Path | None = None  # the last frame skipped as done: its state, if needed
     tried = False
     job: Job | None = None
+    batcher = None
+    if frame_batch > 1 and plan.tangent_model:
+        batcher = FrameBatcher(plan, frame_batch, report.notes)
+    elif frame_batch > 1:
+        report.notes.append(
+            "frame_batch applies to tangent models: a panoramic model runs per frame"
+        )
 
     def record(outcome: ImageOutcome) -> None:
         report.outcomes.append(outcome)
         bar.update(1)
         if outcome.status == "failed":
             try:
-                _append_failure(report.failures_file, outcome, plan.run_id)
+                append_failure(report.failures_file, outcome, plan.run_id)
             except OSError as exc:
                 report.notes.append(f"failures.jsonl could not be written ({exc})")
         if on_outcome is not None:
             on_outcome(outcome)
 
+    def one(frame: Frame, ahead: Ahead | None) -> bool:
+        """Run one frame in its turn; False when the run must stop (the model failed first)."""
+        nonlocal state, missing, done_before, tried, job
+        job = _job(plan, frame)
+        if frame.error is not None or frame.rgb is None:
+            error = frame.error or ReadError(f"frame {frame.index} could not be read")
+            record(failure_outcome(job.input, job.name, error))
+            state, done_before, missing = None, None, "previous frame failed"
+            return True
+        if plan.resume and _done(plan, job):
+            record(ImageOutcome(str(job.input), job.name, "skipped"))
+            state, done_before = None, job.stem
+            return True
+        if state is None and done_before is not None and plan.temporal.mode != "none":
+            try:
+                state = TemporalState.load(_state_path(done_before))
+            except ReadError:
+                missing = "previous frame's state unreadable"
+        done_before = None
+        try:
+            state, timings = _process(plan, frame, job, state, missing, ahead)
+        except ModelError as exc:
+            if not tried and not report.done:
+                report.model_error = str(exc)
+                return False
+            record(error_outcome(job, exc))
+            state, missing = None, "previous frame failed"
+        except Exception as exc:  # a frame fails alone
+            record(error_outcome(job, exc))
+            state, missing = None, "previous frame failed"
+        else:
+            record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
+        tried = True
+        return True
+
+    def run_group(group: list[Frame]) -> bool:
+        """Run frames read ahead: one network call for them all, then each in order."""
+        aheads: dict[int, Ahead] = {}
+        if batcher is not None and len(group) > 1:
+            aheads = batcher.predict([(frame, _job(plan, frame)) for frame in group])
+        statuses = []  # of the frames prepared ahead
+        for frame in group:
+            ahead = aheads.get(frame.index)
+            if not one(frame, ahead):
+                return False
+            if ahead is not None:
+                statuses.append(report.outcomes[-1].status)
+        if batcher is not None:
+            batcher.settle(statuses)
+        group.clear()
+        return True
+
+    read_error: M360Error | None = None
     try:
-        with MainThreadInterrupts(_keyboard_interrupt_once()):
+        with MainThreadInterrupts(keyboard_interrupt_once()):
             reader = frames(src, every, start, end, fps=fps, on_error="yield")
-            for frame in prefetch(reader, READ_AHEAD):
-                job = _job(plan, frame)
-                if frame.error is not None or frame.rgb is None:
-                    error = frame.error or ReadError(f"frame {frame.index} could not be read")
-                    record(_failure(job.input, job.name, error))
-                    state, done_before, missing = None, None, "previous frame failed"
-                    continue
-                if plan.resume and _done(plan, job):
-                    record(ImageOutcome(str(job.input), job.name, "skipped"))
-                    state, done_before = None, job.stem
-                    continue
-                if state is None and done_before is not None and plan.temporal.mode != "none":
+            group: list[Frame] = []  # the frames read, held while the group is read
+            with contextlib.closing(prefetch(reader, READ_AHEAD)) as stream:
+                while True:
                     try:
-                        state = TemporalState.load(_state_path(done_before))
-                    except ReadError:
-                        missing = "previous frame's state unreadable"
-                done_before = None
-                try:
-                    state, timings = _process(plan, frame, job, state, missing)
-                except ModelError as exc:
-                    if not tried and not report.done:
-                        report.model_error = str(exc)
-                        return
-                    record(_error_outcome(job, exc))
-                    state, missing = None, "previous frame failed"
-                except Exception as exc:  # a frame fails alone
-                    record(_error_outcome(job, exc))
-                    state, missing = None, "previous frame failed"
-                else:
-                    record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
-                tried = True
+                        frame = next(stream)
+                    except StopIteration:
+                        break
+                    except M360Error as exc:  # a damaged container: the frames after it are lost
+                        read_error = exc
+                        break
+                    group.append(frame)
+                    if batcher is not None:
+                        batcher.cap(frame)
+                    if len(group) >= (1 if batcher is None else batcher.size):
+                        if not run_group(group):
+                            return
+            if group and not run_group(group):
+                return
+            if read_error is not None:
+                name = "video" if job is None else f"after {job.name}"
+                record(failure_outcome(plan.source.path, name, read_error))
     except KeyboardInterrupt:
         report.interrupted = True
-    except M360Error as exc:  # the reader cannot go on (a damaged container): the rest is lost
+    except M360Error as exc:  # the reader cannot go on: the rest is lost
         name = "video" if job is None else f"after {job.name}"
-        record(_failure(plan.source.path, name, exc))
+        record(failure_outcome(plan.source.path, name, exc))
     finally:
         bar.close()
 
@@ -429,7 +510,6 @@ def _run_chunks(
     resources: Any,
 ) -> None:
     """Run the frames in chunks (:mod:`m360.video.chunks`), in this process or on Ray."""
-    from ..batch._interrupt import MainThreadInterrupts
     from .chunks import chunks_of, run_local, run_ray
 
     every, start, end, fps = selection
@@ -448,7 +528,7 @@ def _run_chunks(
         last[:] = [outcome.stem]
         if outcome.status == "failed":
             try:
-                _append_failure(report.failures_file, outcome, plan.run_id)
+                append_failure(report.failures_file, outcome, plan.run_id)
             except OSError as exc:
                 report.notes.append(f"failures.jsonl could not be written ({exc})")
         if on_outcome is not None:
@@ -467,14 +547,14 @@ def _run_chunks(
         overlap = 0  # frames on their own: nothing to warm up or fit
     chunks = chunks_of(prefetch(selected(), READ_AHEAD), size, overlap)
     try:
-        with MainThreadInterrupts(_keyboard_interrupt_once()):
+        with MainThreadInterrupts(keyboard_interrupt_once()):
             if resources is None:
                 run_local(plan, chunks, overlap, record)
             else:
                 run_ray(plan, chunks, overlap, record, resources)
             if read_error:
                 name = f"after {last[0]}" if last else "video"
-                record(_failure(plan.source.path, name, read_error[0]))
+                record(failure_outcome(plan.source.path, name, read_error[0]))
     except KeyboardInterrupt:
         report.interrupted = True
     except ModelError as exc:
@@ -496,9 +576,7 @@ def _expected_frames(source: Source, every: int, start: Any, end: Any) -> int | 
 
 def _progress_bar(total: int | None, show: bool) -> Any:
     if not show:
-        from ..batch.runner import _NoBar
-
-        return _NoBar()
+        return NoBar()
     from tqdm import tqdm
 
     # tqdm shows frames per second and, with a total, the time left.
