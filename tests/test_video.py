@@ -662,3 +662,51 @@ def test_prepare_then_finish_is_estimate(tmp_path: Path) -> None:
         finish(prepare(rgb, inner, align="none"), raw, prior=prior, prior_kind="disparity")
     with pytest.raises(m360.InputError, match="panoramic"):
         prepare(rgb, inner, kind="panoramic")
+
+
+def _bilinear_wrapped(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
+    """Independent bilinear upsampling with pixel centres, rows clamped, columns wrapped."""
+    height, width = shape
+    h, w = values.shape[:2]
+    col = (np.arange(width) + 0.5) * w / width - 0.5
+    row = np.clip((np.arange(height) + 0.5) * h / height - 0.5, 0, h - 1)
+    c0 = np.floor(col).astype(int)
+    fx = (col - c0)[None, :, None]
+    c0, c1 = c0 % w, (c0 + 1) % w
+    r0 = np.minimum(np.floor(row).astype(int), h - 2)
+    fy = (row - r0)[:, None, None]
+    top = values[r0][:, c0] * (1 - fx) + values[r0][:, c1] * fx
+    bottom = values[r0 + 1][:, c0] * (1 - fx) + values[r0 + 1][:, c1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+@pytest.mark.parametrize("shape", [(256, 512), (200, 400), (75, 150)])
+def test_the_state_grows_bilinearly_across_the_seam(shape: tuple[int, int]) -> None:
+    from m360.video.temporal import _grow
+
+    values = np.random.default_rng(3).random((32, 64, 2)).astype(np.float32)
+    got = _grow(values, shape)  # 512 and 128 are multiples of 64 (the resize path), 150 not
+    np.testing.assert_allclose(got, _bilinear_wrapped(values, shape), atol=2e-6)
+
+
+def test_the_gauge_fit_is_the_weighted_least_squares_without_the_worst_fifth() -> None:
+    from m360.video.temporal import _fit_gauge
+
+    rng = np.random.default_rng(5)
+    current = rng.random((64, 128)).astype(np.float32) + 0.5
+    target = 1.7 * current + 0.3 + rng.normal(0, 0.01, current.shape).astype(np.float32)
+    target[:8] += 5.0  # an eighth of the map moved: left out by the refit
+    weight = np.where(rng.random(current.shape) < 0.1, 0.2, 1.0).astype(np.float32)
+    a, b = _fit_gauge(current, target, weight) or (np.nan, np.nan)
+    # The oracle: numpy's lstsq on the same steps.
+    keep = weight > 0.5
+    x, y, w = current[keep].astype(float), target[keep].astype(float), weight[keep].astype(float)
+    for _ in range(2):
+        design = np.stack([x, np.ones_like(x)], 1) * np.sqrt(w)[:, None]
+        fit = np.linalg.lstsq(design, y * np.sqrt(w), rcond=None)[0]
+        inliers = np.abs(fit[0] * x + fit[1] - y) <= np.quantile(
+            np.abs(fit[0] * x + fit[1] - y), 0.8
+        )
+        x, y, w = x[inliers], y[inliers], w[inliers]
+    assert a == pytest.approx(fit[0], rel=1e-9) and b == pytest.approx(fit[1], rel=1e-9)
+    assert a == pytest.approx(1.7, abs=0.01) and b == pytest.approx(0.3, abs=0.01)

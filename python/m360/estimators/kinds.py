@@ -206,7 +206,9 @@ def to_spherical_disparity(values: np.ndarray, kind: str) -> np.ndarray:
     depth = out.astype(np.float64)
     if kind == "affine_depth":
         lo, hi = _percentiles(depth[None], (1.0, 99.0))
-        depth = np.maximum(depth - lo[0], 0.0) + AFFINE_DEPTH_FLOOR * (hi[0] - lo[0])
+        # A constant map still has a floor above 0 (its inverse, a constant, not NaN).
+        span = max(float(hi[0] - lo[0]), 1e-12 * max(abs(float(hi[0])), 1.0))
+        depth = np.maximum(depth - lo[0], 0.0) + AFFINE_DEPTH_FLOOR * span
     with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
         result = np.where(depth > 0, 1.0 / depth, np.nan).astype(np.float32)
     result[np.isinf(result)] = np.nan

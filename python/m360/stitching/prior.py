@@ -27,7 +27,7 @@ import numpy as np
 
 from .._validate import as_array, erp_map
 from ..errors import InputError
-from ..estimators.kinds import AFFINE_DEPTH_FLOOR
+from ..estimators.kinds import PANORAMIC_OUTPUT_KINDS, to_spherical_disparity
 
 __all__ = [
     "PRIOR_KINDS",
@@ -39,7 +39,7 @@ __all__ = [
 
 #: What a prior map holds.
 PriorKind = Literal["affine_disparity", "disparity", "affine_depth", "distance"]
-PRIOR_KINDS: tuple[str, ...] = ("affine_disparity", "disparity", "affine_depth", "distance")
+PRIOR_KINDS: tuple[str, ...] = PANORAMIC_OUTPUT_KINDS
 #: The kinds whose units the result takes.
 _ABSOLUTE = ("disparity", "distance")
 
@@ -94,22 +94,8 @@ def check_prior(
         choices = ", ".join(repr(k) for k in PRIOR_KINDS)
         raise InputError(f"prior_kind={kind!r} is not supported; choose one of {choices}")
     array = erp_map(prior, "prior", integers=True)
-    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
-        values = np.asarray(array, np.float64)
-        values = np.where(np.isfinite(values), values, np.nan)
-        if kind in ("disparity", "distance", "affine_depth") and np.any(values < 0):
-            values = np.where(values < 0, np.nan, values)
-        if kind == "distance":
-            values = np.where(values > 0, 1.0 / values, np.nan)
-        elif kind == "affine_depth":
-            finite = values[np.isfinite(values)]
-            if finite.size:
-                lo, hi = np.percentile(finite, (1.0, 99.0))
-                span = max(float(hi - lo), 1e-12 * max(abs(float(hi)), 1.0))
-                shifted = np.maximum(values, lo) - lo + AFFINE_DEPTH_FLOOR * span
-                values = 1.0 / shifted
-        out = values.astype(np.float32)
-    out[~np.isfinite(out)] = np.nan
+    # The same conversion as a panoramic model's output (one definition of the kinds).
+    out = to_spherical_disparity(array, kind)
     if not np.isfinite(out).any():
         raise InputError(f"prior has no usable value for prior_kind={kind!r} (all NaN or invalid)")
     conf = None

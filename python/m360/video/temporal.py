@@ -137,17 +137,31 @@ def shrink(disparity: np.ndarray) -> np.ndarray:
 
 
 def _grow(values: np.ndarray, shape: tuple[int, int]) -> np.ndarray:
-    """Bilinear upsampling of a state-sized map to ``shape`` (H, W), wrapping in longitude."""
+    """Bilinear upsampling of a state-sized map to ``shape`` (H, W), wrapping in longitude.
+
+    Pixel centres as everywhere in m360; rows clamp at the poles. Exact float interpolation
+    (cv2.remap's fixed-point weights were off by up to 1/32 of a step).
+    """
     height, width = shape
-    h, w = values.shape[:2]
-    col = ((np.arange(width, dtype=np.float32) + 0.5) * (w / width) - 0.5)[None, :]
-    row = ((np.arange(height, dtype=np.float32) + 0.5) * (h / height) - 0.5)[:, None]
-    map_x = np.broadcast_to(np.mod(col, w), shape).astype(np.float32)
-    map_y = np.broadcast_to(np.clip(row, 0, h - 1), shape).astype(np.float32)
-    grown: np.ndarray = cv2.remap(
-        values, map_x, map_y, interpolation=cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP
-    )
-    return grown
+    w = values.shape[1]
+    if width % w == 0:
+        # An integer ratio r: one wrapped column on each side, resized to W + 2r, is the
+        # same map without full-size coordinate maps (12x faster than a remap at 1K-4K).
+        r = width // w
+        padded = np.concatenate([values[:, -1:], values, values[:, :1]], axis=1)
+        big = cv2.resize(padded, (width + 2 * r, height), interpolation=cv2.INTER_LINEAR)
+        grown: np.ndarray = big[:, r : r + width]
+        return grown
+    rows: np.ndarray = cv2.resize(values, (w, height), interpolation=cv2.INTER_LINEAR)  # rows
+    col = (np.arange(width) + 0.5) * (w / width) - 0.5
+    c0 = np.floor(col).astype(np.intp)
+    fx = (col - c0).astype(np.float32).reshape((1, width) + (1,) * (values.ndim - 2))
+    left: np.ndarray = rows[:, c0 % w]
+    right: np.ndarray = rows[:, (c0 + 1) % w]
+    right -= left
+    right *= fx
+    right += left
+    return right
 
 
 def scene_cut(grey: np.ndarray, previous: np.ndarray) -> tuple[bool, float]:
@@ -181,9 +195,15 @@ def _fit_gauge(
     x, y, w = current[keep].astype(np.float64), target[keep].astype(np.float64), weight[keep]
     fit = None
     for _ in range(2):
-        design = np.stack([x, np.ones_like(x)], axis=1) * np.sqrt(w)[:, None]
-        solution, *_ = np.linalg.lstsq(design, y * np.sqrt(w), rcond=None)
-        fit = (float(solution[0]), float(solution[1]))
+        # The weighted least squares of two unknowns by its 2x2 normal equations (a dense
+        # lstsq of the (n, 2) design took half the temporal term's time).
+        sw, sx, sy = w.sum(), w @ x, w @ y
+        sxx, sxy = w @ (x * x), w @ (x * y)
+        det = sw * sxx - sx * sx
+        if not det > 1e-12 * max(sw * sxx, 1e-300):
+            return None
+        fit = ((sw * sxy - sx * sy) / det, (sxx * sy - sx * sxy) / det)
+        fit = (float(fit[0]), float(fit[1]))
         residual = np.abs(fit[0] * x + fit[1] - y)
         inliers = residual <= np.quantile(residual, 0.8)
         x, y, w = x[inliers], y[inliers], w[inliers]
