@@ -560,9 +560,9 @@ impl PriorVote<'_> {
 }
 
 /// The prior's vote scale c_P, in units of the robust scale of the distance between the
-/// prior and the tangents' weighted mean (1.4826 × its median): with 0.5, 1, 2 and 4 measured
-/// on synthetic rooms with content errors (benches/bench_prior.py), 1 was within 2 % of the
-/// best and the least sensitive.
+/// prior and the tangents' weighted mean (1.4826 × its median): of 0.5, 1 and 2, measured on
+/// two synthetic rooms at 2K with content errors and with a wrong prior (benches/bench_prior.py,
+/// docs/method.md), 1 was within 2 % of the best in both.
 const PRIOR_VOTE_SCALE: f32 = 1.0;
 /// The prior's trust at a pixel is the Cauchy weight of its distance from the nearest face, at
 /// this many c_P: a prior that no face agrees with (a window, a mirror, a wrong region) does
