@@ -116,7 +116,7 @@ class Plan:
         confidence: bool = True,
         prior: npt.NDArray[np.float32] | None = None,
         prior_confidence: npt.NDArray[np.float32] | None = None,
-        prior_affine: tuple[float, float] = (1.0, 0.0),
+        prior_affine: tuple[float, float] = ...,
     ) -> tuple[npt.NDArray[np.float32], npt.NDArray[np.float32] | None, dict[str, Any]]: ...
     def blend_weights(self, kind: str) -> npt.NDArray[np.float32]: ...
 
