@@ -10,6 +10,8 @@ import select
 import signal
 import subprocess
 import sys
+import time
+from collections.abc import Callable
 from pathlib import Path
 
 import batch_helpers
@@ -223,6 +225,34 @@ def test_a_corrupt_frame_fails_alone(tmp_path: Path) -> None:
     assert len(again.skipped) == 4 and [o.stem for o in again.failed] == ["000002"]
 
 
+def test_a_frame_whose_files_cannot_be_written_fails_alone(tmp_path: Path) -> None:
+    """Frame 2's files are written on the writer thread while frame 3 is estimated: when that
+    write fails, frame 3 is redone without the temporal term, as a run writing in line would,
+    and the outcomes stay in frame order."""
+    folder = tmp_path / "frames"
+    _walk_frames(folder, 5, 5)
+    out = tmp_path / "out"
+    (out / "000002.disparity.npy").mkdir(parents=True)  # a folder where a file must go
+    report = m360.video.run(folder, out, model=batch_helpers.Gated(None), progress=False, **FAST)
+    assert report.exit_code == 1
+    assert [o.stem for o in report.outcomes] == [f"{k:06d}" for k in range(5)]
+    assert [o.stem for o in report.failed] == ["000002"]
+    assert _sidecar(out, 3)["temporal"]["reset"] == "previous frame failed"
+    assert _sidecar(out, 4)["temporal"]["reset"] is None  # the term goes on after it
+    # The same bytes as frames 3-4 computed afresh: a run of those frames alone.
+    alone = tmp_path / "alone"
+    _walk_frames(alone, 5, 5)
+    for extra in sorted(alone.iterdir())[:3]:
+        extra.unlink()
+    reference = m360.video.run(
+        alone, tmp_path / "ref", model=batch_helpers.Gated(None), progress=False, **FAST
+    )
+    assert reference.exit_code == 0
+    ref = _arrays(tmp_path / "ref")
+    assert ref["000000.disparity.npy"] == (out / "000003.disparity.npy").read_bytes()
+    assert ref["000001.disparity.npy"] == (out / "000004.disparity.npy").read_bytes()
+
+
 def test_frame_selection_and_resume_by_fingerprint(tmp_path: Path) -> None:
     clip = _encode(tmp_path / "clip.mp4", 12)
     out = tmp_path / "out"
@@ -279,6 +309,15 @@ def _read_exactly(fd: int, count: int, proc: subprocess.Popen) -> None:
         assert proc.poll() is None, "the run ended before it could be stopped"
 
 
+def _wait_until(done: Callable[[], bool], proc: subprocess.Popen) -> None:
+    """Poll ``done`` until it holds; fail after 120 s or when the run ended (a guard only)."""
+    deadline = time.monotonic() + 120
+    while not done():
+        assert time.monotonic() < deadline, "the run never got there"
+        assert proc.poll() is None, "the run ended before it could be stopped"
+        time.sleep(0.01)
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="needs FIFOs and process groups")
 @pytest.mark.parametrize("batch", [1, 3])
 def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
@@ -311,6 +350,9 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
     try:
         os.write(tokens, b"t" * calls)
         _read_exactly(started, calls + 1, proc)  # the 4th frame waits in the network
+        # The 3rd frame's files are written on the run's writer thread while the 4th is
+        # estimated: nothing blocks that write, so wait for its sidecar (a guard, not a race).
+        _wait_until(lambda: (out / "000002.json").is_file(), proc)
         os.killpg(proc.pid, signal.SIGKILL)
         proc.communicate(timeout=120)
     finally:

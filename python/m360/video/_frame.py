@@ -26,7 +26,7 @@ from ..pipeline.options import EstimateKeywords
 from ..stitching.depth import depth_of
 from ..stitching.options import StitchOptions
 from .reader import Frame, Source
-from .temporal import Temporal, TemporalState
+from .temporal import Correction, Temporal, TemporalState
 
 if TYPE_CHECKING:
     from ._ahead import Ahead
@@ -88,9 +88,23 @@ class _Computed:
     state: TemporalState
     extra: dict[str, Any]
     timings: dict[str, float]
+    #: The temporal term's full-size step, left to :func:`_write` (None: applied or none).
+    correction: Correction | None = None
+
+    def corrected(self) -> _Computed:
+        """The frame with its temporal correction applied (itself when there is none)."""
+        if self.correction is None:
+            return self
+        t0 = time.perf_counter()
+        disparity = self.correction.apply(self.result.disparity)
+        result = dataclasses.replace(self.result, disparity=disparity, depth=depth_of(disparity))
+        timings = {**self.timings, "temporal": self.timings["temporal"] + time.perf_counter() - t0}
+        return _Computed(result, self.state, self.extra, timings)
 
     def with_gauge(self, a: float, b: float) -> _Computed:
         """The same frame in another gauge: disparity and state mapped by ``a·D + b``."""
+        if self.correction is not None:
+            return self.corrected().with_gauge(a, b)
         if (a, b) == (1.0, 0.0):
             return self
         disparity = self.result.disparity * np.float32(a) + np.float32(b)
@@ -111,11 +125,15 @@ def _compute(
     previous: TemporalState | None,
     missing: str,
     ahead: Ahead | None = None,
+    *,
+    defer: bool = False,
 ) -> _Computed:
     """Estimate and smooth one frame (nothing written).
 
     ``ahead``: the frame prepared, and usually predicted, with others before its turn
-    (:mod:`m360.video._ahead`); it is finished here as :func:`m360.estimate` would.
+    (:mod:`m360.video._ahead`); it is finished here as :func:`m360.estimate` would. With
+    ``defer`` the temporal term's full-size step is left to :func:`_write` (the state the
+    next frame needs is ready without it).
     """
     from ..pipeline.estimate import estimate, finish
 
@@ -136,15 +154,13 @@ def _compute(
         raw, seconds = ahead.predict()
         result = finish(ahead.prepared, raw, seconds=seconds, **prior)
     t_estimate = time.perf_counter()
-    disparity, state, applied = plan.temporal.apply(
+    state, correction, applied = plan.temporal.advance(
         result.disparity,
         grey,
         confidence,
         None if confidence is None else previous,
         relative=result.units == "relative",
     )
-    if disparity is not result.disparity:
-        result = dataclasses.replace(result, disparity=disparity, depth=depth_of(disparity))
     t_temporal = time.perf_counter()
     extra = {
         "input": {"rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest()},
@@ -157,11 +173,16 @@ def _compute(
         "estimate": t_estimate - t0 + earlier,
         "temporal": t_temporal - t_estimate,
     }
-    return _Computed(result, state, extra, timings)
+    computed = _Computed(result, state, extra, timings, correction)
+    return computed if defer else computed.corrected()
 
 
 def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
-    """Write one computed frame atomically, its sidecar last; its timings."""
+    """Write one computed frame atomically, its sidecar last; its timings.
+
+    A deferred temporal correction is applied first (on the run's writer thread).
+    """
+    frame = frame.corrected()
     t0 = time.perf_counter()
     # Temporaries a killed run left for this frame (the run's claim is held, so none is live).
     remove_stale_temporaries(job.stem)
@@ -183,19 +204,6 @@ def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
         confidence=plan.confidence,
     )
     return {**frame.timings, "write": time.perf_counter() - t0}
-
-
-def _process(
-    plan: _Plan,
-    frame: Frame,
-    job: Job,
-    previous: TemporalState | None,
-    missing: str,
-    ahead: Ahead | None = None,
-) -> tuple[TemporalState, dict[str, float]]:
-    """Estimate, smooth and write one frame; its state for the next one and its timings."""
-    computed = _compute(plan, frame, job, previous, missing, ahead)
-    return computed.state, _write(plan, job, computed)
 
 
 def _estimate_keywords() -> set[str]:

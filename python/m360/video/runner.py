@@ -40,6 +40,7 @@ import os
 import time
 import uuid
 from collections.abc import Callable, Iterator, Sequence
+from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -77,11 +78,12 @@ from ..stitching.options import StitchKeywords, StitchOptions, build
 from ._ahead import MAX_FRAME_BATCH, Ahead, FrameBatcher
 from ._frame import (
     STATE_SUFFIX,
+    _compute,
     _done,
     _job,
     _Plan,
-    _process,
     _state_path,
+    _write,
     frame_stem,
 )
 from .reader import Frame, Source, check_selection, frames, prefetch, probe
@@ -398,18 +400,40 @@ def _run_frames(
         if on_outcome is not None:
             on_outcome(outcome)
 
+    # A frame's full-size temporal step and its files are done on this thread while the next
+    # frame is estimated (its state, all the next frame needs, is ready before). At most one
+    # frame is in flight, and outcomes are recorded in frame order.
+    writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="m360-video-write")
+    pending: list[tuple[Job, Future[dict[str, float]]]] = []
+    status = ""  # what the last frame's turn gave: done, failed or skipped
+
+    def settle() -> bool:
+        """Wait for the frame in flight and record its outcome; True when it failed."""
+        if not pending:
+            return False
+        written, future = pending.pop()
+        try:
+            timings = future.result()
+        except Exception as exc:  # its files could not be written: it fails alone
+            record(error_outcome(written, exc))
+            return True
+        record(ImageOutcome(str(written.input), written.name, "done", timings=timings))
+        return False
+
     def one(frame: Frame, ahead: Ahead | None) -> bool:
         """Run one frame in its turn; False when the run must stop (the model failed first)."""
-        nonlocal state, missing, done_before, tried, job
+        nonlocal state, missing, done_before, tried, job, status
         job = _job(plan, frame)
         if frame.error is not None or frame.rgb is None:
+            settle()
             error = frame.error or ReadError(f"frame {frame.index} could not be read")
             record(failure_outcome(job.input, job.name, error))
-            state, done_before, missing = None, None, "previous frame failed"
+            state, done_before, missing, status = None, None, "previous frame failed", "failed"
             return True
         if plan.resume and _done(plan, job):
+            settle()
             record(ImageOutcome(str(job.input), job.name, "skipped"))
-            state, done_before = None, job.stem
+            state, done_before, status = None, job.stem, "skipped"
             return True
         if state is None and done_before is not None and plan.temporal.mode != "none":
             try:
@@ -418,18 +442,26 @@ def _run_frames(
                 missing = "previous frame's state unreadable"
         done_before = None
         try:
-            state, timings = _process(plan, frame, job, state, missing, ahead)
+            computed = _compute(plan, frame, job, state, missing, ahead, defer=True)
+            if settle() and state is not None:
+                # The previous frame failed to write after all: as a run that wrote it in
+                # line, this one starts afresh (its own network call: rare, same bytes).
+                missing = "previous frame failed"
+                computed = _compute(plan, frame, job, None, missing, None, defer=True)
         except ModelError as exc:
+            settle()
             if not tried and not report.done:
                 report.model_error = str(exc)
                 return False
             record(error_outcome(job, exc))
-            state, missing = None, "previous frame failed"
+            state, missing, status = None, "previous frame failed", "failed"
         except Exception as exc:  # a frame fails alone
+            settle()
             record(error_outcome(job, exc))
-            state, missing = None, "previous frame failed"
+            state, missing, status = None, "previous frame failed", "failed"
         else:
-            record(ImageOutcome(str(job.input), job.name, "done", timings=timings))
+            state, status = computed.state, "done"
+            pending.append((job, writer.submit(_write, plan, job, computed)))
         tried = True
         return True
 
@@ -444,7 +476,7 @@ def _run_frames(
             if not one(frame, ahead):
                 return False
             if ahead is not None:
-                statuses.append(report.outcomes[-1].status)
+                statuses.append(status)
         if batcher is not None:
             batcher.settle(statuses)
         group.clear()
@@ -472,16 +504,22 @@ def _run_frames(
                             return
             if group and not run_group(group):
                 return
+            settle()
             if read_error is not None:
                 name = "video" if job is None else f"after {job.name}"
                 record(failure_outcome(plan.source.path, name, read_error))
     except KeyboardInterrupt:
         report.interrupted = True
     except M360Error as exc:  # the reader cannot go on: the rest is lost
+        settle()
         name = "video" if job is None else f"after {job.name}"
         record(failure_outcome(plan.source.path, name, exc))
     finally:
-        bar.close()
+        try:
+            settle()  # the frame in flight is finished and recorded, also when interrupted
+        finally:
+            writer.shutdown(wait=True)
+            bar.close()
 
 
 def _chunking(chunk: Any, overlap: Any, *, ray: bool) -> tuple[int, int] | None:

@@ -49,6 +49,7 @@ __all__ = [
     "STATE_WIDTH",
     "STRENGTH",
     "TEMPORAL_MODES",
+    "Correction",
     "Temporal",
     "TemporalState",
     "scene_cut",
@@ -309,6 +310,9 @@ class Temporal:
     ) -> tuple[np.ndarray, TemporalState, dict[str, Any]]:
         """After the frame's estimate: the smoothed disparity and the state for the next frame.
 
+        :meth:`advance` then its :class:`Correction` (the state the next frame needs first,
+        the full-resolution map after; a video run applies the correction while it writes).
+
         Parameters
         ----------
         disparity : (H, W) float32
@@ -326,14 +330,33 @@ class Temporal:
         record : dict
             ``gauge`` ([a, b] or None), ``strength``.
         """
+        state, correction, record = self.advance(
+            disparity, grey, confidence, previous, relative=relative
+        )
+        out = disparity if correction is None else correction.apply(disparity)
+        return out, state, record
+
+    def advance(
+        self,
+        disparity: np.ndarray,
+        grey: np.ndarray,
+        confidence: np.ndarray | None,
+        previous: TemporalState | None,
+        *,
+        relative: bool = True,
+    ) -> tuple[TemporalState, Correction | None, dict[str, Any]]:
+        """Give the state for the next frame, this one's correction (None: unchanged), a record.
+
+        Works on the state-sized maps only; :meth:`Correction.apply` does the full-size work.
+        Arguments as :meth:`apply`.
+        """
         small = shrink(disparity)
         if confidence is None or previous is None or self.mode == "none":
-            return disparity, TemporalState(small, grey), {"gauge": None, "strength": 0.0}
+            return TemporalState(small, grey), None, {"gauge": None, "strength": 0.0}
         gauge = _fit_gauge(small, previous.disparity, confidence) if relative else (1.0, 0.0)
         if gauge is None:  # too little agrees with the previous frame: start afresh
-            return disparity, TemporalState(small, grey), {"gauge": None, "strength": 0.0}
+            return TemporalState(small, grey), None, {"gauge": None, "strength": 0.0}
         a, b = gauge
-        out = disparity * np.float32(a) + np.float32(b)
         small = small * np.float32(a) + np.float32(b)
         velocity = np.zeros_like(small) if previous.velocity is None else previous.velocity
         predicted = previous.disparity + velocity
@@ -341,16 +364,36 @@ class Temporal:
         pull[~np.isfinite(predicted) | ~np.isfinite(small)] = 0
         innovation = np.nan_to_num(small - predicted).astype(np.float32)
         with np.errstate(invalid="ignore", divide="ignore"):
-            relative = np.nan_to_num(np.abs(innovation / small), nan=1.0)
-        pull *= 1 / (1 + np.square(relative / AGREEMENT))
+            relative_change = np.nan_to_num(np.abs(innovation / small), nan=1.0)
+        pull *= 1 / (1 + np.square(relative_change / AGREEMENT))
         correction = np.nan_to_num(pull * (predicted - small)).astype(np.float32)
         velocity = (confidence * (velocity + np.float32(TREND) * innovation)).astype(np.float32)
         velocity[pull == 0] = 0
         state = TemporalState((small + correction).astype(np.float32), grey, velocity)
+        record = {"gauge": [a, b], "strength": STRENGTH}
+        return state, Correction(a, b, small, correction), record
+
+
+@dataclass(frozen=True)
+class Correction:
+    """What the temporal term does to one frame at full resolution (:meth:`Temporal.advance`).
+
+    The gauge ``a·D + b`` and the state-sized corrected-minus-current map, grown to the frame
+    where the frame is smooth at the state's scale.
+    """
+
+    a: float
+    b: float
+    small: np.ndarray
+    correction: np.ndarray
+
+    def apply(self, disparity: np.ndarray) -> np.ndarray:
+        """Give the frame's (H, W) disparity in the gauge, with the correction (a new array)."""
+        out: np.ndarray = disparity * np.float32(self.a) + np.float32(self.b)
         # Near depth edges the low-resolution maps mix both sides and a moving camera shifts
         # the edge: the correction is kept only where the frame is smooth at the state's scale.
         # One two-channel upsampling for both maps; the weight in place, one temporary.
-        grown = _grow(np.dstack([small, correction]), disparity.shape)
+        grown = _grow(np.dstack([self.small, self.correction]), disparity.shape)
         with np.errstate(invalid="ignore", divide="ignore"):
             weight = np.divide(out, grown[..., 0])
         weight -= 1
@@ -361,4 +404,4 @@ class Temporal:
         weight[~np.isfinite(weight)] = 0  # no state there: no correction
         weight *= grown[..., 1]
         out += weight
-        return out, state, {"gauge": [a, b], "strength": STRENGTH}
+        return out
