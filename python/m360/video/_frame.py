@@ -90,6 +90,8 @@ class _Computed:
     timings: dict[str, float]
     #: The temporal term's full-size step, left to :func:`_write` (None: applied or none).
     correction: Correction | None = None
+    #: The frame's photo, hashed into the sidecar by :func:`_write` (on the writer thread).
+    rgb: np.ndarray | None = None
 
     def corrected(self) -> _Computed:
         """The frame with its temporal correction applied (itself when there is none)."""
@@ -99,7 +101,7 @@ class _Computed:
         disparity = self.correction.apply(self.result.disparity)
         result = dataclasses.replace(self.result, disparity=disparity, depth=depth_of(disparity))
         timings = {**self.timings, "temporal": self.timings["temporal"] + time.perf_counter() - t0}
-        return _Computed(result, self.state, self.extra, timings)
+        return dataclasses.replace(self, result=result, timings=timings, correction=None)
 
     def with_gauge(self, a: float, b: float) -> _Computed:
         """The same frame in another gauge: disparity and state mapped by ``a·D + b``."""
@@ -115,7 +117,7 @@ class _Computed:
             state.grey,
             None if state.velocity is None else state.velocity * np.float32(a),
         )
-        return _Computed(result, state, self.extra, self.timings)
+        return dataclasses.replace(self, result=result, state=state)
 
 
 def _compute(
@@ -163,7 +165,6 @@ def _compute(
     )
     t_temporal = time.perf_counter()
     extra = {
-        "input": {"rgb_sha256": hashlib.sha256(frame.rgb.tobytes()).hexdigest()},
         "frame": {"index": frame.index, "time": frame.time, "video": str(plan.source.path)},
         "temporal": {"mode": plan.temporal.mode, **record, **applied},
         "batch": {"fingerprint": plan.fingerprint, "run": plan.run_id},
@@ -173,7 +174,7 @@ def _compute(
         "estimate": t_estimate - t0 + earlier,
         "temporal": t_temporal - t_estimate,
     }
-    computed = _Computed(result, state, extra, timings, correction)
+    computed = _Computed(result, state, extra, timings, correction, frame.rgb)
     return computed if defer else computed.corrected()
 
 
@@ -192,7 +193,10 @@ def _write(plan: _Plan, job: Job, frame: _Computed) -> dict[str, float]:
             tmp.unlink()
     stat = job.input.stat()
     source = {"path": str(job.input), "size": stat.st_size, "mtime_ns": stat.st_mtime_ns}
-    extra = {**frame.extra, "input": {**source, **frame.extra["input"]}}
+    if frame.rgb is not None:
+        photo = np.ascontiguousarray(frame.rgb)
+        source["rgb_sha256"] = hashlib.sha256(photo.data).hexdigest()  # no copy
+    extra = {**frame.extra, "input": source}
     if plan.temporal.mode != "none":
         frame.state.save(_state_path(job.stem))  # before the sidecar: a done frame has its state
     save(
