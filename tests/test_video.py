@@ -752,3 +752,20 @@ def test_the_gauge_fit_is_the_weighted_least_squares_without_the_worst_fifth() -
         x, y, w = x[inliers], y[inliers], w[inliers]
     assert a == pytest.approx(fit[0], rel=1e-9) and b == pytest.approx(fit[1], rel=1e-9)
     assert a == pytest.approx(1.7, abs=0.01) and b == pytest.approx(0.3, abs=0.01)
+
+
+def test_the_state_shrinks_to_the_area_average_of_finite_pixels() -> None:
+    from m360.video.temporal import shrink
+
+    rng = np.random.default_rng(7)
+    disparity = (0.2 + rng.random((512, 1024))).astype(np.float32)  # 2 x 2 blocks per cell
+    blocks = disparity.reshape(256, 2, 512, 2)
+    np.testing.assert_allclose(shrink(disparity), blocks.mean(axis=(1, 3)), rtol=1e-6)
+    holed = disparity.copy()
+    holed[::2, ::2] = np.nan  # a quarter of each block unknown: the mean of the other three
+    holed[:2, :2] = np.nan  # a whole block unknown: NaN
+    cells = holed.reshape(256, 2, 512, 2)
+    count = np.isfinite(cells).sum(axis=(1, 3))
+    total = np.nansum(cells, axis=(1, 3))
+    expected = np.where(count > 0, total / np.maximum(count, 1), np.nan)
+    np.testing.assert_allclose(shrink(holed), expected, rtol=1e-6)
