@@ -204,8 +204,11 @@ def _fit_gauge(
     for _ in range(2):
         # The weighted least squares of two unknowns by its 2x2 normal equations (a dense
         # lstsq of the (n, 2) design took half the temporal term's time).
-        sw, sx, sy = w.sum(), w @ x, w @ y
-        sxx, sxy = w @ (x * x), w @ (x * y)
+        # numpy's pairwise sums, not BLAS dots: those split by the BLAS's thread count, and the
+        # same frame must give the same gauge in every process (a Ray worker's included).
+        wx = w * x
+        sw, sx, sy = w.sum(), wx.sum(), (w * y).sum()
+        sxx, sxy = (wx * x).sum(), (wx * y).sum()
         det = sw * sxx - sx * sx
         if not det > 1e-12 * max(sw * sxx, 1e-300):
             return None
