@@ -390,15 +390,7 @@ def _run_frames(
         )
 
     def record(outcome: ImageOutcome) -> None:
-        report.outcomes.append(outcome)
-        bar.update(1)
-        if outcome.status == "failed":
-            try:
-                append_failure(report.failures_file, outcome, plan.run_id)
-            except OSError as exc:
-                report.notes.append(f"failures.jsonl could not be written ({exc})")
-        if on_outcome is not None:
-            on_outcome(outcome)
+        _record(plan, report, bar, on_outcome, outcome)
 
     # A frame's full-size temporal step and its files are done on this thread while the next
     # frame is estimated (its state, all the next frame needs, is ready before). At most one
@@ -522,6 +514,25 @@ def _run_frames(
             bar.close()
 
 
+def _record(
+    plan: _Plan,
+    report: VideoReport,
+    bar: Any,
+    on_outcome: Callable[[ImageOutcome], None] | None,
+    outcome: ImageOutcome,
+) -> None:
+    """Record a frame's outcome: the report, the progress bar, ``failures.jsonl``, the callback."""
+    report.outcomes.append(outcome)
+    bar.update(1)
+    if outcome.status == "failed":
+        try:
+            append_failure(report.failures_file, outcome, plan.run_id)
+        except OSError as exc:
+            report.notes.append(f"failures.jsonl could not be written ({exc})")
+    if on_outcome is not None:
+        on_outcome(outcome)
+
+
 def _chunking(chunk: Any, overlap: Any, *, ray: bool) -> tuple[int, int] | None:
     """(chunk, overlap) of a chunked run, or None for the local engine's one sequence."""
     from .chunks import DEFAULT_CHUNK, DEFAULT_OVERLAP
@@ -561,16 +572,8 @@ def _run_chunks(
             if outcome.error == "ModelError" and not report.done:
                 # As the local engine: the model failing on the first frame stops the run.
                 raise ModelError(outcome.message or "the model failed")
-        report.outcomes.append(outcome)
-        bar.update(1)
         last[:] = [outcome.stem]
-        if outcome.status == "failed":
-            try:
-                append_failure(report.failures_file, outcome, plan.run_id)
-            except OSError as exc:
-                report.notes.append(f"failures.jsonl could not be written ({exc})")
-        if on_outcome is not None:
-            on_outcome(outcome)
+        _record(plan, report, bar, on_outcome, outcome)
 
     read_error: list[M360Error] = []
 
