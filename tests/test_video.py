@@ -485,15 +485,15 @@ def test_the_previous_frame_goes_to_the_stitch_as_a_prior(
     confidence; none without alignment, none by default."""
     import m360.pipeline.estimate as pipeline_estimate
 
-    real = pipeline_estimate.estimate
+    real = pipeline_estimate.finish
     calls: list[dict] = []
 
-    def estimate(rgb, model, **keywords):
+    def finish(prepared, raw, **keywords):  # every frame's stitch starts here
         names = ("prior", "prior_kind", "prior_confidence")
         calls.append({k: keywords[k] for k in names if k in keywords})
-        return real(rgb, model, **keywords)
+        return real(prepared, raw, **keywords)
 
-    monkeypatch.setattr(pipeline_estimate, "estimate", estimate)
+    monkeypatch.setattr(pipeline_estimate, "finish", finish)
     folder = tmp_path / "frames"
     _walk_frames(folder, 3, 3)
     model = batch_helpers.Gated(None)
@@ -640,6 +640,105 @@ def test_a_frame_whose_prediction_fails_fails_alone_in_a_batch(tmp_path: Path) -
     assert len(outs[3]) == 6 * 3 and outs[3] == outs[1]
 
 
+@pytest.mark.parametrize("temporal", ["none", "smooth"])
+def test_frames_are_estimated_two_at_once_with_the_bytes_of_stills(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch, temporal: str
+) -> None:
+    """The local engine stitches a frame while the next one's network runs (the first stitch
+    waits for frame 1's network call: one frame at a time would wait forever, so the watchdog
+    fails it), the network's calls stay in frame order, and each frame is m360.estimate's
+    result on it, then the temporal term's in order, byte for byte."""
+    import threading
+
+    import m360.pipeline.estimate as pipeline_estimate
+
+    folder, inner = _walk_run(tmp_path)
+    next_called = threading.Event()
+
+    class Watched(_Counted):
+        def predict(self, tangents: np.ndarray) -> np.ndarray:
+            out = super().predict(tangents)
+            if self.calls[-1] == [1]:
+                next_called.set()
+            return out
+
+    real = pipeline_estimate.finish
+    stitches: list[int] = []
+    overlapped: list[bool] = []
+    first = threading.Lock()
+
+    def finish(prepared, raw, **keywords):
+        with first:
+            stitches.append(len(stitches))
+            mine = stitches[-1]
+        if mine == 0:  # the first stitch (frame 0's): frame 1's network runs meanwhile
+            overlapped.append(next_called.wait(timeout=120))
+        return real(prepared, raw, **keywords)
+
+    monkeypatch.setattr(pipeline_estimate, "finish", finish)
+    model = Watched(inner)
+    report = m360.video.run(
+        folder, tmp_path / "out", model=model, temporal=temporal, progress=False
+    )
+    assert report.exit_code == 0 and len(report.done) == 7
+    assert overlapped == [True]
+    assert model.calls == [[k] for k in range(7)]
+    monkeypatch.setattr(pipeline_estimate, "finish", real)
+    mode = m360.video.Temporal(temporal)
+    state = None
+    for frame in m360.video.frames(folder):
+        still = m360.estimate(frame.rgb, inner)
+        grey, confidence, _ = mode.prepare(frame.rgb, state)
+        expected, state, _ = mode.apply(still.disparity, grey, confidence, state)
+        written = np.load(tmp_path / "out" / f"{frame.index:06d}.disparity.npy")
+        assert written.tobytes() == expected.tobytes(), frame.index
+        if temporal == "none":
+            assert written.tobytes() == still.disparity.tobytes()
+
+
+def test_network_turns_go_in_ticket_order_whichever_thread_comes_first() -> None:
+    """Tickets used from threads started in reverse order still call in ticket order; a ticket
+    given up passes its turn on; closing wakes a waiting ticket with CancelledError."""
+    import threading
+    from concurrent.futures import CancelledError
+
+    from m360.video._ahead import NetworkTurns
+
+    turns = NetworkTurns()
+    tickets = [turns.ticket() for _ in range(4)]
+    order: list[int] = []
+
+    def use(ticket: int) -> None:
+        if ticket == 2:
+            turns.release(ticket)  # no call: its turn passes on
+            return
+        with turns.call(ticket):
+            order.append(ticket)
+        turns.release(ticket)  # after its call: nothing
+
+    threads = [threading.Thread(target=use, args=(t,)) for t in reversed(tickets)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(timeout=60)
+        assert not thread.is_alive(), "a turn never came"
+    assert order == [0, 1, 3]
+    late, errors = turns.ticket() + 1, []  # a ticket whose turn never comes
+
+    def wait() -> None:
+        try:
+            with turns.call(late):
+                pass
+        except CancelledError as exc:
+            errors.append(exc)
+
+    waiting = threading.Thread(target=wait)
+    waiting.start()
+    turns.close()
+    waiting.join(timeout=60)
+    assert not waiting.is_alive() and len(errors) == 1
+
+
 def test_an_estimator_of_one_frame_at_a_time_goes_on_frame_by_frame(tmp_path: Path) -> None:
     folder, inner = _walk_run(tmp_path)
     reference = m360.video.run(folder, tmp_path / "ref", model=_Counted(inner), progress=False)
@@ -652,7 +751,8 @@ def test_an_estimator_of_one_frame_at_a_time_goes_on_frame_by_frame(tmp_path: Pa
 
 
 def test_frame_batch_is_capped_by_memory(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    """With memory for one frame's estimate and no more, frames go one at a time (a note)."""
+    """With memory for one frame's estimate and no more, frames go one at a time (a note),
+    and one frame is estimated at a time (a note)."""
     from m360.pipeline.memory import estimate_memory
 
     folder, inner = _walk_run(tmp_path, count=3)
@@ -661,7 +761,8 @@ def test_frame_batch_is_capped_by_memory(tmp_path: Path, monkeypatch: pytest.Mon
     model = _Counted(inner)
     report = m360.video.run(folder, tmp_path / "out", model=model, progress=False, frame_batch=3)
     assert report.exit_code == 0 and model.calls == [[0], [1], [2]]
-    assert len(report.notes) == 1 and "frame_batch 3 lowered to 1" in report.notes[0]
+    assert len(report.notes) == 2 and "1 frame estimated at a time, not 2" in report.notes[0]
+    assert "frame_batch 3 lowered to 1" in report.notes[1]
     monkeypatch.setenv("M360_MEMORY_LIMIT", str(one + 10 * 2**30))  # room to spare
     model = _Counted(inner)
     report = m360.video.run(folder, tmp_path / "more", model=model, progress=False, frame_batch=3)

@@ -106,6 +106,11 @@ def _session(
     options.inter_op_num_threads = 1
     if threads is not None:
         options.intra_op_num_threads = threads
+    # ONNX Runtime's threads spin after each call, waiting for the next; m360's own work runs
+    # between and beside the calls (the stitch, the next video frame's), and the spinning takes
+    # its cores: a video run went from 1.06x to 1.38x the loop with it off, while a loop of
+    # m360.estimate kept its time (benches/bench_video.py, FastDepth, 2 cores).
+    options.add_session_config_entry("session.intra_op.allow_spinning", "0")
     # Loaded from bytes, a model with external weights finds them next to its file.
     options.add_session_config_entry("session.model_external_initializers_file_folder_path", folder)
     try:

@@ -60,6 +60,20 @@ class _Plan:
     model: Any = None  # what a chunk worker loads its estimator from (the run's ``model``)
     model_options: ModelOptions | None = None
 
+    @property
+    def prior_from_previous(self) -> bool:
+        """Whether a frame's stitch may take the previous frame as its prior.
+
+        Then a frame's estimate depends on the frame before it; otherwise only the temporal
+        term after the estimate does (so estimates may run ahead, :mod:`m360.video._ahead`).
+        """
+        return (
+            self.temporal.prior
+            and self.temporal.mode != "none"
+            and self.options.align is not None  # a prior acts through the alignment
+            and self.tangent_model
+        )
+
 
 def _input_of(plan: _Plan, frame: Frame) -> Path:
     """Give the file a frame comes from (its image in a folder, else the video)."""
@@ -132,8 +146,9 @@ def _compute(
 ) -> _Computed:
     """Estimate and smooth one frame (nothing written).
 
-    ``ahead``: the frame prepared, and usually predicted, with others before its turn
-    (:mod:`m360.video._ahead`); it is finished here as :func:`m360.estimate` would. With
+    ``ahead``: the frame prepared, and usually predicted, before its turn
+    (:mod:`m360.video._ahead`); it is finished here as :func:`m360.estimate` would, unless it
+    was finished ahead (no prior from the previous frame). With
     ``defer`` the temporal term's full-size step is left to :func:`_write` (the state the
     next frame needs is ready without it).
     """
@@ -143,16 +158,18 @@ def _compute(
     t0 = time.perf_counter()
     grey, confidence, record = plan.temporal.prepare(frame.rgb, previous, missing=missing)
     prior = {}
-    if plan.options.align is not None and plan.tangent_model:  # a prior needs the alignment
+    if plan.prior_from_previous:
         prior = plan.temporal.prior_keywords(previous, confidence, _estimate_keywords())
     record["prior"] = bool(prior)
-    earlier = 0.0  # seconds of this frame's estimate spent before its turn (frame_batch)
+    earlier = 0.0  # seconds of this frame's estimate spent before its turn
     if ahead is None:
         result = estimate(frame.rgb, plan.estimator, options=plan.options, **plan.job, **prior)
+    elif ahead.result is not None:  # estimated ahead: nothing in it depends on ``previous``
+        assert not plan.prior_from_previous
+        earlier, result = ahead.earlier, ahead.result
     else:
-        earlier = sum(ahead.prepared.timings.values())
-        if ahead.raw is not None:
-            earlier += ahead.seconds
+        assert ahead.prepared is not None
+        earlier = ahead.earlier
         raw, seconds = ahead.predict()
         result = finish(ahead.prepared, raw, seconds=seconds, **prior)
     t_estimate = time.perf_counter()

@@ -39,6 +39,7 @@ import json
 import os
 import time
 import uuid
+from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ThreadPoolExecutor
 from dataclasses import dataclass
@@ -75,7 +76,7 @@ from ..io import check_formats
 from ..io.files import atomic_path, save_json
 from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
 from ..stitching.options import StitchKeywords, StitchOptions, build
-from ._ahead import MAX_FRAME_BATCH, Ahead, FrameBatcher
+from ._ahead import MAX_FRAME_BATCH, Ahead, Estimates, FrameBatcher
 from ._frame import (
     STATE_SUFFIX,
     _compute,
@@ -359,6 +360,16 @@ def run(
     return report
 
 
+@dataclass
+class _Turn:
+    """A frame read, waiting for its turn: its job, whether it is done, its estimate ahead."""
+
+    frame: Frame
+    job: Job
+    done: bool
+    ahead: Future[Ahead] | None = None
+
+
 def _run_frames(
     plan: _Plan,
     src: str | os.PathLike[str],
@@ -370,8 +381,12 @@ def _run_frames(
 ) -> None:
     """Process the frames in order, recording each outcome in ``report``.
 
-    With ``frame_batch`` K > 1 (tangent models), K frames are read, prepared and predicted in
-    one network call before they are finished in order (:mod:`m360.video._ahead`).
+    Three threads beside this one: the decoder reads ahead (:func:`m360.video.prefetch`), the
+    estimates run ahead (:class:`m360.video._ahead.Estimates`, two frames at once), and a
+    writer writes each frame while the next is estimated. This thread takes the frames in
+    order: the temporal term, then the frame's files to the writer. With ``frame_batch`` K > 1
+    (tangent models), K frames are prepared and predicted in one network call before their
+    estimates are finished (:mod:`m360.video._ahead`).
     """
     every, start, end, fps = selection
     total = _expected_frames(plan.source, every, start, end)
@@ -381,6 +396,7 @@ def _run_frames(
     done_before: Path | None = None  # the last frame skipped as done: its state, if needed
     tried = False
     job: Job | None = None
+    estimates = Estimates(plan, report.notes)
     batcher = None
     if frame_batch > 1 and plan.tangent_model:
         batcher = FrameBatcher(plan, frame_batch, report.notes)
@@ -397,7 +413,6 @@ def _run_frames(
     # frame is in flight, and outcomes are recorded in frame order.
     writer = ThreadPoolExecutor(max_workers=1, thread_name_prefix="m360-video-write")
     pending: list[tuple[Job, Future[dict[str, float]]]] = []
-    status = ""  # what the last frame's turn gave: done, failed or skipped
 
     def settle() -> bool:
         """Wait for the frame in flight and record its outcome; True when it failed."""
@@ -412,21 +427,21 @@ def _run_frames(
         record(ImageOutcome(str(written.input), written.name, "done", timings=timings))
         return False
 
-    def one(frame: Frame, ahead: Ahead | None) -> bool:
-        """Run one frame in its turn; False when the run must stop (the model failed first)."""
-        nonlocal state, missing, done_before, tried, job, status
-        job = _job(plan, frame)
+    def one(turn: _Turn) -> str:
+        """Run one frame in its turn: done, failed, skipped, or stop (the model failed first)."""
+        nonlocal state, missing, done_before, tried, job
+        frame, job = turn.frame, turn.job
         if frame.error is not None or frame.rgb is None:
             settle()
             error = frame.error or ReadError(f"frame {frame.index} could not be read")
             record(failure_outcome(job.input, job.name, error))
-            state, done_before, missing, status = None, None, "previous frame failed", "failed"
-            return True
-        if plan.resume and _done(plan, job):
+            state, done_before, missing = None, None, "previous frame failed"
+            return "failed"
+        if turn.done:
             settle()
             record(ImageOutcome(str(job.input), job.name, "skipped"))
-            state, done_before, status = None, job.stem, "skipped"
-            return True
+            state, done_before = None, job.stem
+            return "skipped"
         if state is None and done_before is not None and plan.temporal.mode != "none":
             try:
                 state = TemporalState.load(_state_path(done_before))
@@ -434,45 +449,57 @@ def _run_frames(
                 missing = "previous frame's state unreadable"
         done_before = None
         try:
+            ahead = None if turn.ahead is None else turn.ahead.result()
             computed = _compute(plan, frame, job, state, missing, ahead, defer=True)
             if settle() and state is not None:
                 # The previous frame failed to write after all: as a run that wrote it in
-                # line, this one starts afresh (its own network call: rare, same bytes).
+                # line, this one starts afresh (with a prior from it, its own network call
+                # again: rare, same bytes).
                 missing = "previous frame failed"
-                computed = _compute(plan, frame, job, None, missing, None, defer=True)
+                again = ahead if ahead is not None and ahead.result is not None else None
+                computed = _compute(plan, frame, job, None, missing, again, defer=True)
         except ModelError as exc:
             settle()
             if not tried and not report.done:
                 report.model_error = str(exc)
-                return False
+                return "stop"
             record(error_outcome(job, exc))
-            state, missing, status = None, "previous frame failed", "failed"
+            state, missing = None, "previous frame failed"
+            return "failed"
         except Exception as exc:  # a frame fails alone
             settle()
             record(error_outcome(job, exc))
-            state, missing, status = None, "previous frame failed", "failed"
-        else:
-            state, status = computed.state, "done"
-            pending.append((job, writer.submit(_write, plan, job, computed)))
-        tried = True
+            state, missing = None, "previous frame failed"
+            return "failed"
+        finally:
+            tried = True
+        state = computed.state
+        pending.append((job, writer.submit(_write, plan, job, computed)))
+        return "done"
+
+    turns: deque[_Turn] = deque()  # frames read, in order, waiting for their turn
+
+    def take(keep: int) -> bool:
+        """Run the frames whose turn it is until ``keep`` wait; False when the run must stop."""
+        while len(turns) > keep:
+            if one(turns.popleft()) == "stop":
+                return False
         return True
 
-    def run_group(group: list[Frame]) -> bool:
-        """Run frames read ahead: one network call for them all, then each in order."""
-        aheads: dict[int, Ahead] = {}
-        if batcher is not None and len(group) > 1:
-            aheads = batcher.predict([(frame, _job(plan, frame)) for frame in group])
-        statuses = []  # of the frames prepared ahead
-        for frame in group:
-            ahead = aheads.get(frame.index)
-            if not one(frame, ahead):
-                return False
-            if ahead is not None:
-                statuses.append(status)
-        if batcher is not None:
-            batcher.settle(statuses)
-        group.clear()
-        return True
+    def run_group(frames_read: list[Frame]) -> bool:
+        """Start the estimates of frames read (one network call for a group), take turns."""
+        jobs = [(frame, _job(plan, frame)) for frame in frames_read]
+        group = None
+        if batcher is not None and len(jobs) > 1:
+            group = estimates.submit_group(batcher, jobs)
+        for frame, job in jobs:
+            readable = frame.error is None and frame.rgb is not None
+            done = readable and plan.resume and _done(plan, job)
+            ahead = estimates.submit(frame, group) if readable and not done else None
+            turns.append(_Turn(frame, job, done, ahead))
+        frames_read.clear()
+        # The frames still waiting keep the estimate workers busy while this thread works.
+        return take(estimates.depth - 1)
 
     read_error: M360Error | None = None
     try:
@@ -489,12 +516,15 @@ def _run_frames(
                         read_error = exc
                         break
                     group.append(frame)
+                    estimates.cap(frame)
                     if batcher is not None:
-                        batcher.cap(frame)
+                        batcher.cap(frame, estimates.depth)
                     if len(group) >= (1 if batcher is None else batcher.size):
                         if not run_group(group):
                             return
             if group and not run_group(group):
+                return
+            if not take(0):
                 return
             settle()
             if read_error is not None:
@@ -503,6 +533,7 @@ def _run_frames(
     except KeyboardInterrupt:
         report.interrupted = True
     except M360Error as exc:  # the reader cannot go on: the rest is lost
+        take(0)
         settle()
         name = "video" if job is None else f"after {job.name}"
         record(failure_outcome(plan.source.path, name, exc))
@@ -510,6 +541,7 @@ def _run_frames(
         try:
             settle()  # the frame in flight is finished and recorded, also when interrupted
         finally:
+            estimates.close()
             writer.shutdown(wait=True)
             bar.close()
 
