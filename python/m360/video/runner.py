@@ -23,9 +23,10 @@ Frame by frame, with the batch's guarantees (docs/architecture.md, "Batch guaran
 - **One failure is one line** in ``OUT/failures.jsonl``; the next frame starts afresh (no
   temporal term across a failed frame) and the run goes on.
 - **Progress** with frames per second and the time left (tqdm).
-- **Network calls across frames** (``frame_batch=K``): K frames decoded and projected ahead,
-  one network call for their tangents, then each finished in order with the temporal term
-  (:mod:`m360.video._ahead`): the same bytes as frame by frame.
+- **Frames estimated ahead**: two frames' estimates run at once on worker threads, their
+  network calls one at a time in frame order, while the temporal term takes the frames in
+  order (:mod:`m360.video._ahead`); with ``frame_batch=K``, K frames' tangents go to the
+  network in one call. The same bytes as frame by frame.
 
 ``engine="ray"`` runs the frames in chunks on a Ray cluster, each chunk started a few frames
 early with its gauge fitted to the previous chunk's on them (:mod:`m360.video.chunks`), with
@@ -226,13 +227,13 @@ def run(
         Ray only: CPUs per chunk worker (also the core's threads in it).
     frame_batch : int
         Local engine, tangent models: frames whose tangents go to the estimator in ONE call
-        (K·N tangents), decoded and projected ahead, then finished one by one in order with the
+        (K·N tangents), decoded and projected ahead, then finished and taken in order with the
         temporal term: the bytes of ``frame_batch=1``, and the same resume fingerprint. Default
         1: on CPU the ONNX models run one tangent at a time, so a larger call gains nothing and
-        holds K frames' tangents (docs/video.md, "Throughput"); on a GPU with a batched model
-        (``batch_size``) it fills the device. Lowered to what fits in memory (a note says so);
-        a failed call is retried frame by frame, so a bad frame fails alone. Not with
-        ``engine="ray"`` or ``chunk=``; a panoramic model runs per frame.
+        holds K frames' tangents (docs/video.md, "Network calls that span frames"); on a GPU
+        with a batched model (``batch_size``) it fills the device. Lowered to what fits in
+        memory (a note says so); a failed call is retried frame by frame, so a bad frame fails
+        alone. Not with ``engine="ray"`` or ``chunk=``; a panoramic model runs per frame.
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones
         (:class:`m360.pipeline.options.EstimateKeywords`).
