@@ -19,6 +19,7 @@ use faer::sparse::linalg::solvers::{Llt, SymbolicLlt};
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Mat, Side};
 use rayon::prelude::*;
+use std::sync::{Arc, Mutex, PoisonError};
 
 mod prior;
 mod transform;
@@ -1727,12 +1728,79 @@ fn lbfgs_direction(g: &[f64], history: &[(Vec<f64>, Vec<f64>, f64)]) -> Vec<f64>
     q
 }
 
+/// The symbolic Cholesky analysis of a Newton Hessian's sparsity pattern (lower triangle,
+/// compressed columns), kept for the next solve of the same pattern: a robust level solves its
+/// pattern again after each reweighting, and a video or a batch stitches the same layout (the
+/// same overlap and prior sample cells) image after image. The analysis is a function of the
+/// pattern alone, so a kept one gives the bits a fresh one gives.
+struct Analysis {
+    pattern: SymbolicSparseColMat<usize>,
+    llt: SymbolicLlt<usize>,
+}
+
+/// How many analyses are kept (most recently used; a stitch with a prior uses four patterns).
+const ANALYSES_KEPT: usize = 8;
+/// Patterns larger than this many entries are not kept (their analysis holds about as much).
+const ANALYSIS_MAX_ENTRIES: usize = 1 << 23;
+
+static ANALYSES: Mutex<Vec<Arc<Analysis>>> = Mutex::new(Vec::new());
+
+impl Analysis {
+    /// The analysis of `pattern` (square, lower triangle), kept or made.
+    fn of(pattern: SymbolicSparseColMat<usize>) -> Result<Arc<Self>> {
+        let same = |a: &Self| {
+            a.pattern.nrows() == pattern.nrows()
+                && a.pattern.col_ptr() == pattern.col_ptr()
+                && a.pattern.row_idx() == pattern.row_idx()
+        };
+        {
+            let mut kept = ANALYSES.lock().unwrap_or_else(PoisonError::into_inner);
+            if let Some(at) = kept.iter().position(|a| same(a)) {
+                let hit = kept.remove(at);
+                kept.push(Arc::clone(&hit));
+                return Ok(hit);
+            }
+        }
+        // Made outside the lock: other threads' solves need not wait for this one.
+        let made = Self::fresh(pattern)?;
+        if made.pattern.row_idx().len() > ANALYSIS_MAX_ENTRIES {
+            return Ok(Arc::new(made));
+        }
+        let mut kept = ANALYSES.lock().unwrap_or_else(PoisonError::into_inner);
+        if let Some(other) = kept.iter().find(|a| same_pattern(a, &made)) {
+            return Ok(Arc::clone(other)); // made by another thread meanwhile
+        }
+        let made = Arc::new(made);
+        kept.push(Arc::clone(&made));
+        if kept.len() > ANALYSES_KEPT {
+            kept.remove(0);
+        }
+        Ok(made)
+    }
+
+    /// The analysis of `pattern`, made now.
+    fn fresh(pattern: SymbolicSparseColMat<usize>) -> Result<Self> {
+        let llt = SymbolicLlt::try_new(pattern.as_ref(), Side::Lower).map_err(|e| {
+            CoreError::NotPositiveDefinite {
+                what: "the alignment Hessian",
+                detail: format!("Cholesky analysis failed: {e:?}"),
+            }
+        })?;
+        Ok(Self { pattern, llt })
+    }
+}
+
+fn same_pattern(a: &Analysis, b: &Analysis) -> bool {
+    a.pattern.nrows() == b.pattern.nrows()
+        && a.pattern.col_ptr() == b.pattern.col_ptr()
+        && a.pattern.row_idx() == b.pattern.row_idx()
+}
+
 /// The exact Hessian in compressed-column form (lower triangle), with the constant part
 /// (data, smoothness, gauge) assembled once and only the 1/s curvature updated per step, and
 /// the symbolic Cholesky analysis done once.
 struct NewtonSystem {
-    symbolic: SymbolicSparseColMat<usize>,
-    analysis: SymbolicLlt<usize>,
+    analysis: Arc<Analysis>,
     constant: Vec<f64>,
     /// Position in the value array of each diagonal entry (2·node, 2·node).
     scale_diagonal: Vec<usize>,
@@ -1770,16 +1838,10 @@ impl NewtonSystem {
                 col_ptr.push(row_idx.len());
             }
         }
-        let symbolic = SymbolicSparseColMat::new_checked(n, n, col_ptr, None, row_idx);
-        let analysis = SymbolicLlt::try_new(symbolic.as_ref(), Side::Lower).map_err(|e| {
-            CoreError::NotPositiveDefinite {
-                what: "the alignment Hessian",
-                detail: format!("Cholesky analysis failed: {e:?}"),
-            }
-        })?;
         Ok(Self {
-            symbolic,
-            analysis,
+            analysis: Analysis::of(SymbolicSparseColMat::new_checked(
+                n, n, col_ptr, None, row_idx,
+            ))?,
             constant,
             scale_diagonal,
         })
@@ -1792,13 +1854,12 @@ impl NewtonSystem {
             let s = x[2 * node];
             values[at] += 2.0 * problem.scale_weight / (s * s * s);
         }
-        let matrix = SparseColMatRef::new(self.symbolic.as_ref(), &values);
-        let llt = Llt::try_new_with_symbolic(self.analysis.clone(), matrix, Side::Lower).map_err(
-            |e| CoreError::NotPositiveDefinite {
+        let matrix = SparseColMatRef::new(self.analysis.pattern.as_ref(), &values);
+        let llt = Llt::try_new_with_symbolic(self.analysis.llt.clone(), matrix, Side::Lower)
+            .map_err(|e| CoreError::NotPositiveDefinite {
                 what: "the alignment Hessian",
                 detail: format!("{e:?}"),
-            },
-        )?;
+            })?;
         let mut rhs = Mat::<f64>::from_fn(g.len(), 1, |i, _| -g[i]);
         llt.solve_in_place(rhs.as_mut());
         let dir: Vec<f64> = (0..g.len()).map(|i| rhs[(i, 0)]).collect();
@@ -2713,6 +2774,34 @@ mod tests {
             .map(|(a, b)| (a + b).abs())
             .fold(0.0, f64::max);
         assert!(err < 1e-5 * max_abs(&g).max(1e-6), "residual {err}");
+    }
+
+    #[test]
+    fn a_kept_analysis_steps_as_a_fresh_one() {
+        let (_, _, problem) = setup(Energy::Normalized, 4, 3);
+        let (_, _, other) = setup(Energy::Normalized, 3, 2); // another pattern between
+        let n = problem.len();
+        let x: Vec<f64> = (0..n)
+            .map(|i| {
+                if i % 2 == 0 {
+                    1.0 + 0.1 * random(7, i)
+                } else {
+                    0.0
+                }
+            })
+            .collect();
+        let mut g = vec![0.0; n];
+        let _ = problem.energy(&x, Some(&mut g));
+        let first = NewtonSystem::new(&problem).expect("system");
+        let _ = NewtonSystem::new(&other).expect("other system");
+        let mut kept = NewtonSystem::new(&problem).expect("system again");
+        assert!(same_pattern(&first.analysis, &kept.analysis));
+        let mut fresh = NewtonSystem::new(&problem).expect("system");
+        let pattern = fresh.analysis.pattern.clone();
+        fresh.analysis = Arc::new(Analysis::fresh(pattern).expect("analysis"));
+        let a = kept.step(&problem, &x, &g).expect("step");
+        let b = fresh.step(&problem, &x, &g).expect("step");
+        assert!(a.iter().zip(&b).all(|(u, v)| u.to_bits() == v.to_bits()));
     }
 
     #[test]
