@@ -47,7 +47,7 @@ from typing import Any
 import numpy as np
 
 from ..batch import Job
-from ..geometry.layout import default_layout
+from ..geometry.layout import Layout, default_layout
 from ..pipeline import estimate as _pipeline
 from ..pipeline import memory as _memory
 from ..pipeline.estimate import EstimateResult, Prepared, _predict, prepare
@@ -59,6 +59,20 @@ MAX_FRAME_BATCH = 64
 #: Frames the local engine estimates at once (:class:`Estimates`): two fill the cores that one
 #: frame's alignment leaves idle (docs/video.md, "Throughput"); lowered to what fits in memory.
 ESTIMATES_IN_FLIGHT = 2
+
+
+def _sizes(plan: _Plan, frame: Frame) -> tuple[int, int, Layout] | None:
+    """The (width, working width, layout) a frame runs at; None when it is not a panorama.
+
+    A frame that is not one fails alone, and the next readable one sets the memory caps.
+    """
+    if frame.rgb is None or frame.rgb.ndim != 3:
+        return None
+    height, width = frame.rgb.shape[:2]
+    if width != 2 * height:
+        return None
+    work = _memory.working_width_for(plan.job["working_width"], width)
+    return width, work, default_layout(work, plan.job["padding"])
 
 
 class NetworkTurns:
@@ -193,17 +207,15 @@ class FrameBatcher:
         ``in_flight``: the frames estimated at once (:attr:`Estimates.depth`), each holding an
         estimate's memory beside the frames ahead.
         """
-        if self._capped or frame.rgb is None or self.size == 1:
+        sizes = None if self._capped or self.size == 1 else _sizes(self.plan, frame)
+        if sizes is None:
             return
-        height, width = frame.rgb.shape[:2]
-        if frame.rgb.ndim != 3 or width != 2 * height:
-            return  # not a panorama: it fails alone; the next frame sets the cap
         self._capped = True
         available = _memory.available_memory()
         if available is None:
             return
-        work = _memory.working_width_for(self.plan.job["working_width"], width)
-        layout = default_layout(work, self.plan.job["padding"])
+        width, work, layout = sizes
+        assert frame.rgb is not None
         h, w = layout.tangent_shape
         # Per frame ahead: its tangents (uint8 RGB), the network's output (float32), the
         # decoded frame and its working-resolution copy.
@@ -303,17 +315,14 @@ class Estimates:
 
     def cap(self, frame: Frame) -> None:
         """Lower :attr:`depth` to what memory holds, once, from the first readable frame."""
-        if self._capped or frame.rgb is None:
+        sizes = None if self._capped or self.depth == 1 else _sizes(self.plan, frame)
+        if sizes is None:
             return
-        height, width = frame.rgb.shape[:2]
-        if frame.rgb.ndim != 3 or width != 2 * height:
-            return  # not a panorama: it fails alone; the next frame sets the cap
         self._capped = True
         available = _memory.available_memory()
-        if available is None or self.depth == 1:
+        if available is None:
             return
-        work = _memory.working_width_for(self.plan.job["working_width"], width)
-        layout = default_layout(work, self.plan.job["padding"])
+        width, work, layout = sizes
         one = _memory.estimate_memory(width, work, self.plan.options.method, layout)
         fits = int(max(1, available // one))
         if fits < self.depth:
