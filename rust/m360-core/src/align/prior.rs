@@ -522,6 +522,70 @@ mod tests {
         }
     }
 
+    /// A prior-only level's Newton step, per tangent with the Schur complement of (α, β), is
+    /// the step of one Cholesky over all unknowns.
+    #[test]
+    fn the_per_tangent_newton_step_is_the_global_one() {
+        let (layout, mut maps, options) = setup(Energy::Normalized);
+        standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
+        let prior = prior_map(32, false, |d| 1.0 + 0.2 * d.x);
+        let samples = PriorSamples::build(&layout, &maps, &prior, 1.0, 1.0).expect("prior");
+        let mut params = options.level_params()[0];
+        params.offsets = Offsets::Perspective;
+        (params.cols, params.rows) = (5, 4);
+        let empty = Overlaps::default();
+        let mut problem = Problem::with_prior(
+            &layout,
+            maps.as_slice(),
+            &empty,
+            params,
+            Some((&samples, 0.7)),
+        );
+        assert_eq!(problem.samples(), 0);
+        let x: Vec<f64> = (0..problem.len())
+            .map(|i| {
+                let u = ((i * 2_654_435_761) % 1000) as f64 / 1000.0;
+                if i % 2 == 0 {
+                    0.7 + 0.6 * u
+                } else {
+                    u - 0.5
+                }
+            })
+            .collect();
+        problem.reweight_prior(&x, false);
+        let mut g = vec![0.0; x.len()];
+        let _ = problem.energy(&x, Some(&mut g));
+        let mut global = NewtonSystem::new(&problem).expect("global");
+        let mut tangents = TangentSystems::new(&problem)
+            .expect("per tangent")
+            .expect("an arrow: no term between tangents");
+        let a = global.step(&problem, &x, &g).expect("step");
+        let b = tangents.step(&problem, &x, &g).expect("step");
+        let scale = a.iter().fold(0.0f64, |m, v| m.max(v.abs()));
+        let gap = a
+            .iter()
+            .zip(&b)
+            .fold(0.0f64, |m, (u, v)| m.max((u - v).abs()));
+        assert!(scale > 1e-3 && gap < 1e-9 * scale, "gap {gap} of {scale}");
+        // With overlap samples the tangents share terms: the global system.
+        let overlaps = Overlaps::build(&layout, 0.05, 0.0);
+        let coupled = Problem::with_prior(
+            &layout,
+            maps.as_slice(),
+            &overlaps,
+            params,
+            Some((&samples, 0.7)),
+        );
+        assert!(matches!(
+            Newton::new(&coupled).expect("system"),
+            Newton::Global(_)
+        ));
+        assert!(matches!(
+            Newton::new(&problem).expect("system"),
+            Newton::Tangents(_)
+        ));
+    }
+
     /// Exact tangents up to per-tangent affine maps and an exact absolute prior: the result is
     /// the truth in the prior's units, to the floor of the prior's resampling.
     #[test]
