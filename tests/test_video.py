@@ -373,6 +373,53 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
     assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries, locks
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="needs FIFOs and SIGINT to a process")
+def test_ctrl_c_stops_the_run_and_a_rerun_finishes_it_with_the_same_bytes(tmp_path: Path) -> None:
+    """SIGINT with 3 frames written, the 4th in the network on an estimate worker and the 5th
+    waiting for its turn: the run finishes the frame in flight, stops (exit 130, "interrupted")
+    and leaves no thread behind; a rerun redoes only the frames not written and writes what a
+    run never stopped writes. Tokens for every frame are given after the signal, so whichever
+    comes first, the signal or the 4th frame's end, the run ends and the rerun agrees."""
+    folder = tmp_path / "frames"
+    _walk_frames(folder, 4, 8)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
+    env["M360_HOME"] = str(tmp_path / "home")
+    reference = tmp_path / "reference"
+    subprocess.run(
+        [sys.executable, "-c", _GATED_VIDEO, str(folder), str(reference), ""],
+        env=env,
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    out, gate = tmp_path / "out", tmp_path / "gate"
+    gate.mkdir()
+    started, tokens = batch_helpers.make_gate(str(gate))
+    cmd = [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
+    proc = subprocess.Popen([*cmd, str(gate)], env=env, stderr=subprocess.PIPE)
+    try:
+        os.write(tokens, b"ttt")
+        _read_exactly(started, 4, proc)  # frame 3 waits in the network
+        _wait_until(lambda: (out / "000002.json").is_file(), proc)
+        os.kill(proc.pid, signal.SIGINT)
+        os.write(tokens, b"t" * 8)  # no frame waits forever in the gate
+        _, stderr = proc.communicate(timeout=120)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+            proc.wait()
+    assert proc.returncode == 130, stderr.decode()
+    assert "interrupted" in stderr.decode()
+    finished = {p.name: p.stat().st_mtime_ns for p in out.glob("[0-9]*.json")}  # frames'
+    assert {"000000.json", "000001.json", "000002.json"} <= set(finished)
+    rerun = subprocess.run([*cmd, ""], env=env, capture_output=True, timeout=300)
+    assert rerun.returncode == 0, rerun.stderr.decode()
+    assert f"{8 - len(finished)} done, {len(finished)} already done" in rerun.stderr.decode()
+    assert {k: (out / k).stat().st_mtime_ns for k in finished} == finished  # not redone
+    assert _arrays(out) == _arrays(reference)
+    assert not [p for p in out.iterdir() if p.name.startswith(".")]  # no temporaries, locks
+
+
 def test_a_video_that_is_not_equirectangular_is_refused_before_any_frame(tmp_path: Path) -> None:
     clip = tmp_path / "wide.mp4"
     with av.open(str(clip), "w") as container:
