@@ -11,7 +11,7 @@ waits for the frame's turn.
 - **One network call at a time, in frame order** (:class:`NetworkTurns`): an estimator object
   need not be thread-safe, a GPU is not shared between calls, and the calls an estimator sees
   do not depend on thread timing. The stitches of two frames overlap; on a CPU that fills the
-  cores one frame's alignment leaves idle (its L-BFGS steps are serial between the parallel
+  cores one frame's alignment leaves idle (its solver steps are serial between the parallel
   energy evaluations).
 - **The same bytes**: nothing a frame computes depends on the thread that computes it or on what
   runs beside it (the core's parallel loops reduce in a fixed order), so each frame is what a
