@@ -318,6 +318,24 @@ def _wait_until(done: Callable[[], bool], proc: subprocess.Popen) -> None:
         time.sleep(0.01)
 
 
+def _gated_walk(tmp_path: Path) -> tuple[dict[str, str], Path, Path, list[str]]:
+    """8 walk frames, a reference run of them without a gate; (env, reference, out, command):
+    the command runs the frames into ``out``, given then the gate folder (or "")."""
+    folder = tmp_path / "frames"
+    _walk_frames(folder, 4, 8)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
+    env["M360_HOME"] = str(tmp_path / "home")
+    reference, out = tmp_path / "reference", tmp_path / "out"
+    subprocess.run(
+        [sys.executable, "-c", _GATED_VIDEO, str(folder), str(reference), ""],
+        env=env,
+        check=True,
+        capture_output=True,
+        timeout=300,
+    )
+    return env, reference, out, [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
+
+
 @pytest.mark.skipif(sys.platform == "win32", reason="needs FIFOs and process groups")
 @pytest.mark.parametrize("batch", [1, 3])
 def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
@@ -327,22 +345,10 @@ def test_a_killed_run_redoes_only_unfinished_frames_with_the_same_bytes(
     the 3rd frame's state and writes what a run never stopped writes. With frame_batch=3 the
     network's second call (frames 3-5) is the one stopped, and a frame_batch=1 run is the
     reference."""
-    folder = tmp_path / "frames"
-    _walk_frames(folder, 4, 8)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
-    env["M360_HOME"] = str(tmp_path / "home")
-    reference = tmp_path / "reference"
-    subprocess.run(
-        [sys.executable, "-c", _GATED_VIDEO, str(folder), str(reference), ""],
-        env=env,
-        check=True,
-        capture_output=True,
-        timeout=300,
-    )
-    out, gate = tmp_path / "out", tmp_path / "gate"
+    env, reference, out, cmd = _gated_walk(tmp_path)
+    gate = tmp_path / "gate"
     gate.mkdir()
     started, tokens = batch_helpers.make_gate(str(gate))
-    cmd = [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
     proc = subprocess.Popen(
         [*cmd, str(gate), str(batch)], env=env, stderr=subprocess.PIPE, start_new_session=True
     )
@@ -380,22 +386,10 @@ def test_ctrl_c_stops_the_run_and_a_rerun_finishes_it_with_the_same_bytes(tmp_pa
     and leaves no thread behind; a rerun redoes only the frames not written and writes what a
     run never stopped writes. Tokens for every frame are given after the signal, so whichever
     comes first, the signal or the 4th frame's end, the run ends and the rerun agrees."""
-    folder = tmp_path / "frames"
-    _walk_frames(folder, 4, 8)
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(Path(__file__).parent), *sys.path])}
-    env["M360_HOME"] = str(tmp_path / "home")
-    reference = tmp_path / "reference"
-    subprocess.run(
-        [sys.executable, "-c", _GATED_VIDEO, str(folder), str(reference), ""],
-        env=env,
-        check=True,
-        capture_output=True,
-        timeout=300,
-    )
-    out, gate = tmp_path / "out", tmp_path / "gate"
+    env, reference, out, cmd = _gated_walk(tmp_path)
+    gate = tmp_path / "gate"
     gate.mkdir()
     started, tokens = batch_helpers.make_gate(str(gate))
-    cmd = [sys.executable, "-c", _GATED_VIDEO, str(folder), str(out)]
     proc = subprocess.Popen([*cmd, str(gate)], env=env, stderr=subprocess.PIPE)
     try:
         os.write(tokens, b"ttt")

@@ -51,7 +51,7 @@ from ..geometry.layout import Layout, default_layout
 from ..pipeline import estimate as _pipeline
 from ..pipeline import memory as _memory
 from ..pipeline.estimate import EstimateResult, Prepared, _predict, prepare
-from ._frame import _done, _Plan
+from ._frame import _Plan
 from .reader import Frame
 
 #: The most frames one network call takes (``frame_batch``'s upper bound).
@@ -235,17 +235,16 @@ class FrameBatcher:
         group: Sequence[tuple[Frame, Job]],
         network: contextlib.AbstractContextManager[Any] | None = None,
     ) -> Group:
-        """Prepare the group's frames to compute and run one network call on them.
+        """Prepare the group's frames and run one network call on them.
 
-        ``network`` is entered for the group's calls (its turn). When the group's call fails,
-        each frame runs its own there, and when each succeeds the batching stops (a note).
+        ``group``: readable frames not done (the caller checked). ``network`` is entered for
+        the group's calls (its turn). When the group's call fails, each frame runs its own
+        there, and when each succeeds the batching stops (a note).
         """
         plan = self.plan
         aheads: dict[int, Ahead] = {}
-        for frame, job in group:
-            if frame.error is not None or frame.rgb is None:
-                continue
-            if plan.resume and _done(plan, job):
+        for frame, _ in group:
+            if frame.rgb is None:
                 continue
             try:
                 ready = prepare(frame.rgb, plan.estimator, options=plan.options, **plan.job)

@@ -489,15 +489,18 @@ def _run_frames(
 
     def run_group(frames_read: list[Frame]) -> bool:
         """Start the estimates of frames read (one network call for a group), take turns."""
-        jobs = [(frame, _job(plan, frame)) for frame in frames_read]
+        read = [_Turn(frame, _job(plan, frame), False) for frame in frames_read]
+        for turn in read:
+            if turn.frame.error is None and turn.frame.rgb is not None:
+                turn.done = plan.resume and _done(plan, turn.job)
+        # The frames to compute: readable and not done (the others take their turn as such).
+        todo = [t for t in read if t.frame.rgb is not None and t.frame.error is None and not t.done]
         group = None
-        if batcher is not None and len(jobs) > 1:
-            group = estimates.submit_group(batcher, jobs)
-        for frame, job in jobs:
-            readable = frame.error is None and frame.rgb is not None
-            done = readable and plan.resume and _done(plan, job)
-            ahead = estimates.submit(frame, group) if readable and not done else None
-            turns.append(_Turn(frame, job, done, ahead))
+        if batcher is not None and len(todo) > 1:
+            group = estimates.submit_group(batcher, [(t.frame, t.job) for t in todo])
+        for turn in todo:
+            turn.ahead = estimates.submit(turn.frame, group)
+        turns.extend(read)
         frames_read.clear()
         # The frames still waiting keep the estimate workers busy while this thread works.
         return take(estimates.depth - 1)

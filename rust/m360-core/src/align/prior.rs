@@ -472,6 +472,21 @@ mod tests {
         *v.select_nth_unstable_by(mid, f64::total_cmp).1
     }
 
+    /// A point of `n` unknowns away from the identity: scales in [0.7, 1.3], offsets in
+    /// [−0.5, 0.5], prior (α, β) alike.
+    fn spread_point(n: usize) -> Vec<f64> {
+        (0..n)
+            .map(|i| {
+                let u = ((i * 2_654_435_761) % 1000) as f64 / 1000.0;
+                if i % 2 == 0 {
+                    0.7 + 0.6 * u
+                } else {
+                    u - 0.5
+                }
+            })
+            .collect()
+    }
+
     #[test]
     fn gradient_with_prior_matches_finite_differences() {
         for energy in [Energy::Paper, Energy::Normalized] {
@@ -495,16 +510,7 @@ mod tests {
                 Some((&samples, 0.7)),
             );
             assert!(problem.prior_samples() > 100);
-            let x: Vec<f64> = (0..problem.len())
-                .map(|i| {
-                    let u = ((i * 2_654_435_761) % 1000) as f64 / 1000.0;
-                    if i % 2 == 0 {
-                        0.7 + 0.6 * u
-                    } else {
-                        u - 0.5
-                    }
-                })
-                .collect();
+            let x = spread_point(problem.len());
             // IRLS weights that are not all 1.
             problem.reweight_prior(&x, false);
             let mut g = vec![0.0; x.len()];
@@ -542,16 +548,7 @@ mod tests {
             Some((&samples, 0.7)),
         );
         assert_eq!(problem.samples(), 0);
-        let x: Vec<f64> = (0..problem.len())
-            .map(|i| {
-                let u = ((i * 2_654_435_761) % 1000) as f64 / 1000.0;
-                if i % 2 == 0 {
-                    0.7 + 0.6 * u
-                } else {
-                    u - 0.5
-                }
-            })
-            .collect();
+        let x = spread_point(problem.len());
         problem.reweight_prior(&x, false);
         let mut g = vec![0.0; x.len()];
         let _ = problem.energy(&x, Some(&mut g));
