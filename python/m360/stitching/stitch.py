@@ -25,7 +25,7 @@ from . import blend as _blend
 from .align import AlignLevelReport
 from .blend import BlendMethod, BlendReport
 from .options import AlignSpec, StitchOptions, StitchTuning, build
-from .prior import PriorKind, PriorReport, check_prior, prior_disagreement
+from .prior import PriorKind, PriorReport, check_prior, combine_with_prior
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -296,10 +296,7 @@ def stitch(
                 weight=float(fit["weight"]),
                 residual=float(fit["residual"]),
             )
-            gap = prior_disagreement(disparity, prior_map, affine)
-            known = np.isfinite(gap) & np.isfinite(confidence)
-            confidence = confidence.copy()
-            confidence[known] = np.hypot(confidence[known], gap[known])
+            confidence = combine_with_prior(confidence, disparity, prior_map, affine)
     return StitchResult(
         disparity=disparity,
         confidence=confidence,

@@ -135,8 +135,19 @@ pub struct PriorSamples {
     pub(super) view_start: Vec<u32>,
     pub(super) view_tangent: Vec<u16>,
     pub(super) view_xy: Vec<[f32; 2]>,
+    /// The raw values of the four pixels around each view's position (kept so that a level
+    /// reads them through its transform without visiting the maps again: random reads over
+    /// all tangents were a tenth of a stitch with a prior).
+    pub(super) view_raw: Vec<[f32; 4]>,
     /// Cell of each sample's direction in a [`TRUST_ROWS`] × 2·[`TRUST_ROWS`] ERP grid.
     pub(super) cell: Vec<u32>,
+}
+
+/// Index in its tangent (y·w + x) of the top-left of the four pixels a view at `xy` reads.
+pub(super) fn view_corner(xy: [f32; 2], w: usize, h: usize) -> usize {
+    let x0 = (xy[0] as usize).min(w - 2);
+    let y0 = (xy[1] as usize).min(h - 2);
+    y0 * w + x0
 }
 
 /// Rows of the ERP grid over which the prior's trust, judged where tangents overlap, is spread
@@ -146,7 +157,7 @@ pub const TRUST_ROWS: usize = 30;
 /// One tangent's samples: (tangent, pixel, prior value, confidence, raw window mean).
 type Part = (
     Vec<(u16, u32, f64, f64, f32, u32)>,
-    Vec<(u32, u16, [f32; 2])>,
+    Vec<(u32, u16, [f32; 2], [f32; 4])>,
 );
 
 /// Salt of the prior samples' hash, so they are not the overlap samples' pixels.
@@ -211,7 +222,9 @@ impl PriorSamples {
                                     xb.clamp(0.0, (w - 1) as f64) as f32,
                                     yb.clamp(0.0, (h - 1) as f64) as f32,
                                 ];
-                                views.push((out.len() as u32, b as u16, xy));
+                                let base = b * h * w + view_corner(xy, w, h);
+                                let raw = [base, base + 1, base + w, base + w + 1].map(|i| maps[i]);
+                                views.push((out.len() as u32, b as u16, xy, raw));
                             }
                         }
                     }
@@ -233,12 +246,13 @@ impl PriorSamples {
         for (part, views) in parts {
             let mut views = views.into_iter().peekable();
             for (i, (t, p, v, c, raw, cell)) in part.into_iter().enumerate() {
-                while let Some(&(k, b, xy)) = views.peek() {
+                while let Some(&(k, b, xy, raw)) = views.peek() {
                     if k != i as u32 {
                         break;
                     }
                     samples.view_tangent.push(b);
                     samples.view_xy.push(xy);
+                    samples.view_raw.push(raw);
                     views.next();
                 }
                 samples.view_start.push(samples.view_tangent.len() as u32);

@@ -516,12 +516,15 @@ impl PriorVote<'_> {
 
     /// Row `i` of an `eh`-row ERP grid with the column taps `columns`: the prior in the
     /// tangents' units (bilinear, NaN where a tap is unknown) into `value`, its confidence (0
-    /// where unknown) into `trust`.
+    /// where unknown) into `trust`. The two prior rows resampled along the row are kept in
+    /// `cache` for the next ERP rows between the same prior rows (8 per prior row at 8K from a
+    /// 512-row prior): the same numbers, one gather per prior row instead of per ERP row.
     fn row(
         &self,
         i: usize,
         eh: usize,
         columns: &[(u32, u32, f32)],
+        cache: &mut PriorRows,
         value: &mut Vec<f32>,
         trust: &mut Vec<f32>,
     ) {
@@ -530,33 +533,55 @@ impl PriorVote<'_> {
         let row = ((i as f64 + 0.5) * hp as f64 / eh as f64 - 0.5).clamp(0.0, (hp - 1) as f64);
         let r0 = (row as usize).min(hp - 2);
         let fy = (row - r0 as f64) as f32;
-        let (top, bottom) = (&p.values[r0 * wp..][..wp], &p.values[(r0 + 1) * wp..][..wp]);
+        if cache.row != Some(r0) {
+            let along = |a: &[f32], out: &mut Vec<f32>| {
+                out.clear();
+                out.extend(columns.iter().map(|&(c0, c1, fx)| {
+                    let (a0, a1) = (a[c0 as usize], a[c1 as usize]);
+                    a0 + fx * (a1 - a0)
+                }));
+            };
+            along(&p.values[r0 * wp..][..wp], &mut cache.top);
+            along(&p.values[(r0 + 1) * wp..][..wp], &mut cache.bottom);
+            if let Some(c) = &p.confidence {
+                along(&c[r0 * wp..][..wp], &mut cache.confidence_top);
+                along(&c[(r0 + 1) * wp..][..wp], &mut cache.confidence_bottom);
+            }
+            cache.row = Some(r0);
+        }
         let (scale, offset) = (self.scale as f32, self.offset as f32);
-        let lerp = |a: &[f32], c0: u32, c1: u32, fx: f32| {
-            let (a0, a1) = (a[c0 as usize], a[c1 as usize]);
-            a0 + fx * (a1 - a0)
-        };
         value.clear();
-        value.extend(columns.iter().map(|&(c0, c1, fx)| {
-            let (t, b) = (lerp(top, c0, c1, fx), lerp(bottom, c0, c1, fx));
-            scale * (t + fy * (b - t)) + offset // NaN when a tap is
-        }));
+        value.extend(
+            cache
+                .top
+                .iter()
+                .zip(&cache.bottom)
+                .map(|(&t, &b)| scale * (t + fy * (b - t)) + offset), // NaN when a tap is
+        );
         trust.clear();
         match &p.confidence {
             None => trust.extend(value.iter().map(|v| f32::from(u8::from(v.is_finite())))),
-            Some(c) => {
-                let (top, bottom) = (&c[r0 * wp..][..wp], &c[(r0 + 1) * wp..][..wp]);
-                trust.extend(columns.iter().zip(value.iter()).map(|(&(c0, c1, fx), v)| {
-                    let (t, b) = (lerp(top, c0, c1, fx), lerp(bottom, c0, c1, fx));
-                    if v.is_finite() {
-                        t + fy * (b - t)
-                    } else {
-                        0.0
-                    }
-                }));
-            }
+            Some(_) => trust.extend(
+                cache
+                    .confidence_top
+                    .iter()
+                    .zip(&cache.confidence_bottom)
+                    .zip(value.iter())
+                    .map(|((&t, &b), v)| if v.is_finite() { t + fy * (b - t) } else { 0.0 }),
+            ),
         }
     }
+}
+
+/// A thread's last two prior rows resampled along an ERP row ([`PriorVote::row`]).
+#[derive(Debug, Default)]
+struct PriorRows {
+    /// The upper prior row they come from (None: nothing kept yet).
+    row: Option<usize>,
+    top: Vec<f32>,
+    bottom: Vec<f32>,
+    confidence_top: Vec<f32>,
+    confidence_bottom: Vec<f32>,
 }
 
 /// The prior's vote scale c_P, in units of the robust scale of the distance between the
@@ -585,28 +610,34 @@ fn prior_vote(
     nearest: &mut [f32],
     inv_c: f32,
 ) {
+    // Branch-free over each run's columns (contiguous), so the loops vectorise: a sample with
+    // no finite distance (its value or the prior unknown) counts as distance 0 and is then
+    // multiplied out (nearest) or given the factor (1 − t) + t = 1 (t is 0 where the prior is
+    // unknown; an invalid sample's weight is not read by the blend).
     nearest.fill(0.0);
     for run in &row.runs {
+        let cols = run.columns();
         let values = &row.values[run.taps()];
-        for (&v, j) in values.iter().zip(run.columns()) {
-            let e = (v - prior[j]) * inv_c * (1.0 / PRIOR_TRUST_SCALE);
-            if e.is_finite() {
-                nearest[j] = nearest[j].max(1.0 / (1.0 + e * e));
-            }
+        let near = &mut nearest[cols.clone()];
+        for ((&v, &p), n) in values.iter().zip(&prior[cols]).zip(near.iter_mut()) {
+            let e = (v - p) * inv_c * (1.0 / PRIOR_TRUST_SCALE);
+            let ok = e.is_finite();
+            let e = if ok { e } else { 0.0 };
+            *n = n.max(f32::from(u8::from(ok)) / (1.0 + e * e));
         }
     }
     for (t, n) in trust.iter_mut().zip(nearest.iter()) {
         *t *= n;
     }
     for run in &row.runs {
+        let cols = run.columns();
         let taps = run.taps();
         let (values, weights) = (&row.values[taps.clone()], &mut row.weights[taps]);
-        for ((&v, w), j) in values.iter().zip(weights.iter_mut()).zip(run.columns()) {
-            let e = (v - prior[j]) * inv_c;
-            if e.is_finite() {
-                let t = trust[j];
-                *w *= ((1.0 - t) + t / (1.0 + e * e)).max(MIN_PRIOR_VOTE);
-            }
+        let (prior, trust) = (&prior[cols.clone()], &trust[cols]);
+        for (((&v, w), &p), &t) in values.iter().zip(weights.iter_mut()).zip(prior).zip(trust) {
+            let e = (v - p) * inv_c;
+            let e = if e.is_finite() { e } else { 0.0 };
+            *w *= ((1.0 - t) + t / (1.0 + e * e)).max(MIN_PRIOR_VOTE);
         }
     }
 }
@@ -633,17 +664,17 @@ fn consensus_distances(
                 (
                     RowSamples::default(),
                     RowStats::default(),
-                    Vec::new(),
-                    Vec::new(),
+                    PriorRows::default(),
+                    (Vec::new(), Vec::new()),
                 )
             },
-            |(row, stats, prior_row, trust_row), i| {
+            |(row, stats, cache, (prior_row, trust_row)), i| {
                 row.fill_from_taps(taps, tangents, Some(weights), false, i);
                 stats.compute(row, ew, false);
                 let mut out = Vec::new();
                 let mut from_prior = Vec::new();
                 if let Some(vote) = prior {
-                    vote.row(i, eh, prior_columns, prior_row, trust_row);
+                    vote.row(i, eh, prior_columns, cache, prior_row, trust_row);
                     for (j, (&m, &p)) in stats.weighted.iter().zip(prior_row.iter()).enumerate() {
                         let d = (m - p).abs();
                         if j.is_multiple_of(SCALE_STRIDE) && d.is_finite() {
@@ -716,14 +747,19 @@ pub fn consensus_blend_with_prior(
                     RowStats::default(),
                     vec![0.0f32; ew],
                     vec![0.0f32; ew],
-                    (Vec::new(), Vec::new(), vec![0.0f32; ew]),
+                    (
+                        Vec::new(),
+                        Vec::new(),
+                        vec![0.0f32; ew],
+                        PriorRows::default(),
+                    ),
                 )
             },
-            |(row, stats, num, den, (prior_row, trust_row, nearest)),
+            |(row, stats, num, den, (prior_row, trust_row, nearest, cache)),
              (i, (out, out_confidence))| {
                 row.fill_from_taps(taps, tangents, Some(weights), false, i);
                 if let Some((vote, _)) = prior {
-                    vote.row(i, eh, &prior_columns, prior_row, trust_row);
+                    vote.row(i, eh, &prior_columns, cache, prior_row, trust_row);
                     prior_vote(row, prior_row, trust_row, nearest, inv_c_prior);
                 }
                 stats.compute(row, ew, false);
