@@ -117,7 +117,9 @@ def combine_with_prior(
     """``confidence`` combined (root sum of squares) with the prior's disagreement.
 
     The disagreement is |disparity − (a·P + b)|, the prior P resized (bilinear) to the result's
-    grid; where the prior is unknown, ``confidence`` is kept as is. In place on float32 buffers, with no boolean indexing: at 8K a masked copy took 0.6 s, more
+    grid; where the prior is unknown, ``confidence`` is kept as is.
+
+    In place on float32 buffers, with no boolean indexing: at 8K a masked copy took 0.6 s, more
     than the prior's whole alignment, and ``np.hypot`` 0.13 s. (``cv2.magnitude`` is faster
     still, but its threads split the map differently from call to call and its vector and
     scalar paths round differently: the last bit changed with the thread count.)
