@@ -131,6 +131,49 @@ def test_masks_unknown_prior_regions_and_confidence(room: tuple) -> None:
     assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
 
 
+def test_confidence_combines_the_prior_gap_where_the_prior_is_known() -> None:
+    """Root sum of squares with |d − (a·P + b)| (P resized bilinearly), against an independent
+    masked computation: unchanged where the prior is unknown, NaN where the confidence is."""
+    import cv2
+    from m360.stitching.prior import combine_with_prior
+
+    rng = np.random.default_rng(3)
+    disparity = rng.uniform(0.5, 2.0, (64, 128)).astype(np.float32)
+    confidence = rng.uniform(0.0, 0.2, (64, 128)).astype(np.float32)
+    confidence[5, :7] = np.nan
+    prior = rng.uniform(0.5, 2.0, (16, 32)).astype(np.float32)
+    prior[8:10, 3:6] = np.nan
+    gap = np.abs(disparity - (1.5 * cv2.resize(prior, (128, 64)) + 0.25))
+    expected = confidence.copy()
+    known = np.isfinite(gap) & np.isfinite(confidence)
+    expected[known] = np.hypot(confidence[known], gap[known])
+    got = combine_with_prior(confidence.copy(), disparity, prior, (1.5, 0.25))
+    assert got.dtype == np.float32
+    assert np.array_equal(np.isnan(got), np.isnan(expected))
+    assert (~known & np.isfinite(confidence)).any()  # the prior's NaN reached some pixels
+    np.testing.assert_allclose(got, expected, rtol=1e-6, equal_nan=True)
+
+
+def test_one_and_two_threads_give_the_same_bits_with_a_prior(room: tuple) -> None:
+    """Every output of a stitch with a prior (its vote, its fit, the combined confidence) is the
+    same bit for bit with 1 and 2 threads: the thread count is a speed setting."""
+    layout, tiles, _, scene = room
+    prior = (1.0 / _distance(scene, 32)).astype(np.float32)
+    prior[:3] = np.nan
+    before = m360.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2) * 5:
+            m360.set_num_threads(n)
+            runs.append(m360.stitch(tiles, layout, prior=prior, return_details=True))
+    finally:
+        m360.set_num_threads(before)
+    for res in runs[1:]:
+        assert np.array_equal(res.disparity, runs[0].disparity)
+        assert np.array_equal(res.confidence, runs[0].confidence, equal_nan=True)
+        assert res.report["prior"] == runs[0].report["prior"]
+
+
 def test_a_partial_panorama_aligns_to_its_prior(room: tuple) -> None:
     """A panorama missing a cap (masked): the prior, known everywhere, still aligns the rest."""
     layout, tiles, depth, scene = room
