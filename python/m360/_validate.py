@@ -168,7 +168,9 @@ def check_shape(array: np.ndarray, name: str, dims: Sequence[str], **expected: i
 
 
 def check_erp_shape(height: int, width: int, name: str) -> None:
-    """ERP images are H x 2H."""
+    """ERP images are H x 2H, and not empty."""
+    if height < 1 or width < 1:
+        raise InputError(f"{name} is {height}x{width} (HxW): an empty image")
     if width != 2 * height:
         raise AspectRatioError(
             f"{name} is {height}x{width} (HxW) but an equirectangular image must have "

@@ -736,8 +736,8 @@ pub struct Problem {
     block_col: Vec<u32>,
     blocks: Vec<[f64; 4]>,
     /// The data samples grouped by their cells, and the prior samples by theirs: a function of
-    /// the samples alone, found at the first assembly and kept for the reweightings' (each
-    /// robust round reassembles).
+    /// the samples alone, found at the first assembly and kept for the reassembly after each
+    /// reweighting.
     data_groups: Groups,
     prior_groups: Groups,
 }
@@ -1840,8 +1840,8 @@ enum Factorization {
     /// faer's choice by the flop count per factor entry.
     Auto,
     /// Dense supernodes always: a tangent's block on a prior-only level (a 2-D grid of about
-    /// 3,500 unknowns) factorises 2.5× faster so than in faer's choice, the simplicial one
-    /// (measured at 2K: 23 against 59 ms for the twenty blocks).
+    /// 3,500 unknowns) factorises 2.5× faster than with faer's own choice there, the
+    /// simplicial one (measured at 2K: 23 against 59 ms for the twenty blocks).
     Supernodal,
 }
 
