@@ -490,11 +490,13 @@ def _run_frames(
     def run_group(frames_read: list[Frame]) -> bool:
         """Start the estimates of frames read (one network call for a group), take turns."""
         read = [_Turn(frame, _job(plan, frame), False) for frame in frames_read]
+        # The frames to compute: readable and not done (the others take their turn as such).
+        todo = []
         for turn in read:
             if turn.frame.error is None and turn.frame.rgb is not None:
                 turn.done = plan.resume and _done(plan, turn.job)
-        # The frames to compute: readable and not done (the others take their turn as such).
-        todo = [t for t in read if t.frame.rgb is not None and t.frame.error is None and not t.done]
+                if not turn.done:
+                    todo.append(turn)
         group = None
         if batcher is not None and len(todo) > 1:
             group = estimates.submit_group(batcher, [(t.frame, t.job) for t in todo])
