@@ -473,6 +473,7 @@ def test_every_option_that_changes_an_output_byte_redoes_the_image(
         {"formats": ("npy", "pfm")},
         {"preview": False},
         {"fix_aspect": True},
+        {"edges": "photo"},
         {"align": "none"},
         {"align": [(3, 3)]},
         {"energy": "paper"},

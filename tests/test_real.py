@@ -148,3 +148,33 @@ def test_the_seam_check_sees_a_step_at_0_360() -> None:
     stepped[:, -1] *= 1.05
     seam, ordinary = seam_jump_is_ordinary(stepped)
     assert seam > ordinary * 1.5
+
+
+def test_photo_edges_on_real_photos_keep_within_each_window() -> None:
+    """edges="photo" on real photos and a real network: a mode filter takes its values from
+    the window, so each refined pixel lies within its window's range; NaN stay where they were,
+    and the seam stays ordinary."""
+    import cv2
+
+    model = m360.estimators.load_estimator(
+        REAL / "models" / "fastdepth_dynamic.onnx",
+        model_options=m360.ModelOptions(**NETWORKS["fastdepth_dynamic.onnx"]),
+    )
+    paths = [REAL / "panos" / "pannellum_example_4096.jpg", *panoramas()[:2]]
+    for path in paths:
+        rgb = m360.io.load_image(path)
+        res = m360.estimate(rgb, model, edges="photo")
+        check_result(res, f"edges=photo {path.name}")
+        plain = m360.estimate(rgb, model)
+        assert np.array_equal(np.isfinite(res.disparity), np.isfinite(plain.disparity))
+        radius = m360.stitching.edges.default_edge_radius(rgb.shape[1])
+        kernel = np.ones((2 * radius + 1,) * 2, np.uint8)
+        log = np.log(np.where(plain.disparity > 0, plain.disparity, np.nan)).astype(np.float32)
+        wrapped = np.concatenate([log[:, -radius:], log, log[:, :radius]], axis=1)
+        hi = cv2.dilate(np.nan_to_num(wrapped, nan=-np.inf), kernel)[:, radius:-radius]
+        lo = cv2.erode(np.nan_to_num(wrapped, nan=np.inf), kernel)[:, radius:-radius]
+        new = np.log(res.disparity[np.isfinite(log)])
+        inside = (new >= lo[np.isfinite(log)] - 1e-5) & (new <= hi[np.isfinite(log)] + 1e-5)
+        assert inside.all(), f"{path.name}: {(~inside).sum()} pixels left their window's range"
+        changed = (res.disparity != plain.disparity).mean()
+        assert 0 < changed < 0.5, f"{path.name}: {changed:.1%} of the pixels changed"

@@ -23,6 +23,7 @@ __all__ = [
     "ods_defaults",
     "ods_stereo",
     "poisson_blend",
+    "refine_edges",
     "set_num_threads",
     "stitch_options",
     "upsample_planes",
@@ -147,6 +148,14 @@ def guided_upsample(
     eps: float,
     edge_low: float,
     edge_high: float,
+) -> npt.NDArray[np.float32]: ...
+def refine_edges(
+    disparity: npt.NDArray[np.float32],
+    rgb: npt.NDArray[np.uint8],
+    radius: int,
+    colour_sigma: float,
+    transition: float,
+    jump: float,
 ) -> npt.NDArray[np.float32]: ...
 def ods_stereo(
     rgb: npt.NDArray[np.uint8],

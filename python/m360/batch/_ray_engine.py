@@ -228,6 +228,7 @@ def _stitch_write(
                 sky_mode=settings.job["sky"],
                 scale=settings.scale,
                 upsample=settings.job["upsample"],
+                edges=settings.job["edges"],
             )
         else:
             layout = _layout(work_width, settings.job["padding"])
@@ -252,8 +253,9 @@ def _stitch_write(
                 erp_valid=erp_valid,
                 sky_mode=settings.job["sky"],
                 scale=settings.scale,
-                guide=read.rgb if work_width != erp_shape[1] else None,
+                guide=read.rgb,
                 upsample=settings.job["upsample"],
+                edges=settings.job["edges"],
                 prior=prior,
             )
         result.timings["total"] = sum(result.timings.values())  # time at work, not waiting

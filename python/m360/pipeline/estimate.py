@@ -31,6 +31,7 @@ from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import Layout, default_layout, erp_to_tangents
+from ..stitching.edges import refine_edges
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ..stitching.stitch import StitchResult
 from ..stitching.upsample import guided_upsample
@@ -216,6 +217,10 @@ def estimate(
           network's local errors; 0.7 measured about a third lower AbsRel than 0.3 under
           simulated content errors at the same network cost, with wider (≈ 125°) tiles
           (docs/method.md). ``padding="paper"`` is the paper's layout;
+        - ``edges``: ``"photo"`` makes the depth edges the network smeared sharp along the
+          photo's, at the output's resolution (:func:`m360.stitching.refine_edges`; measured
+          on simulated rooms in docs/method.md); default ``"network"``, as the network gave
+          them;
         - ``sky``: ``"nan"`` makes pixels whose disparity is at or below
           ``m360.masks.SKY_THRESHOLD`` times its 90th percentile (the sky, or beyond) NaN
           instead of a huge fake distance; default ``"keep"``;
@@ -519,8 +524,10 @@ def finish(
         erp_valid=prepared.erp_valid,
         sky_mode=prepared.job["sky"],
         scale=prepared.scale,
-        guide=prepared.guide,
+        # The photo at the output's resolution: it guides the upsampling and the edges.
+        guide=prepared.guide if prepared.guide is not None else prepared.photo,
         upsample=prepared.job["upsample"],
+        edges=prepared.job["edges"],
         prior=prior_map,
     )
     stages = sum(prepared.timings.values()) + float(seconds)
@@ -634,6 +641,7 @@ def _estimate_panoramic(
         sky_mode=job["sky"],
         scale=scale,
         upsample=job["upsample"],
+        edges=job["edges"],
     )
     result.timings["total"] = time.perf_counter() - t_start
     return result
@@ -651,13 +659,15 @@ def _from_panoramic(
     sky_mode: str = "keep",
     scale: Any = None,
     upsample: str = "guided",
+    edges: str = "network",
 ) -> EstimateResult:
     """Do the rest of :func:`estimate` after a panoramic model (convert, upsample, masks, scale).
 
     The map is converted to spherical disparity at the network's resolution, resized to an
     ERP grid (h, 2h) if the network's output is not one, then upsampled to ``erp_shape`` with
     the photo ``guide`` (``upsample``: guided or bilinear; shrunk by area when the network's
-    map is larger than the photo).
+    map is larger than the photo); ``edges="photo"`` then makes its edges sharp along the
+    photo's (:func:`m360.stitching.refine_edges`).
     """
     t0 = time.perf_counter()
     network_shape = list(raw.shape)
@@ -680,6 +690,8 @@ def _from_panoramic(
         disparity = _prior.fit_to_job(disparity, None, erp_shape, None)[0]
     else:
         disparity = disparity.copy()
+    if edges == "photo":
+        disparity = refine_edges(disparity, guide)
     t_upsampled = time.perf_counter()
     if erp_valid is not None:
         disparity[~erp_valid] = np.nan
@@ -710,6 +722,7 @@ def _from_panoramic(
             "erp_shape": [height, width],
             "network_output_shape": network_shape,
             "upsample": upsample if h < height else None,
+            **({"edges": "photo"} if edges == "photo" else {}),
             **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
             **({"sky": "nan"} if sky_mode == "nan" else {}),
         },
@@ -793,6 +806,7 @@ def _from_network(
     scale: Any = None,
     guide: np.ndarray | None = None,
     upsample: str = "guided",
+    edges: str = "network",
     prior: PriorMap | None = None,
 ) -> EstimateResult:
     """Do the rest of :func:`estimate` after the network (stitch, upsample, masks, scale).
@@ -801,7 +815,9 @@ def _from_network(
     Split out so that an engine running the network elsewhere (m360.batch's Ray engine) makes
     the same bytes. ``timings`` holds the earlier stages; ``total`` is left to the caller.
     ``erp_shape`` is the output's shape; when the layout's is smaller (a working width),
-    ``guide`` is the full-resolution RGB photo that guides the upsampling. ``mask`` is the
+    ``guide`` is the full-resolution RGB photo that guides the upsampling, and with
+    ``edges="photo"`` the edge refinement (:func:`m360.stitching.refine_edges`, at the output's
+    resolution, after the upsampling; then needed at any width). ``mask`` is the
     tangent mask and ``erp_valid`` the output-sized ERP mask (see :func:`_split_mask`).
     ``prior`` is the image's prior map (:func:`_prior_map`): fitted to the job (2:1, masked
     with ``erp_valid``, no larger than the layout's ERP) and given to every stitch; a prior in
@@ -863,6 +879,10 @@ def _from_network(
         disparity *= np.float32(anchor["scale"])
         disparity += np.float32(anchor["offset"])
         confidence *= np.float32(anchor["scale"])
+    if edges == "photo":
+        if guide is None:
+            raise InputError("edges='photo' needs the photo at the output's resolution")
+        disparity = refine_edges(disparity, guide)
     t_upsampled = time.perf_counter()
     if erp_valid is not None:
         disparity[~erp_valid] = np.nan
@@ -908,6 +928,7 @@ def _from_network(
             "erp_shape": [height, width],
             "working_width": work_width,
             "upsample": upsample if work_width != width else None,
+            **({"edges": "photo"} if edges == "photo" else {}),
             **({} if erp_valid is None else {"masked_fraction": float(1 - erp_valid.mean())}),
             **({"sky": "nan"} if sky_mode == "nan" else {}),
             **({} if prior_record is None else {"prior": prior_record}),

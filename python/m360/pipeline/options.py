@@ -16,6 +16,7 @@ from .._keywords import Option, document
 from .._validate import one_of
 from ..estimators.options import ModelKeywords
 from ..geometry.layout import DEFAULT_PADDING, PAPER_PADDING, default_layout
+from ..stitching.edges import EDGE_MODES
 from ..stitching.options import StitchKeywords
 from ..stitching.upsample import UPSAMPLE_METHODS
 from .masks import SKY_MODES, SKY_THRESHOLD
@@ -78,6 +79,17 @@ class JobKeywords(TypedDict, total=False):
             check=lambda v, n: one_of(v, n, UPSAMPLE_METHODS),
             choices=UPSAMPLE_METHODS,
             default="guided",
+        ),
+    ]
+    edges: Annotated[
+        str | None,
+        Option(
+            "photo: depth edges smeared by the network are made sharp along the photo's "
+            "(m360.stitching.refine_edges, at the output's resolution); network: as the "
+            "network gave them",
+            check=lambda v, n: one_of(v, n, EDGE_MODES),
+            choices=EDGE_MODES,
+            default="network",
         ),
     ]
     padding: Annotated[

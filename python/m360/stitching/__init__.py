@@ -4,13 +4,15 @@
 :mod:`~m360.stitching.align` and :mod:`~m360.stitching.blend` say what each option means;
 :mod:`~m360.stitching.stitch` runs them (:func:`m360.stitch`); :mod:`~m360.stitching.prior`
 checks a global prior map; :mod:`~m360.stitching.upsample` brings a working-resolution result to
-the photo's; :mod:`~m360.stitching.depth` turns disparity into depth.
+the photo's, and :mod:`~m360.stitching.edges` makes smeared depth edges sharp along its edges;
+:mod:`~m360.stitching.depth` turns disparity into depth.
 """
 
 from __future__ import annotations
 
-from . import align, blend, depth, options, prior, upsample
+from . import align, blend, depth, edges, options, prior, upsample
 from .depth import depth_of
+from .edges import refine_edges
 from .options import StitchOptions
 from .stitch import StitchResult
 from .upsample import guided_upsample
@@ -22,8 +24,10 @@ __all__ = [
     "blend",
     "depth",
     "depth_of",
+    "edges",
     "guided_upsample",
     "options",
     "prior",
+    "refine_edges",
     "upsample",
 ]

@@ -11,7 +11,8 @@
 //! 6. [`align`]: global multi-scale deformable alignment of the tangents (energy + solvers).
 //! 7. [`blend`]: per-face weights, the row blends (mean, nearest, radial, frustum) and the
 //!    Poisson gradient-domain blend; [`Plan::blend`] dispatches on a [`blend::Method`].
-//! 8. [`stereo`]: after the depth, an omnidirectional stereo (ODS) pair by forward warping.
+//! 8. [`edges`]: optionally, blurred depth edges made sharp along the photo's.
+//! 9. [`stereo`]: after the depth, an omnidirectional stereo (ODS) pair by forward warping.
 //!
 //! [`options`] holds what the options share (names, limits); each option type lives with its
 //! stage and says its own names and defaults, so the bindings and Python only read them.
@@ -24,6 +25,7 @@
 pub mod align;
 pub mod blend;
 pub mod camera;
+pub mod edges;
 pub mod error;
 pub mod layout;
 pub mod options;

@@ -33,7 +33,9 @@ mod _core {
     #[pymodule_export]
     use super::threads::{get_num_threads, set_num_threads};
     #[pymodule_export]
-    use super::upsample::{bilinear_upsample, guided_fit, guided_upsample, upsample_planes};
+    use super::upsample::{
+        bilinear_upsample, guided_fit, guided_upsample, refine_edges, upsample_planes,
+    };
 
     #[pymodule_init]
     fn init(m: &pyo3::Bound<'_, pyo3::types::PyModule>) -> pyo3::PyResult<()> {

@@ -1,8 +1,10 @@
-//! `m360.upsample.guided_upsample`: the working-resolution fit and the full-resolution pass.
+//! `m360.upsample.guided_upsample`: the working-resolution fit and the full-resolution pass;
+//! `m360.stitching.refine_edges`: the photo-guided edge refinement.
 
 use crate::arrays::{check_shape, contiguous, output_array, writable};
 use crate::errors::{core, input_error};
 use crate::threads::on_pool;
+use m360_core::edges::{refine_edges as edges, EdgeRefine};
 use m360_core::upsample::{
     bilinear_upsample as bilinear, fit_planes, guided_upsample as guided, upsample, GuidedFit,
     WorkingMaps, BILINEAR_PLANES, GUIDED_PLANES,
@@ -151,6 +153,36 @@ pub(crate) fn bilinear_upsample<'py>(
         let mut rw = out.readwrite();
         let dst = writable(&mut rw)?;
         on_pool(py, None, || bilinear(src, (h, w), dst, out_shape))?;
+    }
+    Ok(out)
+}
+
+/// Photo-guided refinement of blurred depth edges: disparity (h, w) float32 and photo
+/// (h, w, 3) uint8 → (h, w) float32 (`m360_core::edges`).
+#[pyfunction]
+pub(crate) fn refine_edges<'py>(
+    py: Python<'py>,
+    disparity: PyReadonlyArray2<'py, f32>,
+    rgb: PyReadonlyArray3<'py, u8>,
+    radius: usize,
+    colour_sigma: f64,
+    transition: f64,
+    jump: f64,
+) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+    let shape = disparity.shape();
+    let (h, w) = (shape[0], shape[1]);
+    if h == 0 || w == 0 {
+        return Err(input_error("refine_edges: the disparity is empty"));
+    }
+    check_shape("photo", rgb.shape(), &[h, w, 3])?;
+    let opts = core(EdgeRefine::new(radius, colour_sigma, transition, jump))?;
+    let src = contiguous(&disparity, "disparity")?;
+    let photo = contiguous(&rgb, "photo")?;
+    let out = output_array(py, &[h, w])?;
+    {
+        let mut rw = out.readwrite();
+        let dst = writable(&mut rw)?;
+        on_pool(py, None, || edges(src, photo, (h, w), &opts, dst))?;
     }
     Ok(out)
 }
