@@ -22,6 +22,7 @@ import numpy as np
 from .. import _core
 from .._validate import as_array
 from ..errors import InputError
+from .upsample import rgb_u8
 
 __all__ = ["EDGE_MODES", "default_edge_radius", "refine_edges"]
 
@@ -40,14 +41,11 @@ def default_edge_radius(width: int) -> int:
 
 
 def _photo_u8(photo: np.ndarray) -> np.ndarray:
-    if photo.dtype == np.uint8:
-        return np.ascontiguousarray(photo)
-    if photo.dtype.kind != "f":
+    if photo.dtype != np.uint8 and photo.dtype.kind != "f":
         raise InputError(f"photo must be uint8 RGB or float RGB in [0, 1], got {photo.dtype}")
-    if not np.isfinite(photo).all():
+    if photo.dtype.kind == "f" and not np.isfinite(photo).all():
         raise InputError("photo has NaN or infinite values")
-    levels = np.clip(np.asarray(photo, np.float32) * 255 + 0.5, 0, 255)
-    return np.ascontiguousarray(levels, dtype=np.uint8)
+    return rgb_u8(photo)
 
 
 def refine_edges(

@@ -44,11 +44,16 @@ __all__ = ["UPSAMPLE_METHODS", "guided_upsample"]
 UPSAMPLE_METHODS = ("guided", "bilinear")
 
 
-def _grey_u8(rgb: np.ndarray) -> np.ndarray:
-    """Grey levels 0-255 (uint8, C-contiguous) of an RGB uint8 or float [0, 1] image."""
+def rgb_u8(rgb: np.ndarray) -> np.ndarray:
+    """Return an RGB uint8 or float [0, 1] image as uint8 levels 0-255 (C-contiguous)."""
     if rgb.dtype != np.uint8:
         rgb = np.clip(np.asarray(rgb, np.float32) * 255 + 0.5, 0, 255).astype(np.uint8)
-    return np.ascontiguousarray(cv2.cvtColor(rgb, cv2.COLOR_RGB2GRAY), dtype=np.uint8)
+    return np.ascontiguousarray(rgb)
+
+
+def _grey_u8(rgb: np.ndarray) -> np.ndarray:
+    """Grey levels 0-255 (uint8, C-contiguous) of an RGB uint8 or float [0, 1] image."""
+    return np.ascontiguousarray(cv2.cvtColor(rgb_u8(rgb), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
 
 
 def guided_upsample(
