@@ -59,7 +59,9 @@ def reference_refine(disparity, rgb, radius, colour_sigma=15.0, transition=0.05,
             best = int(np.argmax(triple))
             sel = (np.abs(bins - best) <= 1) & (wt > 0)
             if wt[sel].sum() > 0:
-                out[y, x] = math.exp((v[sel] * wt[sel]).sum() / wt[sel].sum())
+                mode = (v[sel] * wt[sel]).sum() / wt[sel].sum()
+                keep = flat[y, x]  # a pixel outside any transition keeps its value
+                out[y, x] = math.exp(keep * logd[y, x] + (1 - keep) * mode)
     return out
 
 

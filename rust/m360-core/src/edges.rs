@@ -12,8 +12,10 @@
 //!   little weight, so the value comes from the flat sides of the edge.
 //!
 //! The window's log disparities are put in [`BINS`] bins over their own range; the mode is the
-//! bin whose weight plus its two neighbours' is largest (the first one on ties), and the result
-//! is the weighted mean of the samples in those three bins. Where the window's range is at most
+//! bin whose weight plus its two neighbours' is largest (the first one on ties), and the mode is
+//! the weighted mean of the samples in those three bins. The result, in log disparity, is
+//! f · own + (1 − f) · mode with f the pixel's own flatness weight: a pixel inside a transition
+//! takes the mode, one on a smooth ramp keeps its value (a mode alone cuts ramps into terraces). Where the window's range is at most
 //! `jump` the pixel is kept, so smooth surfaces are never touched, and so is a pixel whose
 //! window has no weight. Invalid pixels (NaN or ≤ 0) stay as they are and are never samples.
 //! Windows wrap in longitude (docs/conventions.md) and are cut at the top and bottom rows; a
@@ -300,7 +302,10 @@ pub fn refine_edges(
                         }
                     }
                     if let Some(v) = weighted_mode(samples, lo_x, hi_x) {
-                        *o = v.exp();
+                        // A pixel outside any transition keeps its value: a smooth ramp is
+                        // not cut into terraces.
+                        let keep = flat[i];
+                        *o = (keep * logd[i] + (1.0 - keep) * v).exp();
                     }
                 }
             }
