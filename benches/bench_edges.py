@@ -30,7 +30,7 @@ import m360.synthetic as syn
 from bench_prior import edge_band
 from m360.stitching.edges import default_edge_radius
 
-BINS, FULL_TAPS = 24, 5  # rust/m360-core/src/edges.rs
+BINS, FULL_TAPS = 24, 3  # rust/m360-core/src/edges.rs
 
 
 def numpy_refine(

@@ -12,7 +12,7 @@ import pytest
 from m360.stitching.edges import default_edge_radius, refine_edges
 
 BINS = 24  # rust/m360-core/src/edges.rs
-FULL_TAPS = 5
+FULL_TAPS = 3
 
 
 def reference_refine(disparity, rgb, radius, colour_sigma=15.0, transition=0.05, jump=0.05):

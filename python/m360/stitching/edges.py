@@ -69,7 +69,7 @@ def refine_edges(
     radius : int, optional
         Window radius in pixels (1-256); it should exceed the edges' smear by a few pixels.
         Default :func:`default_edge_radius`: 10 at a width of 4096, in proportion elsewhere.
-        Above 5 the window is sampled every ``ceil(radius / 5)`` pixels.
+        Above 3 the window is sampled every ``ceil(radius / 3)`` pixels (at most 7 × 7).
     colour_sigma : float
         How alike two pixels must look to vote for each other: the std of the colour weight in
         0-255 RGB levels (cut at three stds).

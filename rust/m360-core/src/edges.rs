@@ -11,11 +11,11 @@
 //!   (its log disparity changes by about `transition` or more over the radius) carries
 //!   little weight, so the value comes from the flat sides of the edge.
 //!
-//! The window's log disparities are put in [`BINS`] bins over their own range; the mode is the
-//! bin whose weight plus its two neighbours' is largest (the first one on ties), and the mode is
-//! the weighted mean of the samples in those three bins. The result, in log disparity, is
-//! f · own + (1 − f) · mode with f the pixel's own flatness weight: a pixel inside a transition
-//! takes the mode, one on a smooth ramp keeps its value (a mode alone cuts ramps into terraces). Where the window's range is at most
+//! The window's log disparities are put in [`BINS`] bins over their own range; the heaviest
+//! run of three adjacent bins wins (the first one on ties), and the mode is the weighted mean
+//! of its samples. The result, in log disparity, is f · own + (1 − f) · mode with f the pixel's
+//! own flatness weight: a pixel inside a transition takes the mode, one on a smooth ramp keeps
+//! its value (a mode alone cuts ramps into terraces). Where the window's range is at most
 //! `jump` the pixel is kept, so smooth surfaces are never touched, and so is a pixel whose
 //! window has no weight. Invalid pixels (NaN or ≤ 0) stay as they are and are never samples.
 //! Windows wrap in longitude (docs/conventions.md) and are cut at the top and bottom rows; a
@@ -29,7 +29,7 @@ use rayon::prelude::*;
 /// Bins of the log-disparity histogram of a window.
 pub const BINS: usize = 24;
 /// Largest radius whose every offset is sampled.
-pub const FULL_TAPS: usize = 5;
+pub const FULL_TAPS: usize = 3;
 /// Largest accepted radius.
 pub const MAX_RADIUS: usize = 256;
 /// Colour distances beyond this many standard deviations weigh nothing.
