@@ -109,7 +109,8 @@ def test_cli_engine_ray(
 ) -> None:
     out = tmp_path / "out"
     args = ["run", str(ten), "-o", str(out), "--model", model, "--input-size", "64", "96"]
-    fast = ["--align", "none", "--blend", "frustum", "--no-progress"]
+    # --edges photo: the Ray engine passes the photo and the option as the local one does.
+    fast = ["--align", "none", "--blend", "frustum", "--edges", "photo", "--no-progress"]
     # Two model actors of 1 CPU would leave the 2-CPU cluster no CPU for the other stages.
     code = main([*args, *fast, "-o", str(tmp_path / "none"), "--engine", "ray", "--workers", "2"])
     assert code == 2
