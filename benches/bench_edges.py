@@ -27,7 +27,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import _harness as h
 import m360
 import m360.synthetic as syn
-from bench_prior import edge_band
 from m360.stitching.edges import default_edge_radius
 
 BINS, FULL_TAPS = 24, 3  # rust/m360-core/src/edges.rs
@@ -101,7 +100,7 @@ def one_size(width: int, repeats: int, with_numpy: bool) -> list[Any]:
     """[width, radius, band smeared, band refined, core s, numpy s, speed-up, same]."""
     rgb, depth = syn.render(syn.room(0), width)
     smeared = cv2.GaussianBlur((1 / depth).astype(np.float32), (0, 0), width / 2048)
-    band = edge_band(depth)
+    band = m360.eval.edge_band(depth)
     radius = default_edge_radius(width)
 
     def band_error(d: np.ndarray) -> float:

@@ -35,7 +35,6 @@ import sys
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
@@ -122,23 +121,13 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
     return rows
 
 
-def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarray:
-    """Pixels within ``band`` px of a jump of more than ``jump`` (relative) between neighbours."""
-    disparity = 1.0 / depth
-    right = np.abs(np.diff(disparity, axis=1, append=disparity[:, :1])) / disparity
-    down = np.abs(np.diff(disparity, axis=0, append=disparity[-1:])) / disparity
-    edges = ((right > jump) | (down > jump)).astype(np.uint8)
-    kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
-    return cv2.dilate(edges, kernel).astype(bool)
-
-
 def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
     layout = m360.Layout.icosahedron(width)
     stitched, sharpened, alone, seconds = [], [], [], []
     for seed in range(scenes):
         scene = syn.room(seed)
         rgb, depth = syn.render(scene, width)
-        band = edge_band(depth)
+        band = m360.eval.edge_band(depth)
         tiles = tangents(scene, layout, width, seed)["content"]
         prior = priors(scene, seed)["good"]
         res = m360.stitch(tiles, layout, prior=prior, **tuning)

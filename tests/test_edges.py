@@ -73,14 +73,6 @@ def blurred_scene(width, seed=0, blur=None):
     return rgb, depth, cv2.GaussianBlur(disparity, (0, 0), blur, borderType=cv2.BORDER_REFLECT)
 
 
-def edge_band(depth, band=4, jump=0.05):
-    disparity = 1 / depth
-    right = np.abs(np.diff(disparity, axis=1, append=disparity[:, :1])) / disparity
-    down = np.abs(np.diff(disparity, axis=0, append=disparity[-1:])) / disparity
-    edges = ((right > jump) | (down > jump)).astype(np.uint8)
-    return cv2.dilate(edges, np.ones((2 * band + 1,) * 2, np.uint8)).astype(bool)
-
-
 @pytest.mark.parametrize("radius", [3, 8])
 def test_the_core_matches_the_filter_written_pixel_by_pixel(radius):
     rgb, _, blurred = blurred_scene(128, seed=1, blur=1.5)
@@ -98,7 +90,7 @@ def test_the_core_matches_the_filter_written_pixel_by_pixel(radius):
 
 def test_smeared_edges_of_a_room_become_sharp_and_smooth_surfaces_stay():
     rgb, depth, blurred = blurred_scene(1024)
-    band = edge_band(depth)
+    band = m360.eval.edge_band(depth)
     refined = refine_edges(blurred, rgb)
 
     def band_error(d):

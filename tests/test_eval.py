@@ -218,3 +218,18 @@ def test_format_metrics() -> None:
     assert "AbsRel 0.0312" in text and "d1 0.9375" in text and "n 32" in text
     assert "cov 100.00%" in text
     assert ev.format_metrics({"abs_rel": 0.5}) == "AbsRel 0.5000"
+
+
+def test_edge_band_is_the_pixels_within_band_of_a_depth_jump_across_the_seam() -> None:
+    depth = np.full((16, 32), 2.0, np.float32)
+    depth[:, 10:20] = 1.0  # two vertical edges, at columns 9|10 and 19|20
+    depth[:, 31] = 1.5  # and one across the seam (31|0) and at 30|31
+    band = ev.edge_band(depth, band=2)
+    # An edge marks its left pixel (the jump to its right neighbour, column 31's is column 0),
+    # then dilated by 2 (the dilation itself stops at the map's border).
+    expected_cols = {7, 8, 9, 10, 11, 17, 18, 19, 20, 21, 28, 29, 30, 31}
+    assert {int(c) for c in np.nonzero(band.all(axis=0))[0]} == expected_cols
+    assert not band[:, [c for c in range(32) if c not in expected_cols]].any()
+    assert not ev.edge_band(depth, jump=1.5).any()  # the jumps are 33 % to 100 %
+    with pytest.raises(InputError, match="2-D float"):
+        ev.edge_band(np.ones((4, 8), np.int32))

@@ -7,10 +7,11 @@ network, the tests); :mod:`~m360.evaluation.metrics` scores a prediction against
 from __future__ import annotations
 
 from . import metrics, sequence, synthetic
-from .metrics import depth_metrics, fit_scale_shift, format_metrics, seam_score
+from .metrics import depth_metrics, edge_band, fit_scale_shift, format_metrics, seam_score
 
 __all__ = [
     "depth_metrics",
+    "edge_band",
     "fit_scale_shift",
     "format_metrics",
     "metrics",

@@ -4,6 +4,8 @@ The prediction is a disparity known up to scale and shift: fit both by least squ
 ground-truth disparity 1/depth over the valid pixels, convert the fitted disparity to depth, then
 compute AbsRel, MAE, RMSE, RMSE-log (base 10, as the paper), δ<1.25, δ<1.25², δ<1.25³.
 Optionally exclude a cap around each pole and weight pixels by solid angle (cos latitude).
+:func:`edge_band` selects the pixels near true depth edges, to measure detail there
+(``depth_metrics(..., valid=edge_band(depth))``).
 """
 
 from __future__ import annotations
@@ -21,7 +23,7 @@ from m360.errors import InputError
 if TYPE_CHECKING:
     from m360.geometry.layout import Layout
 
-__all__ = ["depth_metrics", "fit_scale_shift", "format_metrics", "seam_score"]
+__all__ = ["depth_metrics", "edge_band", "fit_scale_shift", "format_metrics", "seam_score"]
 
 WEIGHTINGS = ("uniform", "solid_angle")
 DISPARITY_FLOOR = 1e-3
@@ -317,6 +319,29 @@ def _seam_masks(layout: Layout, band: int) -> tuple[np.ndarray, np.ndarray]:
         while len(_SEAM_MASKS) > 4:
             _SEAM_MASKS.popitem(last=False)
     return masks
+
+
+def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarray:
+    """Pixels within ``band`` px of a true depth edge: an (H, W) bool mask.
+
+    An edge is a relative jump of more than ``jump`` in disparity 1/depth between a pixel and
+    its right neighbour (column W − 1's is column 0) or the one below; the edges are then
+    dilated by a (2·band + 1)² square, which stops at the map's border (no wrap). This is the
+    "4 px band around depth edges" of ``benches/bench_prior.py`` and ``benches/bench_edges.py``.
+    """
+    import cv2
+
+    gt = as_array(depth, "depth")
+    if gt.ndim != 2 or gt.dtype.kind != "f":
+        raise InputError(f"depth must be a 2-D float map, got {gt.dtype} of shape {gt.shape}")
+    band = integer(band, "band", 0, 1000)
+    jump = number(jump, "jump", 0.0)
+    disparity = 1.0 / gt
+    right = np.abs(np.diff(disparity, axis=1, append=disparity[:, :1])) / disparity
+    down = np.abs(np.diff(disparity, axis=0, append=disparity[-1:])) / disparity
+    edges = ((right > jump) | (down > jump)).astype(np.uint8)
+    kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
+    return np.asarray(cv2.dilate(edges, kernel), dtype=bool)
 
 
 def seam_score(

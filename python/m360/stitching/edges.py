@@ -12,7 +12,7 @@ whose disparity spans less than ``jump``) are left exactly as they are, and so a
 
 It runs in the core (``_core.refine_edges``, ``rust/m360-core/src/edges.rs``), in parallel
 over bands of rows; windows wrap in longitude (docs/conventions.md). What it gains and costs
-on simulated rooms is in docs/method.md ("Sharp edges").
+on simulated rooms is in docs/method.md ("Sharp edges along the photo").
 """
 
 from __future__ import annotations
