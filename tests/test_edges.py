@@ -123,6 +123,9 @@ def test_the_seam_is_a_neighbour_like_any_other():
     shift = 77
     rolled = refine_edges(np.roll(blurred, shift, axis=1), np.roll(rgb, shift, axis=1))
     assert np.array_equal(rolled, np.roll(refine_edges(blurred, rgb), shift, axis=1))
+    # Edges are refined right at the rolled map's seam, so a window cut there would show.
+    changed = rolled != np.roll(blurred, shift, axis=1)
+    assert changed[:, :3].any() and changed[:, -3:].any()
 
 
 def test_default_radius_scales_with_the_width():
