@@ -22,9 +22,11 @@ use faer::sparse::linalg::cholesky::{
 use faer::sparse::linalg::SupernodalThreshold;
 use faer::sparse::{SparseColMatRef, SymbolicSparseColMat};
 use faer::{Conj, Mat, MatMut, Par, Side, Spec};
+use pattern::{Couplings, Pattern};
 use rayon::prelude::*;
 use std::sync::{Arc, Mutex, PoisonError};
 
+mod pattern;
 mod prior;
 mod transform;
 pub use prior::{Prior, PriorFit, PriorSamples};
@@ -730,10 +732,9 @@ pub struct Problem {
     /// The prior term, if any: its (α, β) are the node after the tangents' nodes.
     prior: Option<PriorTerm>,
     /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
-    /// of 2×2 node blocks: row node p couples with `block_col[block_start[p]..block_start[p + 1]]`
-    /// (ascending), block `[ss, so, os, oo]` row-major over (s, o) of p × (s, o) of the column.
-    block_start: Vec<usize>,
-    block_col: Vec<u32>,
+    /// of 2×2 node blocks on `pattern`, block `[ss, so, os, oo]` row-major over (s, o) of the
+    /// row's node × (s, o) of the column's.
+    pattern: Arc<Pattern>,
     blocks: Vec<[f64; 4]>,
     /// The data samples grouped by their cells, and the prior samples by theirs: a function of
     /// the samples alone, found at the first assembly and kept for the reassembly after each
@@ -1028,8 +1029,7 @@ impl Problem {
             edges,
             scale_weight,
             gauge_weight: GAUGE,
-            block_start: Vec::new(),
-            block_col: Vec::new(),
+            pattern: Arc::default(),
             blocks: Vec::new(),
             data_groups: Groups::default(),
             prior_groups: Groups::default(),
@@ -1103,33 +1103,26 @@ impl Problem {
             );
         }
         let group_blocks = self.data_blocks();
-
         let prior_blocks = self.prior_blocks();
-
         // The pattern depends only on the samples' cells, the prior nodes and the edges, not
-        // on the weights: built once, reused when a reweighting reassembles.
-        let (block_start, block_col) = if self.block_col.is_empty() {
-            self.pattern(&group_blocks, &prior_blocks)
-        } else {
-            (
-                std::mem::take(&mut self.block_start),
-                std::mem::take(&mut self.block_col),
-            )
-        };
-        let mut blocks = vec![[0.0f64; 4]; block_col.len()];
-        let at = |p: u32, q: u32| -> usize {
-            let (lo, hi) = (block_start[p as usize], block_start[p as usize + 1]);
-            lo + block_col[lo..hi]
-                .binary_search(&q)
-                .unwrap_or_else(|_| unreachable!("block ({p}, {q}) is in the pattern"))
-        };
-        // A dense block over nodes `nd` (2·len(nd) unknowns, row-major), scattered into the
-        // 2×2 node blocks.
-        let mut scatter = |nd: &[u32], block: &[f64]| {
-            let width = 2 * nd.len();
-            for (u, &p) in nd.iter().enumerate() {
-                for (v, &q) in nd.iter().enumerate() {
-                    let target = &mut blocks[at(p, q)];
+        // on the weights: found once, reused when a reweighting reassembles.
+        if self.pattern.is_empty() {
+            self.pattern = Pattern::of(Couplings {
+                nodes: nodes_total,
+                data: group_blocks.iter().map(|(nd, _)| *nd).collect(),
+                prior: prior_blocks.iter().map(|(nd, _)| *nd).collect(),
+                edges: self.edges.iter().map(|&(p, q, _)| [p, q]).collect(),
+            });
+        }
+        let pattern = &self.pattern;
+        let mut blocks = vec![[0.0f64; 4]; pattern.col.len()];
+        // A dense block over `count` nodes (2·count unknowns, row-major), scattered into the
+        // 2×2 node blocks at positions `at` (count × count, row-major).
+        let mut scatter = |at: &[u32], count: usize, block: &[f64]| {
+            let width = 2 * count;
+            for u in 0..count {
+                for v in 0..count {
+                    let target = &mut blocks[at[count * u + v] as usize];
                     let (r, c) = (2 * u, 2 * v);
                     target[0] += block[width * r + c];
                     target[1] += block[width * r + c + 1];
@@ -1138,93 +1131,23 @@ impl Problem {
                 }
             }
         };
-        for (nd, block) in &group_blocks {
-            scatter(nd, block);
+        for ((_, block), at) in group_blocks.iter().zip(pattern.data_at.chunks_exact(64)) {
+            scatter(at, 8, block);
         }
-        for (nd, block) in &prior_blocks {
-            scatter(nd, block);
+        for ((_, block), at) in prior_blocks.iter().zip(pattern.prior_at.chunks_exact(25)) {
+            scatter(at, 5, block);
         }
-        for &(p, q, wgt) in &self.edges {
-            for (i, j, sign) in [(p, p, 1.0), (q, q, 1.0), (p, q, -1.0), (q, p, -1.0)] {
-                let target = &mut blocks[at(i, j)];
+        for (&(_, _, wgt), at) in self.edges.iter().zip(&pattern.edge_at) {
+            for (&i, sign) in at.iter().zip([1.0, 1.0, -1.0, -1.0]) {
+                let target = &mut blocks[i as usize];
                 target[0] += sign * 2.0 * wgt;
                 target[3] += sign * 2.0 * wgt;
             }
         }
-        for p in 0..nodes_total as u32 {
-            blocks[at(p, p)][3] += 2.0 * self.gauge_weight;
+        for &i in &pattern.diagonal_at {
+            blocks[i as usize][3] += 2.0 * self.gauge_weight;
         }
-        self.block_start = block_start;
-        self.block_col = block_col;
         self.blocks = blocks;
-    }
-
-    /// The node-level coupling pattern (row starts and columns of the 2×2 node blocks): the
-    /// nodes of one group, smoothness edges, the diagonal.
-    fn pattern(
-        &self,
-        group_blocks: &[([u32; 8], [f64; 256])],
-        prior_blocks: &[([u32; 5], [f64; 100])],
-    ) -> (Vec<usize>, Vec<u32>) {
-        let nodes_total = self.len() / 2;
-        let visit = |f: &mut dyn FnMut(u32, u32)| {
-            for (nd, _) in group_blocks {
-                for &p in nd {
-                    for &q in nd {
-                        f(p, q);
-                    }
-                }
-            }
-            for (nd, _) in prior_blocks {
-                for &p in nd {
-                    for &q in nd {
-                        f(p, q);
-                    }
-                }
-            }
-            for &(p, q, _) in &self.edges {
-                f(p, q);
-                f(q, p);
-            }
-            for i in 0..nodes_total as u32 {
-                f(i, i);
-            }
-        };
-        // Bucketed by row, then each row sorted and deduplicated: the pattern of one sort of
-        // all pairs, without that sort (about a million pairs on a prior-only level).
-        let mut row_start = vec![0usize; nodes_total + 1];
-        visit(&mut |p, _| row_start[p as usize + 1] += 1);
-        for p in 0..nodes_total {
-            row_start[p + 1] += row_start[p];
-        }
-        let mut columns = vec![0u32; row_start[nodes_total]];
-        let mut fill = row_start.clone();
-        visit(&mut |p, q| {
-            columns[fill[p as usize]] = q;
-            fill[p as usize] += 1;
-        });
-        let mut rows = Vec::with_capacity(nodes_total);
-        let mut rest = columns.as_mut_slice();
-        for p in 0..nodes_total {
-            let (row, tail) = rest.split_at_mut(row_start[p + 1] - row_start[p]);
-            rows.push(row);
-            rest = tail;
-        }
-        rows.par_iter_mut().for_each(|row| row.sort_unstable());
-        let mut block_start = Vec::with_capacity(nodes_total + 1);
-        let mut block_col = Vec::with_capacity(columns.len());
-        block_start.push(0);
-        for p in 0..nodes_total {
-            let row = &columns[row_start[p]..row_start[p + 1]];
-            let first = block_col.len();
-            for &q in row {
-                if block_col.len() == first || block_col.last() != Some(&q) {
-                    block_col.push(q);
-                }
-            }
-            block_start.push(block_col.len());
-        }
-        (block_start, block_col)
     }
 
     /// The prior term's Hessian contributions: per group of samples sharing a cell, the 5 nodes
@@ -1567,11 +1490,11 @@ impl Problem {
             .for_each(|(c, part)| {
                 for (i, row) in part.chunks_exact_mut(2).enumerate() {
                     let p = c * CHUNK + i;
-                    let range = self.block_start[p]..self.block_start[p + 1];
+                    let range = self.pattern.start[p]..self.pattern.start[p + 1];
                     let (mut ys, mut yo) = (0.0, 0.0);
                     for (b, &q) in self.blocks[range.clone()]
                         .iter()
-                        .zip(&self.block_col[range])
+                        .zip(&self.pattern.col[range])
                     {
                         let (vs, vo) = (v[2 * q as usize], v[2 * q as usize + 1]);
                         ys += b[0] * vs + b[1] * vo;
@@ -2015,8 +1938,8 @@ impl TangentSystems {
         let per = 2 * nodes;
         let mut prior_block = [0.0; 4];
         let row = |p: usize| {
-            let range = problem.block_start[p]..problem.block_start[p + 1];
-            problem.block_col[range.clone()]
+            let range = problem.pattern.start[p]..problem.pattern.start[p + 1];
+            problem.pattern.col[range.clone()]
                 .iter()
                 .zip(&problem.blocks[range])
         };
@@ -2164,8 +2087,8 @@ impl NewtonSystem {
         let mut scale_diagonal = Vec::with_capacity(n / 2);
         col_ptr.push(0usize);
         for p in 0..n / 2 {
-            let range = problem.block_start[p]..problem.block_start[p + 1];
-            let row = problem.block_col[range.clone()]
+            let range = problem.pattern.start[p]..problem.pattern.start[p + 1];
+            let row = problem.pattern.col[range.clone()]
                 .iter()
                 .zip(&problem.blocks[range]);
             for d in 0..2 {
@@ -2304,7 +2227,7 @@ pub struct Alignment {
 
 /// The prior samples keep this many times the overlap samples' `sample_fraction` of every
 /// tangent's pixels: the prior-only level's finer grid needs them.
-const PRIOR_SAMPLE_FACTOR: f64 = 2.0;
+const PRIOR_SAMPLE_FACTOR: f64 = 1.0;
 
 /// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
 /// (all tangents together); below it the data cannot support the grid. (The smoothness term
@@ -3136,7 +3059,7 @@ mod tests {
         // The bucketed pattern against the plain construction: every pair sorted, deduplicated.
         let (_, _, problem) = setup(Energy::Normalized, 8, 7);
         let blocks = problem.data_blocks();
-        let (start, col) = problem.pattern(&blocks, &[]);
+        let (start, col) = (&problem.pattern.start, &problem.pattern.col);
         let mut pairs: Vec<(u32, u32)> = Vec::new();
         for (nd, _) in &blocks {
             for &p in nd {
