@@ -131,27 +131,43 @@ def test_masks_unknown_prior_regions_and_confidence(room: tuple) -> None:
     assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
 
 
-def test_confidence_combines_the_prior_gap_where_the_prior_is_known() -> None:
-    """Root sum of squares with |d − (a·P + b)| (P resized bilinearly), against an independent
-    masked computation: unchanged where the prior is unknown, NaN where the confidence is."""
-    import cv2
-    from m360.stitching.prior import combine_with_prior
+def test_confidence_combines_the_prior_gap_where_the_prior_is_known(room: tuple) -> None:
+    """Root sum of squares with |d − (a·P + b)|, P read bilinearly with longitude wrapping
+    and rows clamped, against an independent float64 computation: the mean blend ignores the
+    vote, so its confidence without a prior is the one combined. Unchanged where the prior is
+    unknown, NaN where the confidence is."""
+    from m360.geometry.layout import plan_for
 
+    layout, tiles, _, _ = room
+    plan = plan_for(layout)
     rng = np.random.default_rng(3)
-    disparity = rng.uniform(0.5, 2.0, (64, 128)).astype(np.float32)
-    confidence = rng.uniform(0.0, 0.2, (64, 128)).astype(np.float32)
-    confidence[5, :7] = np.nan
     prior = rng.uniform(0.5, 2.0, (16, 32)).astype(np.float32)
     prior[8:10, 3:6] = np.nan
-    gap = np.abs(disparity - (1.5 * cv2.resize(prior, (128, 64)) + 0.25))
+    mean = {"method": "mean"}
+    disparity, confidence, _ = plan.blend(tiles, mean)
+    got_d, got, _ = plan.blend(tiles, mean, prior=prior, prior_affine=(1.5, 0.25))
+    assert confidence is not None and got is not None and got.dtype == np.float32
+    assert np.array_equal(got_d, disparity, equal_nan=True)
+    eh, ew = disparity.shape
+    hp, wp = prior.shape
+    cols = np.mod((np.arange(ew) + 0.5) * wp / ew - 0.5, wp)
+    rows = np.clip((np.arange(eh) + 0.5) * hp / eh - 0.5, 0, hp - 1)
+    c0 = np.floor(cols).astype(int)
+    r0 = np.minimum(np.floor(rows).astype(int), hp - 2)
+    fx, fy = (cols - c0)[None, :], (rows - r0)[:, None]
+    p = prior.astype(np.float64)
+    top = (1 - fx) * p[r0][:, c0] + fx * p[r0][:, (c0 + 1) % wp]
+    bottom = (1 - fx) * p[r0 + 1][:, c0] + fx * p[r0 + 1][:, (c0 + 1) % wp]
+    resized = (1 - fy) * top + fy * bottom
+    gap = np.abs(disparity - (1.5 * resized + 0.25))
     expected = confidence.copy()
     known = np.isfinite(gap) & np.isfinite(confidence)
     expected[known] = np.hypot(confidence[known], gap[known])
-    got = combine_with_prior(confidence.copy(), disparity, prior, (1.5, 0.25))
-    assert got.dtype == np.float32
+    assert (~np.isfinite(gap) & np.isfinite(confidence)).any()  # the prior's NaN reached some
+    assert known.mean() > 0.5
     assert np.array_equal(np.isnan(got), np.isnan(expected))
-    assert (~known & np.isfinite(confidence)).any()  # the prior's NaN reached some pixels
-    np.testing.assert_allclose(got, expected, rtol=1e-6, equal_nan=True)
+    np.testing.assert_allclose(got[known], expected[known], rtol=1e-5)
+    assert np.array_equal(got[~known], confidence[~known], equal_nan=True)
 
 
 def test_one_and_two_threads_give_the_same_bits_with_a_prior(room: tuple) -> None:

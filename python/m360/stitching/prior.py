@@ -34,7 +34,6 @@ __all__ = [
     "PriorKind",
     "PriorReport",
     "check_prior",
-    "combine_with_prior",
 ]
 
 #: What a prior map holds.
@@ -109,33 +108,3 @@ def check_prior(
         if not np.all((conf >= 0) & (conf <= 1)):
             raise InputError("prior_confidence must lie in [0, 1] everywhere (no NaN)")
     return np.ascontiguousarray(out), conf, kind in _ABSOLUTE
-
-
-def combine_with_prior(
-    confidence: np.ndarray, disparity: np.ndarray, prior: np.ndarray, affine: tuple[float, float]
-) -> np.ndarray:
-    """``confidence`` combined (root sum of squares) with the prior's disagreement.
-
-    The disagreement is |disparity − (a·P + b)|, the prior P resized (bilinear) to the result's
-    grid; where the prior is unknown, ``confidence`` is kept as is.
-
-    In place on float32 buffers, with no boolean indexing: at 8K a masked copy took 0.6 s, more
-    than the prior's whole alignment, and ``np.hypot`` 0.13 s. (``cv2.magnitude`` is faster
-    still, but its threads split the map differently from call to call and its vector and
-    scalar paths round differently: the last bit changed with the thread count.)
-    """
-    import cv2  # the stitching stage's resampler (as m360.stitching.upsample)
-
-    height, width = disparity.shape
-    a, b = affine
-    gap = np.asarray(
-        cv2.resize(prior, (width, height), interpolation=cv2.INTER_LINEAR), dtype=np.float32
-    )
-    gap *= np.float32(a)
-    gap += np.float32(b)
-    np.subtract(disparity, gap, out=gap)
-    np.abs(gap, out=gap)
-    np.fmax(gap, np.float32(0.0), out=gap)  # NaN (prior unknown) -> 0: confidence as is
-    np.square(gap, out=gap)
-    gap += np.square(confidence, dtype=np.float32)
-    return np.sqrt(gap, out=gap)

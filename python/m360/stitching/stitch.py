@@ -25,7 +25,7 @@ from . import blend as _blend
 from .align import AlignLevelReport
 from .blend import BlendMethod, BlendReport
 from .options import AlignSpec, StitchOptions, StitchTuning, build
-from .prior import PriorKind, PriorReport, check_prior, combine_with_prior
+from .prior import PriorKind, PriorReport, check_prior
 
 if TYPE_CHECKING:
     from typing_extensions import Unpack
@@ -268,7 +268,8 @@ def stitch(
     # The confidence costs a second pass: only computed when returned.
     vote: dict[str, Any] = {}
     if fit is not None:
-        # The prior votes among the faces where they disagree (docs/method.md, "Global prior").
+        # The prior votes among the faces where they disagree, and the confidence includes the
+        # disagreement with it (docs/method.md, "Global prior").
         vote = {"prior": prior_map, "prior_confidence": prior_conf}
         vote["prior_affine"] = (float(fit["affine"][0]), float(fit["affine"][1]))
     disparity, confidence, raw_blend = plan.blend(
@@ -296,7 +297,6 @@ def stitch(
                 weight=float(fit["weight"]),
                 residual=float(fit["residual"]),
             )
-            confidence = combine_with_prior(confidence, disparity, prior_map, affine)
     return StitchResult(
         disparity=disparity,
         confidence=confidence,

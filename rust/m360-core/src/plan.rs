@@ -327,7 +327,9 @@ impl Plan {
     }
 
     /// [`Plan::blend`] with the global prior's vote (the consensus blend's, and the Poisson
-    /// blend's consensus target: [`blend::PriorVote`]); the other methods ignore it.
+    /// blend's consensus target: [`blend::PriorVote`]; the other methods ignore it). With every
+    /// method the confidence, if asked for, then includes the disagreement with the prior
+    /// ([`blend::combine_confidence_with_prior`]).
     ///
     /// # Errors
     /// Those of [`Plan::blend`].
@@ -335,6 +337,28 @@ impl Plan {
     /// # Panics
     /// If the slices do not have the plan's sizes.
     pub fn blend_with_prior(
+        &self,
+        tangents: &[f32],
+        method: &Method,
+        prior: Option<&blend::PriorVote<'_>>,
+        disparity: &mut [f32],
+        mut confidence: Option<&mut [f32]>,
+    ) -> Result<BlendReport> {
+        let report = self.blend_only(
+            tangents,
+            method,
+            prior,
+            disparity,
+            confidence.as_deref_mut(),
+        );
+        if let (Some(vote), Some(conf)) = (prior, confidence) {
+            blend::combine_confidence_with_prior(vote, disparity, conf, self.layout.erp_width);
+        }
+        report
+    }
+
+    /// [`Plan::blend_with_prior`] without the prior in the confidence.
+    fn blend_only(
         &self,
         tangents: &[f32],
         method: &Method,

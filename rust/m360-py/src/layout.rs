@@ -355,7 +355,8 @@ impl Plan {
     /// float32, confidence (H,W) float32 or None without `confidence`, report dict). With
     /// `prior` (Hp, 2·Hp) float32 (and optionally `prior_confidence`), the prior mapped into
     /// the tangents' units by `prior_affine` = (a, b) (a·P + b, the alignment's fit) votes in
-    /// the consensus blend (docs/method.md, "Global prior").
+    /// the consensus blend, and the confidence includes the disagreement with it,
+    /// √(c² + (d − a·P − b)²) (docs/method.md, "Global prior").
     #[pyo3(signature = (tangents, blend, confidence=true, prior=None, prior_confidence=None, prior_affine=(1.0, 0.0)))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn blend<'py>(

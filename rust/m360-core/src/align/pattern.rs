@@ -145,12 +145,18 @@ impl Pattern {
         let data_at = couplings
             .data
             .par_iter()
-            .flat_map_iter(|nd| nd.iter().flat_map(move |&p| nd.iter().map(move |&q| at(p, q))))
+            .flat_map_iter(|nd| {
+                nd.iter()
+                    .flat_map(move |&p| nd.iter().map(move |&q| at(p, q)))
+            })
             .collect();
         let prior_at = couplings
             .prior
             .par_iter()
-            .flat_map_iter(|nd| nd.iter().flat_map(move |&p| nd.iter().map(move |&q| at(p, q))))
+            .flat_map_iter(|nd| {
+                nd.iter()
+                    .flat_map(move |&p| nd.iter().map(move |&q| at(p, q)))
+            })
             .collect();
         let edge_at = couplings
             .edges
@@ -274,6 +280,9 @@ mod tests {
         }
         let d = Pattern::kept_in(&patterns, couplings(11));
         assert!(!Arc::ptr_eq(&a, &d), "the oldest pattern is dropped first");
-        assert_eq!((a.start.clone(), a.col.clone()), (d.start.clone(), d.col.clone()));
+        assert_eq!(
+            (a.start.clone(), a.col.clone()),
+            (d.start.clone(), d.col.clone())
+        );
     }
 }

@@ -22,8 +22,8 @@ pub use poisson::{
     PoissonReport, PoissonSolver,
 };
 pub use rows::{
-    consensus_blend, consensus_blend_with_prior, mean_blend, median_blend, nearest_blend,
-    weighted_blend, PriorVote,
+    combine_confidence_with_prior, consensus_blend, consensus_blend_with_prior, mean_blend,
+    median_blend, nearest_blend, weighted_blend, PriorVote,
 };
 pub use weights::{weight_maps, WeightMaps, Weighting};
 

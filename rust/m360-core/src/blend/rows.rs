@@ -573,6 +573,40 @@ impl PriorVote<'_> {
     }
 }
 
+/// `confidence` (H·W of an `ew`-column ERP grid) combined with the prior's disagreement with
+/// `disparity`, root sum of squares: c ← √(c² + (d − P)²), with P the vote's prior in the
+/// result's units read as the vote reads it (bilinear, wrapping in longitude). Where P or d is
+/// unknown the confidence is kept; where it is NaN it stays NaN (docs/method.md, "Global
+/// prior"). One pass over the rows: as numpy array operations this was 0.5 s at 8K.
+///
+/// # Panics
+/// If `confidence` and `disparity` differ in length or are not whole rows of `ew`.
+pub fn combine_confidence_with_prior(
+    vote: &PriorVote<'_>,
+    disparity: &[f32],
+    confidence: &mut [f32],
+    ew: usize,
+) {
+    assert!(ew > 0 && disparity.len() == confidence.len() && disparity.len().is_multiple_of(ew));
+    let eh = disparity.len() / ew;
+    let columns = vote.columns(ew);
+    confidence
+        .par_chunks_mut(ew)
+        .zip(disparity.par_chunks(ew))
+        .enumerate()
+        .for_each_init(
+            || (PriorRows::default(), Vec::new(), Vec::new()),
+            |(cache, value, trust), (i, (conf, row))| {
+                vote.row(i, eh, &columns, cache, value, trust);
+                for ((c, &d), &p) in conf.iter_mut().zip(row).zip(value.iter()) {
+                    let gap = (d - p).abs();
+                    let gap = if gap.is_nan() { 0.0 } else { gap };
+                    *c = (gap * gap + *c * *c).sqrt();
+                }
+            },
+        );
+}
+
 /// A thread's last two prior rows resampled along an ERP row ([`PriorVote::row`]).
 #[derive(Debug, Default)]
 struct PriorRows {

@@ -889,3 +889,76 @@ fn the_prior_votes_among_disagreeing_faces_and_not_where_no_face_agrees() {
         "a prior no face agrees with moved the blend by {moved}"
     );
 }
+
+/// The confidence combined with the prior's gap against a direct computation: the prior read
+/// bilinearly at each ERP pixel centre (longitude wrapping, rows clamped), √(c² + gap²) where
+/// both are known, c kept where the prior or the disparity is unknown, NaN kept.
+#[test]
+fn the_confidence_combines_the_prior_gap_as_defined() {
+    let (hp, wp, eh, ew) = (4usize, 8usize, 6usize, 12usize);
+    let mut values: Vec<f32> = (0..hp * wp).map(|i| 1.0 + 0.1 * (i % 7) as f32).collect();
+    values[wp + 2] = f32::NAN;
+    let prior = crate::align::Prior {
+        values,
+        confidence: None,
+        height: hp,
+        width: wp,
+        absolute: false,
+    };
+    let vote = PriorVote {
+        prior: &prior,
+        scale: 1.5,
+        offset: 0.25,
+    };
+    let disparity: Vec<f32> = (0..eh * ew)
+        .map(|i| {
+            if i == 7 {
+                f32::NAN
+            } else {
+                2.0 + 0.05 * (i % 11) as f32
+            }
+        })
+        .collect();
+    let before: Vec<f32> = (0..eh * ew)
+        .map(|i| {
+            if i == 30 {
+                f32::NAN
+            } else {
+                0.01 * (i % 5) as f32
+            }
+        })
+        .collect();
+    let mut confidence = before.clone();
+    combine_confidence_with_prior(&vote, &disparity, &mut confidence, ew);
+    let p = |r: usize, c: usize| f64::from(prior.values[r * wp + c % wp]);
+    let mut unknown = 0;
+    for i in 0..eh {
+        let row = ((i as f64 + 0.5) * hp as f64 / eh as f64 - 0.5).clamp(0.0, (hp - 1) as f64);
+        let r0 = (row.floor() as usize).min(hp - 2);
+        let fy = row - r0 as f64;
+        for j in 0..ew {
+            let col = ((j as f64 + 0.5) * wp as f64 / ew as f64 - 0.5).rem_euclid(wp as f64);
+            let c0 = col.floor() as usize;
+            let fx = col - c0 as f64;
+            let along = |r: usize| (1.0 - fx) * p(r, c0) + fx * p(r, c0 + 1);
+            let at = 1.5 * ((1.0 - fy) * along(r0) + fy * along(r0 + 1)) + 0.25;
+            let k = i * ew + j;
+            let (c, d) = (f64::from(before[k]), f64::from(disparity[k]));
+            let want = if (d - at).is_nan() {
+                unknown += 1;
+                c
+            } else {
+                c.hypot(d - at)
+            };
+            let got = f64::from(confidence[k]);
+            assert!(
+                (want.is_nan() && got.is_nan()) || (got - want).abs() <= 1e-5 * want.max(1.0),
+                "pixel ({i}, {j}): {got} against {want}"
+            );
+        }
+    }
+    assert!(
+        unknown > 1,
+        "the prior's NaN and the disparity's reached pixels"
+    );
+}
