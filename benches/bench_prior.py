@@ -5,7 +5,7 @@ Tangents on the default layout (20 faces, the default padding) as in ``bench_ali
 (``distort``: scale ×[0.5, 2], shift ±30 %, a ±10 % smooth field, 1 % noise) or content errors
 first (``content_errors``: 1-3 regions per tangent of 3-17 % of the tile, ±10-30 %, blur of 1 px
 per 2048 of ERP width) and then the same affine errors. The prior is
-``m360.synthetic.panoramic_prior`` of the same room (512 x 1024, blur 1.5 px, ±10 % smooth error,
+``m360.synthetic.panoramic_prior`` of the same room (512 x 1024, blur 1.5 px, ±3 % smooth error,
 0-2 regional errors of 1-5 % of the sphere at ±10-30 %, its own affine ambiguity), given as
 ``prior_kind="affine_disparity"``; "wrong prior" is the same with one regional error of 30 % on a
 cap of 20 % of the sphere (and no others).

@@ -85,6 +85,28 @@ def channel(path: Path, c: int, *, input_shape: Sequence[Dim] = (1, 3, "H", "W")
     return _save(graph, path)
 
 
+def row_box(path: Path, radius: int) -> Path:
+    """output = channel 0 averaged over 2·radius + 1 columns, zero beyond the image's left and
+    right borders (a convolution without circular padding): (1, 3, H, W) -> (1, H, W)."""
+    k = 2 * radius + 1
+    weight = np.zeros((1, 3, 1, k), np.float32)
+    weight[0, 0] = 1.0 / k
+    graph = helper.make_graph(
+        [
+            helper.make_node("Conv", ["x", "w"], ["c"], pads=[0, radius, 0, radius]),
+            helper.make_node("Squeeze", ["c", "axis"], ["y"]),
+        ],
+        "row_box",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, "H", "W"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "H", "W"])],
+        initializer=[
+            numpy_helper.from_array(weight, "w"),
+            numpy_helper.from_array(np.array([1], dtype=np.int64), "axis"),
+        ],
+    )
+    return _save(graph, path)
+
+
 def identity(path: Path, shape: Sequence[Dim]) -> Path:
     """output = input, any shape (for wrong-rank / wrong-output tests)."""
     graph = helper.make_graph(

@@ -123,6 +123,34 @@ def test_dynamic_size_rules(graphs: dict[str, Path], options: dict, size: tuple)
     np.testing.assert_allclose(out, 2.0 * 0.2 + 1.0, atol=1e-5)
 
 
+@pytest.mark.parametrize("multiple_of", [1, 4])
+def test_a_dynamic_network_sees_across_the_seam(tmp_path: Path, multiple_of: int) -> None:
+    """A convolution without circular padding (a box filter along rows, zero beyond the
+    borders) gives at 0/360° what a circular one gives: the ERP is run with columns wrapped onto
+    each side, cropped back and cross-faded near the seam. Oracle: the circular box filter of
+    channel 0 in numpy."""
+    radius = 1
+    est = load_estimator(
+        g.row_box(tmp_path / "box.onnx", radius),
+        kind="panoramic",
+        output_kind="affine_disparity",
+        normalize="unit",
+        input_size=(16, 32),
+        multiple_of=multiple_of,
+    )
+    rng = np.random.default_rng(5)
+    erp = rng.integers(0, 256, (16, 32, 3), dtype=np.uint8)
+    assert est.network_size(erp.shape[:2]) == (16, 32)  # no resize: the oracle is exact
+    red = erp[..., 0].astype(np.float64) / 255.0
+    circular = sum(np.roll(red, s, axis=1) for s in range(-radius, radius + 1)) / (2 * radius + 1)
+    out = est.predict(erp)
+    assert out.shape == (16, 32)
+    np.testing.assert_allclose(out, circular, rtol=1e-5, atol=1e-6)
+    # Without the context the border columns differ: the test can fail.
+    zero = est.run_network(est.network_input(erp[None].astype(np.float32) / 255.0))[0]
+    assert np.abs(zero[:, 0] - circular[:, 0]).max() > 0.01
+
+
 def test_nhwc_and_detected_normalisation(graphs: dict[str, Path], tmp_path: Path) -> None:
     import norm_graphs
 

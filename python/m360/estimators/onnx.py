@@ -420,13 +420,8 @@ class OnnxEstimator:
         b, h, w = tangents.shape[:3]
         nh, nw = self.network_size((h, w))
         out = np.empty((b, nh, nw, 3), dtype=np.float32)
-        scale = 1.0 / 255.0 if tangents.dtype == np.uint8 else 1.0
-        flag = cv2.INTER_AREA if nh <= h and nw <= w else cv2.INTER_LINEAR
         for k in range(b):
-            image = tangents[k].astype(np.float32) * np.float32(scale)
-            out[k] = (
-                image if (nh, nw) == (h, w) else cv2.resize(image, (nw, nh), interpolation=flag)
-            )
+            out[k] = _unit_rgb_at(tangents[k], (nh, nw))
         return self.network_input(out)
 
     def network_input(self, images: np.ndarray) -> np.ndarray:
@@ -595,14 +590,82 @@ class PanoramicOnnxEstimator(OnnxEstimator):
         array = as_array(erp, "erp")
         if array.ndim != 3 or array.shape[2] != 3 or min(array.shape[:2]) < 1:
             raise InputError(f"erp must have shape (H, W, 3) RGB with H, W > 0, got {array.shape}")
-        pred = self._run(self.preprocess(array[None]))[0]
-        out = np.array(pred, dtype=np.float32)
+        out = np.array(self._run_across_the_seam(array), dtype=np.float32)
         with np.errstate(invalid="ignore"):
             invalid = ~np.isfinite(out)
             if self.output_kind in PANORAMIC_METRIC_KINDS:
                 invalid |= ~(out > 0)
         out[invalid] = np.nan
         return out
+
+    def _run_across_the_seam(self, erp: np.ndarray) -> np.ndarray:
+        """Run the network on ``erp`` across the 0/360° seam: its (h, w) output.
+
+        A network sees the ERP's left and right borders as image borders, and most panoramic
+        networks are convolutional without circular padding: on the shared real photos a
+        network's output jumped across 0/360° by ten times its ordinary column step, and as a
+        prior that seam reached the stitch through the blend's vote. A dynamic-size network is
+        therefore run on the ERP at its network size with :data:`SEAM_CONTEXT` of its columns
+        wrapped onto each side (whole multiples of ``multiple_of``), and the output is cropped
+        back to the panorama's own columns, cross-faded near the seam with the wrapped copies'
+        (below). A fixed-size network runs on the ERP as it is (a wider input would squeeze
+        the image), as does one whose output columns do not map onto the input's exactly.
+        """
+        if self.fixed_size is not None:
+            return self._run_as_it_is(erp)
+        nh, nw = self.network_size(erp.shape[:2])
+        m = max(1, self.multiple_of)
+        pad = max(m, round(nw * SEAM_CONTEXT / m) * m)
+        if pad >= nw:
+            return self._run_as_it_is(erp)
+        image = _unit_rgb_at(erp, (nh, nw))
+        wrapped = np.concatenate([image[:, nw - pad :], image, image[:, :pad]], axis=1)
+        pred: np.ndarray = self._run(self.network_input(wrapped[None]))[0]
+        ow = pred.shape[-1]
+        # The output's columns per input column (1 or a fraction for a strided network): the
+        # panorama's own columns are an exact slice, or the context is not worth a resample.
+        start, span = pad * ow / (nw + 2 * pad), nw * ow / (nw + 2 * pad)
+        if not (start.is_integer() and span.is_integer() and 2 <= start <= span / 2):
+            return self._run_as_it_is(erp)
+        lo, width = int(start), int(span)
+        # Each column near the seam was seen twice: in the panorama and in a wrapped copy. The
+        # copies' outputs differ a little (another position in the input), so they are
+        # cross-faded from half and half at the seam, where the two sides then read columns
+        # the network saw side by side, to the panorama's own over half the context.
+        out = pred[..., lo : lo + width].copy()
+        fade = np.minimum(1.0, (np.arange(lo) + 0.5) / (lo / 2)).astype(np.float32)
+        own = 0.5 + 0.5 * fade  # the panorama's own output's weight, column c from the seam
+        after = pred[..., lo + width : lo + width + lo]  # columns 0.. seen after the last
+        before = pred[..., :lo]  # columns ..width - 1 seen before the first
+        out[..., :lo] = own * out[..., :lo] + (1 - own) * after
+        out[..., width - lo :] = own[::-1] * out[..., width - lo :] + (1 - own[::-1]) * before
+        return np.asarray(out)
+
+    def _run_as_it_is(self, erp: np.ndarray) -> np.ndarray:
+        """Run the network on ``erp`` at its network size, nothing wrapped: its (h, w) output."""
+        out: np.ndarray = self._run(self.preprocess(erp[None]))[0]
+        return out
+
+
+#: Share of a dynamic-size panoramic network's input width wrapped onto each side of the ERP
+#: so that the network sees across the 0/360° seam (PanoramicOnnxEstimator.predict): an
+#: eighth, for a quarter more compute.
+SEAM_CONTEXT = 0.125
+
+
+def _unit_rgb_at(image: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    """Give (h, w, 3) uint8 RGB (or float in [0, 1]) as float32 in [0, 1] at ``size`` (H, W).
+
+    Area resampling when it shrinks both sides, bilinear otherwise.
+    """
+    h, w = image.shape[:2]
+    nh, nw = size
+    scale = 1.0 / 255.0 if image.dtype == np.uint8 else 1.0
+    rgb: np.ndarray = image.astype(np.float32) * np.float32(scale)
+    if (nh, nw) == (h, w):
+        return rgb
+    flag = cv2.INTER_AREA if nh <= h and nw <= w else cv2.INTER_LINEAR
+    return np.asarray(cv2.resize(rgb, (nw, nh), interpolation=flag), dtype=np.float32)
 
 
 def resize_valid(values: np.ndarray, shape: tuple[int, int], *, positive: bool) -> np.ndarray:

@@ -2225,9 +2225,22 @@ pub struct Alignment {
     pub prior: Option<PriorFit>,
 }
 
-/// The prior samples keep this many times the overlap samples' `sample_fraction` of every
-/// tangent's pixels: the prior-only level's finer grid needs them.
-const PRIOR_SAMPLE_FACTOR: f64 = 1.0;
+/// The least number of prior samples per tangent: the prior-only level's grid (43 x 40 nodes
+/// at the default 3°) needs one per [`NODES_PER_SAMPLE`] nodes in every tangent, with a margin
+/// for NaN and masks. Below 2K the overlap samples' share gives fewer (346 at 1K, and the level
+/// was skipped there).
+const MIN_PRIOR_SAMPLES: usize = 1024;
+
+/// The share of each tangent's pixels the prior samples keep: the overlap samples'
+/// `sample_fraction` (twice it gave the same accuracy for 0.07 s more at 2K, docs/method.md
+/// "Global prior"), raised on small tangents to [`MIN_PRIOR_SAMPLES`].
+fn prior_sample_fraction(layout: &Layout, sample_fraction: f64) -> f64 {
+    let (h, w) = layout.tangent_shape();
+    let counted = (h * w).clamp(1, SAMPLE_BUDGET_PIXELS) as f64; // the budget rule's pixels
+    sample_fraction
+        .max(MIN_PRIOR_SAMPLES as f64 / counted)
+        .min(1.0)
+}
 
 /// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
 /// (all tangents together); below it the data cannot support the grid. (The smoothness term
@@ -2486,7 +2499,7 @@ fn solve_levels(
                 layout,
                 maps,
                 p,
-                (PRIOR_SAMPLE_FACTOR * options.sample_fraction).min(1.0),
+                prior_sample_fraction(layout, options.sample_fraction),
                 0.5 * options.prior_scale_deg,
             )
         })
@@ -3080,6 +3093,27 @@ mod tests {
             })
             .collect();
         assert_eq!(rebuilt, pairs);
+    }
+
+    /// The prior samples take the overlap samples' share of a 2K tangent and more of a small
+    /// one, so that every tangent keeps at least `MIN_PRIOR_SAMPLES` (the prior-only level ran
+    /// from 2K only when they took the share alone).
+    #[test]
+    fn small_tangents_keep_enough_prior_samples() {
+        for (width, expect_share) in [(2048, true), (4096, true), (1024, false), (512, false)] {
+            let layout = Layout::icosahedron(width, 0.3, None).expect("layout");
+            let (h, w) = layout.tangent_shape();
+            let fraction = prior_sample_fraction(&layout, 0.01);
+            assert_eq!(
+                (fraction - 0.01).abs() < 1e-12,
+                expect_share,
+                "{width}: {fraction}"
+            );
+            let kept = fraction * (h * w).min(SAMPLE_BUDGET_PIXELS) as f64;
+            assert!(kept >= MIN_PRIOR_SAMPLES as f64 - 1e-9, "{width}: {kept}");
+        }
+        let tiny = Layout::icosahedron(64, 0.3, None).expect("layout");
+        assert!(prior_sample_fraction(&tiny, 0.01) <= 1.0);
     }
 
     #[test]
