@@ -2225,21 +2225,19 @@ pub struct Alignment {
     pub prior: Option<PriorFit>,
 }
 
-/// The least number of prior samples per tangent: the prior-only level's grid (43 x 40 nodes
-/// at the default 3°) needs one per [`NODES_PER_SAMPLE`] nodes in every tangent, with a margin
-/// for NaN and masks. Below 2K the overlap samples' share gives fewer (346 at 1K, and the level
-/// was skipped there).
-const MIN_PRIOR_SAMPLES: usize = 1024;
-
-/// The share of each tangent's pixels the prior samples keep: the overlap samples'
-/// `sample_fraction` (twice it gave the same accuracy for 0.07 s more at 2K, docs/method.md
-/// "Global prior"), raised on small tangents to [`MIN_PRIOR_SAMPLES`].
+/// The share of each tangent's pixels the prior samples keep: as many as the overlap samples
+/// keep on a 2K tangent (`sample_fraction` of [`SAMPLE_BUDGET_PIXELS`]; twice that gave the same
+/// accuracy for 0.07 s more at 2K, docs/method.md "Global prior"), and on smaller tangents
+/// twice the overlap samples' share, up to that count. Below 2K this is the rule the prior
+/// samples had before: the prior-only level (one sample per [`NODES_PER_SAMPLE`] of its nodes
+/// in every tangent) runs at 1K, where real photos need it, and is skipped on tangents of the
+/// 512-px layout, where with a wrong prior it followed the wrong region (tests/test_prior.py).
 fn prior_sample_fraction(layout: &Layout, sample_fraction: f64) -> f64 {
     let (h, w) = layout.tangent_shape();
-    let counted = (h * w).clamp(1, SAMPLE_BUDGET_PIXELS) as f64; // the budget rule's pixels
-    sample_fraction
-        .max(MIN_PRIOR_SAMPLES as f64 / counted)
-        .min(1.0)
+    let pixels = (h * w).max(1) as f64;
+    let budget = SAMPLE_BUDGET_PIXELS as f64;
+    let count = sample_fraction * (2.0 * pixels).min(budget);
+    (count / pixels.min(budget)).min(1.0)
 }
 
 /// A level's grid is solved only with at least one valid overlap sample per this many grid nodes
@@ -3095,25 +3093,30 @@ mod tests {
         assert_eq!(rebuilt, pairs);
     }
 
-    /// The prior samples take the overlap samples' share of a 2K tangent and more of a small
-    /// one, so that every tangent keeps at least `MIN_PRIOR_SAMPLES` (the prior-only level ran
-    /// from 2K only when they took the share alone).
+    /// The prior samples keep the overlap samples' count on tangents of 2K and above, twice
+    /// their share below (up to that count): enough for the prior-only level's 43 x 40 grid at
+    /// 1K (one sample per 4 nodes), not at 512 px.
     #[test]
-    fn small_tangents_keep_enough_prior_samples() {
-        for (width, expect_share) in [(2048, true), (4096, true), (1024, false), (512, false)] {
+    fn prior_samples_keep_the_2k_count_and_twice_the_share_below() {
+        let nodes = 43.0 * 40.0;
+        for (width, runs) in [(512, false), (1024, true), (2048, true), (4096, true)] {
             let layout = Layout::icosahedron(width, 0.3, None).expect("layout");
             let (h, w) = layout.tangent_shape();
-            let fraction = prior_sample_fraction(&layout, 0.01);
-            assert_eq!(
-                (fraction - 0.01).abs() < 1e-12,
-                expect_share,
-                "{width}: {fraction}"
+            let pixels = (h * w).min(SAMPLE_BUDGET_PIXELS) as f64;
+            let kept = prior_sample_fraction(&layout, 0.01) * pixels;
+            let expected = (0.02 * (h * w) as f64).min(0.01 * SAMPLE_BUDGET_PIXELS as f64);
+            assert!(
+                (kept - expected).abs() < 1e-6,
+                "{width}: {kept} against {expected}"
             );
-            let kept = fraction * (h * w).min(SAMPLE_BUDGET_PIXELS) as f64;
-            assert!(kept >= MIN_PRIOR_SAMPLES as f64 - 1e-9, "{width}: {kept}");
+            assert_eq!(
+                kept * NODES_PER_SAMPLE as f64 >= nodes,
+                runs,
+                "{width}: {kept}"
+            );
         }
         let tiny = Layout::icosahedron(64, 0.3, None).expect("layout");
-        assert!(prior_sample_fraction(&tiny, 0.01) <= 1.0);
+        assert!(prior_sample_fraction(&tiny, 0.6) <= 1.0);
     }
 
     #[test]

@@ -142,22 +142,8 @@ impl Pattern {
                 .unwrap_or_else(|_| unreachable!("block ({p}, {q}) is in the pattern"));
             (lo + found) as u32
         };
-        let data_at = couplings
-            .data
-            .par_iter()
-            .flat_map_iter(|nd| {
-                nd.iter()
-                    .flat_map(move |&p| nd.iter().map(move |&q| at(p, q)))
-            })
-            .collect();
-        let prior_at = couplings
-            .prior
-            .par_iter()
-            .flat_map_iter(|nd| {
-                nd.iter()
-                    .flat_map(move |&p| nd.iter().map(move |&q| at(p, q)))
-            })
-            .collect();
+        let data_at = all_pairs(&couplings.data, &at);
+        let prior_at = all_pairs(&couplings.prior, &at);
         let edge_at = couplings
             .edges
             .par_iter()
@@ -179,6 +165,20 @@ impl Pattern {
     pub(super) fn is_empty(&self) -> bool {
         self.start.is_empty()
     }
+}
+
+/// `at(p, q)` of every node pair (p, q) of each group, row-major per group, groups in order.
+fn all_pairs<const N: usize>(
+    groups: &[[u32; N]],
+    at: &(impl Fn(u32, u32) -> u32 + Sync),
+) -> Vec<u32> {
+    groups
+        .par_iter()
+        .flat_map_iter(|nd| {
+            nd.iter()
+                .flat_map(move |&p| nd.iter().map(move |&q| at(p, q)))
+        })
+        .collect()
 }
 
 #[cfg(test)]
