@@ -350,11 +350,11 @@ impl Plan {
             prior,
             disparity,
             confidence.as_deref_mut(),
-        );
+        )?;
         if let (Some(vote), Some(conf)) = (prior, confidence) {
             blend::combine_confidence_with_prior(vote, disparity, conf, self.layout.erp_width);
         }
-        report
+        Ok(report)
     }
 
     /// [`Plan::blend_with_prior`] without the prior in the confidence.
