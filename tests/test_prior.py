@@ -135,7 +135,7 @@ def test_confidence_combines_the_prior_gap_where_the_prior_is_known(room: tuple)
     """Root sum of squares with |d − (a·P + b)|, P read bilinearly with longitude wrapping
     and rows clamped, against an independent float64 computation: the mean blend ignores the
     vote, so its confidence without a prior is the one combined. Unchanged where the prior is
-    unknown, NaN where the confidence is."""
+    unknown (NaN confidence: the core's unit test, blend/tests.rs)."""
     from m360.geometry.layout import plan_for
 
     layout, tiles, _, _ = room

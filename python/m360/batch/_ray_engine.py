@@ -100,11 +100,11 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     meta is a failed ImageOutcome or (read, ERP shape, working width, timings); ``read.rgb`` is
     kept only when the 3D formats need its colours, a working width smaller than the image's
     needs it as the upsampling guide (or a panoramic model's output does), or ``edges="photo"``
-    as the edges' guide: otherwise only the
-    payload travels on. The payload is (tangents, image): the image is what a model actor runs
-    a panoramic network on (the photo for a panoramic model, the working-resolution photo for a
-    prior model; None otherwise). The working width is chosen as :func:`m360.estimate` chooses
-    it, so both engines make the same bytes.
+    as the edges' guide: otherwise only the payload travels on. The payload is (tangents,
+    image): the image is what a model actor runs a panoramic network on (the photo for a
+    panoramic model, the working-resolution photo for a prior model; None otherwise). The
+    working width is chosen as :func:`m360.estimate` chooses it, so both engines make the same
+    bytes.
     """
     import cv2
 
