@@ -193,9 +193,11 @@ def test_a_real_network_as_the_prior_of_another() -> None:
     panorama: the output checks hold (the 0/360° seam included: FastDepth has no circular
     padding, and its seam reached the result through the blend's vote until the panoramic
     estimator ran across it), the fit is reported and the prior recorded, and the result agrees
-    better with the prior (log-disparity correlation) than the stitch without it: by a median
-    of 0.09 over the panoramas, while no panorama loses more than 0.15 (one park loses 0.09,
-    not understood yet: docs/method.md, "Global prior"). The two networks disagree a lot
+    better with the prior (log-disparity correlation) than the stitch without it, on every
+    panorama and by a median of 0.1 at least (0.18 measured, the least gain 0.06). Until the
+    prior's slope was fitted symmetrically and held on the prior-only level, a prior these
+    tangents barely agree with was fitted a nearly flat slope that flattened them: median gain
+    0.08, a park lost 0.09 (docs/method.md, "On real networks"). The two networks disagree a lot
     (correlation 0.35-0.91 without the prior)."""
     pano = m360.estimators.load_estimator(
         REAL / "models" / "fastdepth_dynamic.onnx",
@@ -228,5 +230,5 @@ def test_a_real_network_as_the_prior_of_another() -> None:
         assert res.options["prior"]["name"] == "fastdepth_dynamic.onnx"
         before = _log_correlation(plain.disparity, alone.disparity)
         gains[path.name] = _log_correlation(res.disparity, alone.disparity) - before
-    assert min(gains.values()) > -0.15, gains
-    assert float(np.median(list(gains.values()))) > 0.03, gains
+    assert min(gains.values()) > 0.0, gains
+    assert float(np.median(list(gains.values()))) > 0.1, gains

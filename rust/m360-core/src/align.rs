@@ -731,6 +731,9 @@ pub struct Problem {
     gauge_weight: f64,
     /// The prior term, if any: its (α, β) are the node after the tangents' nodes.
     prior: Option<PriorTerm>,
+    /// (α₀, κ) of a term κ·(α − α₀)² that holds the prior's slope (the prior-only level's,
+    /// [`Problem::hold_prior_slope`]).
+    slope_anchor: Option<(f64, f64)>,
     /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
     /// of 2×2 node blocks on `pattern`, block `[ss, so, os, oo]` row-major over (s, o) of the
     /// row's node × (s, o) of the column's.
@@ -1029,6 +1032,7 @@ impl Problem {
             edges,
             scale_weight,
             gauge_weight: GAUGE,
+            slope_anchor: None,
             pattern: Arc::default(),
             blocks: Vec::new(),
             data_groups: Groups::default(),
@@ -1147,6 +1151,9 @@ impl Problem {
         for &i in &pattern.diagonal_at {
             blocks[i as usize][3] += 2.0 * self.gauge_weight;
         }
+        if let (Some(prior), Some((_, kappa))) = (&self.prior, self.slope_anchor) {
+            blocks[pattern.diagonal_at[prior.node as usize] as usize][0] += 2.0 * kappa;
+        }
         self.blocks = blocks;
     }
 
@@ -1217,8 +1224,8 @@ impl Problem {
     }
 
     /// (α, β) fitted to the tangents' values at the prior samples as the fields `x` leave them
-    /// (x's own α, β ignored), robustly: Cauchy IRLS with the prior's confidence. None without
-    /// a prior or when the fit is degenerate.
+    /// (x's own α, β ignored), robustly (Cauchy IRLS with the prior's confidence) and
+    /// symmetrically ([`symmetric_line`]). None without a prior or when the fit is degenerate.
     #[must_use]
     pub fn fit_prior_affine(&self, x: &[f64]) -> Option<(f64, f64)> {
         let prior = self.prior.as_ref()?;
@@ -1229,35 +1236,18 @@ impl Problem {
         // With α = β = 0 the residual is the tangent's value.
         let values = self.prior_residuals(&z);
         let p: Vec<f64> = prior.samples.iter().map(|s| s.p).collect();
-        let mut weights = prior.confidence.clone();
-        let mut fit = None;
-        for _ in 0..ROBUST_ROUNDS + 2 {
-            let (mut sw, mut sp, mut sv, mut spp, mut spv) = (0.0, 0.0, 0.0, 0.0, 0.0);
-            for ((&w, &pk), &vk) in weights.iter().zip(&p).zip(&values) {
-                sw += w;
-                sp += w * pk;
-                sv += w * vk;
-                spp += w * pk * pk;
-                spv += w * pk * vk;
-            }
-            let det = sw * spp - sp * sp;
-            if sw <= 0.0 || det.abs() <= 1e-12 * sw * sw {
-                return fit;
-            }
-            let alpha = (sw * spv - sp * sv) / det;
-            let beta = (sv - alpha * sp) / sw;
-            fit = Some((alpha, beta));
-            let residuals: Vec<f64> = p
-                .iter()
-                .zip(&values)
-                .map(|(pk, vk)| vk - alpha * pk - beta)
-                .collect();
-            let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
-            for ((w, c), r) in weights.iter_mut().zip(&prior.confidence).zip(&residuals) {
-                *w = c * Loss::Cauchy.weight(*r, sigma);
-            }
+        symmetric_line(&p, &values, &prior.confidence)
+    }
+
+    /// Hold the prior's slope α near `alpha`: adds κ·(α − α₀)² with κ = [`SLOPE_ANCHOR`]·λ (takes
+    /// effect at the next assembly). For the prior-only level, where nothing determines α: its
+    /// fields can follow any α·P + β, and a free α shrank towards the least-squares slope there,
+    /// flattening the tangents on real networks (docs/method.md, "On real networks").
+    pub fn hold_prior_slope(&mut self, alpha: f64) {
+        if let Some(prior) = &self.prior {
+            let kappa = SLOPE_ANCHOR * prior.scale * prior.samples.len() as f64;
+            self.slope_anchor = Some((alpha, kappa));
         }
-        fit
     }
 
     /// The prior samples' IRLS weights (empty without a prior).
@@ -1298,7 +1288,15 @@ impl Problem {
             .collect();
         prior.weights = spread_trust(prior, &weights);
         if hard {
-            for w in &mut prior.weights {
+            // Priors are wrong on whole regions: a sample is trusted no more than its
+            // neighbourhood (plus a slack), so the edges of a wrong region, where single samples
+            // happen to agree with the tangents, do not pull the level along.
+            let cells = CellMeans::of(prior, &prior.weights, |_| true);
+            for (w, &cell) in prior.weights.iter_mut().zip(&prior.cell) {
+                let cap = cells
+                    .around(cell as usize)
+                    .map_or(1.0, |m| m + NEIGHBOURHOOD_SLACK);
+                *w = w.min(cap);
                 if *w < HARD_TRUST {
                     *w = 0.0;
                 }
@@ -1462,6 +1460,10 @@ impl Problem {
             energy += prior.scale * partial.iter().sum::<f64>();
             let beta = x[2 * prior.node as usize + 1];
             energy += self.gauge_weight * beta * beta;
+            if let Some((alpha0, kappa)) = self.slope_anchor {
+                let alpha = x[2 * prior.node as usize];
+                energy += kappa * (alpha - alpha0) * (alpha - alpha0);
+            }
         }
         if let Some(g) = grad {
             self.gradient(x, g);
@@ -1478,6 +1480,10 @@ impl Problem {
             .zip(x[..scale_len].chunks_exact(2))
         {
             g[0] -= self.scale_weight / (node[0] * node[0]);
+        }
+        // H·x holds the anchor's 2κ·α; its gradient is 2κ·(α − α₀).
+        if let (Some(prior), Some((alpha0, kappa))) = (&self.prior, self.slope_anchor) {
+            grad[2 * prior.node as usize] -= 2.0 * kappa * alpha0;
         }
     }
 
@@ -1513,43 +1519,25 @@ impl Problem {
 /// the wrong region, 0.8 kept the gain on content errors and lost that.
 const HARD_TRUST: f64 = 0.8;
 
+/// On the prior-only level a sample's weight is at most its trust cell's neighbourhood mean plus
+/// this. Measured on 4 synthetic rooms at 4K with the prior 30 % wrong on a fifth of the sphere
+/// (`benches/bench_prior.py`, slopes held): no cap 0.0300 (no prior: 0.0251), slack 0.3 0.0249,
+/// 0.2 0.0241, 0.1 0.0226; under content errors with a right prior 0.0132, 0.0133, 0.0135,
+/// 0.0137.
+const NEIGHBOURHOOD_SLACK: f64 = 0.3;
+
+/// The slope anchor's weight κ, per unit of the prior weight λ: a hundred times the prior
+/// term's own curvature in α (about λ·mean p² with p standardised), so α stays within about 1 %.
+const SLOPE_ANCHOR: f64 = 100.0;
+
 /// Where only one tangent sees a prior sample's direction, its residual cannot tell whether the
 /// prior or the tangent is wrong: such samples take the mean weight of the samples that other
 /// tangents also see in their 6° cell and its 8 neighbours (1 when there are none), so a prior
 /// region that overlapping tangents outvoted stays outvoted between them, and a tangent's
 /// content error where it alone sees the sphere is corrected by a prior trusted around it.
 fn spread_trust(prior: &PriorTerm, weights: &[f64]) -> Vec<f64> {
-    let (rows, cols) = (prior::TRUST_ROWS, 2 * prior::TRUST_ROWS);
-    let mut sum = vec![0.0; rows * cols];
-    let mut count = vec![0.0; rows * cols];
     let seen = |k: usize| prior.view_start[k + 1] > prior.view_start[k];
-    for (k, &w) in weights.iter().enumerate() {
-        if seen(k) {
-            sum[prior.cell[k] as usize] += w;
-            count[prior.cell[k] as usize] += 1.0;
-        }
-    }
-    let neighbourhood = |cell: usize| {
-        let (r, c) = ((cell / cols) as isize, (cell % cols) as isize);
-        let (mut s, mut n) = (0.0, 0.0);
-        for dr in -1..=1 {
-            let rr = r + dr;
-            if rr < 0 || rr >= rows as isize {
-                continue;
-            }
-            for dc in -1..=1 {
-                let cc = (c + dc).rem_euclid(cols as isize);
-                let i = rr as usize * cols + cc as usize;
-                s += sum[i];
-                n += count[i];
-            }
-        }
-        if n > 0.0 {
-            s / n
-        } else {
-            1.0
-        }
-    };
+    let cells = CellMeans::of(prior, weights, seen);
     weights
         .iter()
         .enumerate()
@@ -1557,10 +1545,91 @@ fn spread_trust(prior: &PriorTerm, weights: &[f64]) -> Vec<f64> {
             if seen(k) {
                 w
             } else {
-                neighbourhood(prior.cell[k] as usize)
+                cells.around(prior.cell[k] as usize).unwrap_or(1.0)
             }
         })
         .collect()
+}
+
+/// Sums and counts of sample weights per trust cell ([`prior::TRUST_ROWS`] rows, twice as many
+/// columns, the ERP grid of the samples' directions).
+struct CellMeans {
+    sum: Vec<f64>,
+    count: Vec<f64>,
+}
+
+impl CellMeans {
+    /// Over the samples k with `include(k)`.
+    fn of(prior: &PriorTerm, weights: &[f64], include: impl Fn(usize) -> bool) -> Self {
+        let cells = prior::TRUST_ROWS * 2 * prior::TRUST_ROWS;
+        let (mut sum, mut count) = (vec![0.0; cells], vec![0.0; cells]);
+        for (k, &w) in weights.iter().enumerate() {
+            if include(k) {
+                sum[prior.cell[k] as usize] += w;
+                count[prior.cell[k] as usize] += 1.0;
+            }
+        }
+        Self { sum, count }
+    }
+
+    /// The mean weight over `cell` and its 8 neighbours (wrapping in longitude, cut at the
+    /// poles); None when they hold no sample.
+    fn around(&self, cell: usize) -> Option<f64> {
+        let (rows, cols) = (prior::TRUST_ROWS, 2 * prior::TRUST_ROWS);
+        let (r, c) = ((cell / cols) as isize, (cell % cols) as isize);
+        let (mut s, mut n) = (0.0, 0.0);
+        for rr in (r - 1).max(0)..=(r + 1).min(rows as isize - 1) {
+            for dc in -1..=1 {
+                let i = rr as usize * cols + (c + dc).rem_euclid(cols as isize) as usize;
+                s += self.sum[i];
+                n += self.count[i];
+            }
+        }
+        (n > 0.0).then(|| s / n)
+    }
+}
+
+/// The line v ≈ α·p + β through weighted points, robustly and symmetrically: Cauchy IRLS
+/// (from the weights `confidence`, its own scale) on the least-squares line picks the points to
+/// trust, then the slope is the ratio of their weighted spreads, with the sign of their
+/// covariance (the geometric-mean, or reduced major axis, line), so fitting p on v gives 1/α.
+/// The least-squares slope itself is shrunk by the correlation of the two: with a prior the
+/// tangents barely agree with (real networks: correlation 0.3–0.8) it gave α of 0.03–0.2 in
+/// standardised units, a nearly flat target that the prior-only level then flattened the
+/// tangents to (docs/method.md, "On real networks"). The spreads alone would be inflated by
+/// outliers, which the least-squares IRLS downweights first.
+/// None when the points have no weight or p no spread.
+fn symmetric_line(p: &[f64], v: &[f64], confidence: &[f64]) -> Option<(f64, f64)> {
+    let mut weights = confidence.to_vec();
+    let moments = |weights: &[f64]| {
+        let sw: f64 = weights.iter().sum();
+        let mp = weights.iter().zip(p).map(|(w, x)| w * x).sum::<f64>() / sw;
+        let mv = weights.iter().zip(v).map(|(w, y)| w * y).sum::<f64>() / sw;
+        let (mut cpp, mut cvv, mut cpv) = (0.0, 0.0, 0.0);
+        for ((&w, &pk), &vk) in weights.iter().zip(p).zip(v) {
+            let (dp, dv) = (pk - mp, vk - mv);
+            cpp += w * dp * dp;
+            cvv += w * dv * dv;
+            cpv += w * dp * dv;
+        }
+        (sw > 0.0 && cpp > 1e-12 * sw).then_some((mp, mv, cpp, cvv, cpv))
+    };
+    for _ in 0..ROBUST_ROUNDS + 2 {
+        let (mp, mv, cpp, _, cpv) = moments(&weights)?;
+        let alpha = cpv / cpp;
+        let residuals: Vec<f64> = p
+            .iter()
+            .zip(v)
+            .map(|(pk, vk)| vk - mv - alpha * (pk - mp))
+            .collect();
+        let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
+        for ((w, c), r) in weights.iter_mut().zip(confidence).zip(&residuals) {
+            *w = c * Loss::Cauchy.weight(*r, sigma);
+        }
+    }
+    let (mp, mv, cpp, cvv, cpv) = moments(&weights)?;
+    let alpha = if cpv < 0.0 { -1.0 } else { 1.0 } * (cvv / cpp).sqrt();
+    Some((alpha, mv - alpha * mp))
 }
 
 /// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]; 1 without residuals).
@@ -2671,6 +2740,7 @@ fn prior_level_params(
         cols,
         rows,
         smoothness: last.smoothness * PRIOR_LEVEL_SMOOTHNESS,
+        scale_weight: last.scale_weight * PRIOR_LEVEL_BARRIER,
         ..*last
     })
 }
@@ -2679,6 +2749,13 @@ fn prior_level_params(
 /// the same Dirichlet energy whatever its size, so at the schedule's smoothness the prior could
 /// not move a region of a tenth of a tangent; this lets it, down to the level's node spacing.
 const PRIOR_LEVEL_SMOOTHNESS: f64 = 0.01;
+
+/// The prior-only level's 1/s weight, relative to the schedule's. With its slope held
+/// ([`Problem::hold_prior_slope`]) the prior fixes the fields' scale there, and a full barrier
+/// would fight it (pushing every s up against the prior's pull: 0.0129 → 0.0144 under content
+/// errors at 2K); a hundredth keeps the Hessian positive definite where a tangent lost its
+/// samples.
+const PRIOR_LEVEL_BARRIER: f64 = 0.01;
 
 /// Where a level with a prior starts: identity fields, with (α, β) from the previous level if
 /// it had the prior; else (α, β) fitted robustly to the tangents' own consensus, so the prior's
@@ -2740,7 +2817,10 @@ fn solve_level(
     // its start (the tangents as the schedule aligned them), with hard weights: reweighted from
     // its own solution it would trust whatever it had just followed.
     let prior_only = problem.prior.is_some() && problem.samples() == 0;
-    if problem.prior.is_some() {
+    if let Some(node) = problem.prior.as_ref().map(|p| 2 * p.node as usize) {
+        if prior_only {
+            problem.hold_prior_slope(start[node]);
+        }
         problem.reweight_prior(&start, prior_only);
     }
     let (mut fields, mut report) = solve(
@@ -3096,6 +3176,52 @@ mod tests {
     /// The prior samples keep the overlap samples' count on tangents of 2K and above, twice
     /// their share below (up to that count): enough for the prior-only level's 43 x 40 grid at
     /// 1K (one sample per 4 nodes), not at 512 px.
+    /// The prior's slope at the join is the geometric-mean line's: exact on a line, about
+    /// reciprocal when the roles swap (least squares: the correlation² instead), robust to
+    /// outliers.
+    #[test]
+    fn the_prior_fit_is_symmetric_and_robust() {
+        let n = 2000;
+        let p: Vec<f64> = (0..n).map(|i| random(1, i) * 2.0 - 1.0).collect();
+        let noise: Vec<f64> = (0..n).map(|i| random(2, i) * 2.0 - 1.0).collect();
+        let ones = vec![1.0; n];
+        let line: Vec<f64> = p.iter().map(|x| 1.5 - 0.5 * x).collect();
+        let (a, b) = symmetric_line(&p, &line, &ones).expect("fit");
+        assert!((a + 0.5).abs() < 1e-9 && (b - 1.5).abs() < 1e-9, "{a} {b}");
+        // v = p + noise of p's spread: correlation 1/√2, least squares slope ≈ 1.
+        let v: Vec<f64> = p.iter().zip(&noise).map(|(x, e)| x + e).collect();
+        let (forward, _) = symmetric_line(&p, &v, &ones).expect("fit");
+        let (backward, _) = symmetric_line(&v, &p, &ones).expect("fit");
+        // (The robust weights differ with the roles, so not exactly 1; least squares: ≈ ½.)
+        assert!(
+            (forward * backward - 1.0).abs() < 0.1,
+            "{forward} · {backward}"
+        );
+        assert!(
+            forward > 1.2,
+            "slope {forward} shrunk towards least squares"
+        );
+        // A fifth of the points far off the line: the slope and intercept hold.
+        let spoiled: Vec<f64> = line
+            .iter()
+            .enumerate()
+            .map(|(i, &y)| if i % 5 == 0 { y + 8.0 } else { y })
+            .collect();
+        let (a, b) = symmetric_line(&p, &spoiled, &ones).expect("fit");
+        assert!((a + 0.5).abs() < 0.02 && (b - 1.5).abs() < 0.02, "{a} {b}");
+        // Confidence 0 is no point; a constant p has no slope.
+        let half: Vec<f64> = (0..n).map(|i| f64::from(u8::from(i % 2 == 0))).collect();
+        let odd_spoiled: Vec<f64> = line
+            .iter()
+            .enumerate()
+            .map(|(i, &y)| if i % 2 == 1 { -y } else { y })
+            .collect();
+        let (a, _) = symmetric_line(&p, &odd_spoiled, &half).expect("fit");
+        assert!((a + 0.5).abs() < 1e-9, "{a}");
+        assert!(symmetric_line(&ones, &line, &ones).is_none());
+        assert!(symmetric_line(&p, &line, &vec![0.0; n]).is_none());
+    }
+
     #[test]
     fn prior_samples_keep_the_2k_count_and_twice_the_share_below() {
         let nodes = 43.0 * 40.0;

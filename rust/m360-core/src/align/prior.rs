@@ -525,6 +525,8 @@ mod tests {
             );
             assert!(problem.prior_samples() > 100);
             let x = spread_point(problem.len());
+            // The prior-only level's slope anchor, away from x's α.
+            problem.hold_prior_slope(0.3);
             // IRLS weights that are not all 1.
             problem.reweight_prior(&x, false);
             let mut g = vec![0.0; x.len()];
@@ -563,6 +565,7 @@ mod tests {
         );
         assert_eq!(problem.samples(), 0);
         let x = spread_point(problem.len());
+        problem.hold_prior_slope(0.3);
         problem.reweight_prior(&x, false);
         let mut g = vec![0.0; x.len()];
         let _ = problem.energy(&x, Some(&mut g));
