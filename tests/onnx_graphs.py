@@ -107,6 +107,27 @@ def row_box(path: Path, radius: int) -> Path:
     return _save(graph, path)
 
 
+def column_stride(path: Path, stride: int) -> Path:
+    """output = channel 0 averaged over each run of ``stride`` columns (no padding, the last
+    W mod stride columns dropped): (1, 3, H, W) -> (1, H, W // stride)."""
+    weight = np.zeros((1, 3, 1, stride), np.float32)
+    weight[0, 0] = 1.0 / stride
+    graph = helper.make_graph(
+        [
+            helper.make_node("Conv", ["x", "w"], ["c"], strides=[1, stride]),
+            helper.make_node("Squeeze", ["c", "axis"], ["y"]),
+        ],
+        "column_stride",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, "H", "W"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "H", "Wo"])],
+        initializer=[
+            numpy_helper.from_array(weight, "w"),
+            numpy_helper.from_array(np.array([1], dtype=np.int64), "axis"),
+        ],
+    )
+    return _save(graph, path)
+
+
 def identity(path: Path, shape: Sequence[Dim]) -> Path:
     """output = input, any shape (for wrong-rank / wrong-output tests)."""
     graph = helper.make_graph(

@@ -226,10 +226,14 @@ def test_edge_band_is_the_pixels_within_band_of_a_depth_jump_across_the_seam() -
     depth[:, 31] = 1.5  # and one across the seam (31|0) and at 30|31
     band = ev.edge_band(depth, band=2)
     # An edge marks its left pixel (the jump to its right neighbour, column 31's is column 0),
-    # then dilated by 2 (the dilation itself stops at the map's border).
-    expected_cols = {7, 8, 9, 10, 11, 17, 18, 19, 20, 21, 28, 29, 30, 31}
+    # then dilated by 2, wrapping in longitude (the seam's edge reaches columns 0 and 1).
+    expected_cols = {0, 1, 7, 8, 9, 10, 11, 17, 18, 19, 20, 21, 28, 29, 30, 31}
     assert {int(c) for c in np.nonzero(band.all(axis=0))[0]} == expected_cols
     assert not band[:, [c for c in range(32) if c not in expected_cols]].any()
     assert not ev.edge_band(depth, jump=1.5).any()  # the jumps are 33 % to 100 %
+    # Rows stop at the poles: an edge in the top row does not reach the bottom one.
+    rows = np.full((16, 32), 2.0, np.float32)
+    rows[0] = 1.0
+    assert ev.edge_band(rows, band=2)[:3].all() and not ev.edge_band(rows, band=2)[3:].any()
     with pytest.raises(InputError, match="2-D float"):
         ev.edge_band(np.ones((4, 8), np.int32))

@@ -151,6 +151,36 @@ def test_a_dynamic_network_sees_across_the_seam(tmp_path: Path, multiple_of: int
     assert np.abs(zero[:, 0] - circular[:, 0]).max() > 0.01
 
 
+def test_a_network_whose_columns_do_not_map_runs_as_it_is_once_per_call(tmp_path: Path) -> None:
+    """A strided network (3 input columns per output column): with the seam's context wrapped
+    on (4 columns each side of 32) the panorama's columns are no whole slice of the output, so
+    it runs on the ERP as it is; that is found on the first call and remembered."""
+    est = load_estimator(
+        g.column_stride(tmp_path / "stride.onnx", 3),
+        kind="panoramic",
+        output_kind="affine_disparity",
+        normalize="unit",
+        input_size=(16, 32),
+    )
+    runs: list[tuple[int, ...]] = []
+    run = est._run
+
+    def counted(x: np.ndarray) -> np.ndarray:
+        runs.append(tuple(x.shape))
+        return run(x)
+
+    est._run = counted  # type: ignore[method-assign]
+    erp = np.random.default_rng(2).integers(0, 256, (16, 32, 3), dtype=np.uint8)
+    red = erp[..., 0].astype(np.float64) / 255.0
+    oracle = red[:, :30].reshape(16, 10, 3).mean(axis=2)
+    first = est.predict(erp)
+    assert [r[-1] for r in runs] == [40, 32]  # wrapped, then as it is
+    np.testing.assert_allclose(first, oracle, rtol=1e-5, atol=1e-6)
+    runs.clear()
+    np.testing.assert_array_equal(est.predict(erp), first)
+    assert [r[-1] for r in runs] == [32]
+
+
 def test_nhwc_and_detected_normalisation(graphs: dict[str, Path], tmp_path: Path) -> None:
     import norm_graphs
 

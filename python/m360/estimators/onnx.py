@@ -569,6 +569,13 @@ class PanoramicOnnxEstimator(OnnxEstimator):
     kind = "panoramic"
     default_input_size = (512, 1024)
 
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        # Per network size (h, w): whether the output of the input with the seam's context
+        # wrapped on maps onto the panorama's columns; a network whose does not is run as it
+        # is from then on, once per call instead of twice.
+        self._wraps: dict[tuple[int, int], bool] = {}
+
     @staticmethod
     def _check_output_kind(output_kind: Any) -> str:
         return check_panoramic_output_kind(output_kind)
@@ -609,14 +616,15 @@ class PanoramicOnnxEstimator(OnnxEstimator):
         wrapped onto each side (whole multiples of ``multiple_of``), and the output is cropped
         back to the panorama's own columns, cross-faded near the seam with the wrapped copies'
         (below). A fixed-size network runs on the ERP as it is (a wider input would squeeze
-        the image), as does one whose output columns do not map onto the input's exactly.
+        the image), as does one whose output columns do not map onto the input's exactly
+        (found on its first run at a size, then remembered).
         """
         if self.fixed_size is not None:
             return self._run_as_it_is(erp)
         nh, nw = self.network_size(erp.shape[:2])
         m = max(1, self.multiple_of)
         pad = max(m, round(nw * SEAM_CONTEXT / m) * m)
-        if pad >= nw:
+        if pad >= nw or not self._wraps.get((nh, nw), True):
             return self._run_as_it_is(erp)
         image = _unit_rgb_at(erp, (nh, nw))
         wrapped = np.concatenate([image[:, nw - pad :], image, image[:, :pad]], axis=1)
@@ -625,7 +633,9 @@ class PanoramicOnnxEstimator(OnnxEstimator):
         # The output's columns per input column (1 or a fraction for a strided network): the
         # panorama's own columns are an exact slice, or the context is not worth a resample.
         start, span = pad * ow / (nw + 2 * pad), nw * ow / (nw + 2 * pad)
-        if not (start.is_integer() and span.is_integer() and 2 <= start <= span / 2):
+        maps = start.is_integer() and span.is_integer() and 2 <= start <= span / 2
+        self._wraps[(nh, nw)] = maps
+        if not maps:
             return self._run_as_it_is(erp)
         lo, width = int(start), int(span)
         # Each column near the seam was seen twice: in the panorama and in a wrapped copy. The

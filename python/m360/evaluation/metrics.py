@@ -326,8 +326,9 @@ def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarra
 
     An edge is a relative jump of more than ``jump`` in disparity 1/depth between a pixel and
     its right neighbour (column W − 1's is column 0) or the one below; the edges are then
-    dilated by a (2·band + 1)² square, which stops at the map's border (no wrap). This is the
-    "4 px band around depth edges" of ``benches/bench_prior.py`` and ``benches/bench_edges.py``.
+    dilated by a (2·band + 1)² square, which wraps in longitude (an edge at column 0 marks
+    columns W − band … W − 1 too) and stops at the poles. This is the "4 px band around depth
+    edges" of ``benches/bench_prior.py`` and ``benches/bench_edges.py``.
     """
     import cv2
 
@@ -341,7 +342,12 @@ def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarra
     down = np.abs(np.diff(disparity, axis=0, append=disparity[-1:])) / disparity
     edges = ((right > jump) | (down > jump)).astype(np.uint8)
     kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
-    return np.asarray(cv2.dilate(edges, kernel), dtype=bool)
+    reach = min(band, edges.shape[1])
+    wrapped = (
+        np.concatenate([edges[:, -reach:], edges, edges[:, :reach]], axis=1) if reach else edges
+    )
+    dilated = cv2.dilate(wrapped, kernel)
+    return np.asarray(dilated[:, reach : reach + edges.shape[1]], dtype=bool)
 
 
 def seam_score(
