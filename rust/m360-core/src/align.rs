@@ -199,6 +199,14 @@ pub struct LevelParams {
     pub offsets: Offsets,
 }
 
+impl LevelParams {
+    /// Grid cells per tangent.
+    #[must_use]
+    pub fn cells(&self) -> usize {
+        (self.cols - 1) * (self.rows - 1)
+    }
+}
+
 /// Which solver.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum Solver {
@@ -1114,7 +1122,7 @@ impl Problem {
             self.pattern = Pattern::of(Couplings {
                 nodes: nodes_total,
                 data: group_blocks.iter().map(|(nd, _)| *nd).collect(),
-                prior: prior_blocks.iter().map(|(nd, _)| *nd).collect(),
+                prior: self.prior_cells(),
                 edges: self.edges.iter().map(|&(p, q, _)| [p, q]).collect(),
             });
         }
@@ -1138,8 +1146,9 @@ impl Problem {
         for ((_, block), at) in group_blocks.iter().zip(pattern.data_at.chunks_exact(64)) {
             scatter(at, 8, block);
         }
-        for ((_, block), at) in prior_blocks.iter().zip(pattern.prior_at.chunks_exact(25)) {
-            scatter(at, 5, block);
+        for (nd, block) in &prior_blocks {
+            let at = 25 * self.prior_cell(nd[0]);
+            scatter(&pattern.prior_at[at..at + 25], 5, block);
         }
         for (&(_, _, wgt), at) in self.edges.iter().zip(&pattern.edge_at) {
             for (&i, sign) in at.iter().zip([1.0, 1.0, -1.0, -1.0]) {
@@ -1155,6 +1164,39 @@ impl Problem {
             blocks[pattern.diagonal_at[prior.node as usize] as usize][0] += 2.0 * kappa;
         }
         self.blocks = blocks;
+    }
+
+    /// The prior term's couplings: every grid cell's 5 nodes (its corners, then the prior's),
+    /// tangent by tangent, row by row, whether or not a prior sample falls in it. The pattern
+    /// then depends on the grid alone, not on where the prior has holes (NaN, confidence 0,
+    /// masked tangents): priors that differ there reuse the kept pattern and Newton analyses
+    /// (with per-image holes each stitch added a pattern and twenty analyses, and a process's
+    /// memory grew by 150 MB at 2K before the caches' bounds held it). Empty without a prior.
+    fn prior_cells(&self) -> Vec<[u32; 5]> {
+        let Some(prior) = &self.prior else {
+            return Vec::new();
+        };
+        let (cols, rows) = (self.params.cols as u32, self.params.rows as u32);
+        let mut cells = Vec::with_capacity(self.tangents * self.params.cells());
+        for t in 0..self.tangents as u32 {
+            for cy in 0..rows - 1 {
+                for cx in 0..cols - 1 {
+                    let a = t * cols * rows + cy * cols + cx;
+                    cells.push([a, a + 1, a + cols, a + cols + 1, prior.node]);
+                }
+            }
+        }
+        cells
+    }
+
+    /// The index in [`Problem::prior_cells`] of the cell whose top-left node is `corner`.
+    fn prior_cell(&self, corner: u32) -> usize {
+        let (cols, rows) = (self.params.cols, self.params.rows);
+        let (t, node) = (
+            corner as usize / (cols * rows),
+            corner as usize % (cols * rows),
+        );
+        t * self.params.cells() + (node / cols) * (cols - 1) + node % cols
     }
 
     /// The prior term's Hessian contributions: per group of samples sharing a cell, the 5 nodes
@@ -3173,9 +3215,6 @@ mod tests {
         assert_eq!(rebuilt, pairs);
     }
 
-    /// The prior samples keep the overlap samples' count on tangents of 2K and above, twice
-    /// their share below (up to that count): enough for the prior-only level's 43 x 40 grid at
-    /// 1K (one sample per 4 nodes), not at 512 px.
     /// The prior's slope at the join is the geometric-mean line's: exact on a line, about
     /// reciprocal when the roles swap (least squares: the correlation² instead), robust to
     /// outliers.
@@ -3222,6 +3261,9 @@ mod tests {
         assert!(symmetric_line(&p, &line, &vec![0.0; n]).is_none());
     }
 
+    /// The prior samples keep the overlap samples' count on tangents of 2K and above, twice
+    /// their share below (up to that count): enough for the prior-only level's 43 x 40 grid at
+    /// 1K (one sample per 4 nodes), not at 512 px.
     #[test]
     fn prior_samples_keep_the_2k_count_and_twice_the_share_below() {
         let nodes = 43.0 * 40.0;

@@ -544,6 +544,60 @@ mod tests {
         }
     }
 
+    /// Where a prior has holes does not change a level's pattern (so priors with holes in other
+    /// places reuse the kept pattern and Newton analyses), and the Hessian on it still gives
+    /// the gradient (checked against finite differences above with a full prior).
+    #[test]
+    fn priors_with_holes_elsewhere_share_the_pattern() {
+        let (layout, mut maps, options) = setup(Energy::Normalized);
+        standardize(&layout, &mut maps, Offsets::Perspective).expect("standardize");
+        let mut params = options.level_params()[0];
+        params.offsets = Offsets::Perspective;
+        (params.cols, params.rows) = (9, 8);
+        let empty = Overlaps::default();
+        let holed = |from: f64, to: f64| {
+            let mut prior = prior_map(32, false, |d| 1.0 + 0.2 * d.x);
+            let n = prior.values.len() as f64;
+            for v in &mut prior.values[(from * n) as usize..(to * n) as usize] {
+                *v = f32::NAN;
+            }
+            PriorSamples::build(&layout, &maps, &prior, 1.0, 1.0).expect("prior")
+        };
+        let (a, b) = (holed(0.1, 0.3), holed(0.6, 0.8));
+        let problem = |samples: &PriorSamples| {
+            let mut p = Problem::with_prior(
+                &layout,
+                maps.as_slice(),
+                &empty,
+                params,
+                Some((samples, 0.7)),
+            );
+            p.reweight_prior(&p.identity(), false);
+            p
+        };
+        let (pa, pb) = (problem(&a), problem(&b));
+        assert!(pa.prior_samples() > 100 && pb.prior_samples() > 100);
+        assert_ne!(pa.prior_groups.slices(), pb.prior_groups.slices());
+        assert_eq!(pa.pattern.start, pb.pattern.start);
+        assert_eq!(pa.pattern.col, pb.pattern.col);
+        // The energy's gradient (through the pattern's Hessian) against central differences.
+        let x = spread_point(pa.len());
+        let mut g = vec![0.0; x.len()];
+        let _ = pa.energy(&x, Some(&mut g));
+        for i in (0..x.len()).step_by(7).chain([x.len() - 2, x.len() - 1]) {
+            let h = 1e-6;
+            let (mut xp, mut xm) = (x.clone(), x.clone());
+            xp[i] += h;
+            xm[i] -= h;
+            let fd = (pa.energy(&xp, None) - pa.energy(&xm, None)) / (2.0 * h);
+            assert!(
+                (fd - g[i]).abs() <= 1e-5 * g[i].abs().max(1e-3),
+                "{i}: {} vs {fd}",
+                g[i]
+            );
+        }
+    }
+
     /// A prior-only level's Newton step, per tangent with the Schur complement of (α, β), is
     /// the step of one Cholesky over all unknowns.
     #[test]
