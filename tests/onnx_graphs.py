@@ -88,38 +88,28 @@ def channel(path: Path, c: int, *, input_shape: Sequence[Dim] = (1, 3, "H", "W")
 def row_box(path: Path, radius: int) -> Path:
     """output = channel 0 averaged over 2·radius + 1 columns, zero beyond the image's left and
     right borders (a convolution without circular padding): (1, 3, H, W) -> (1, H, W)."""
-    k = 2 * radius + 1
-    weight = np.zeros((1, 3, 1, k), np.float32)
-    weight[0, 0] = 1.0 / k
-    graph = helper.make_graph(
-        [
-            helper.make_node("Conv", ["x", "w"], ["c"], pads=[0, radius, 0, radius]),
-            helper.make_node("Squeeze", ["c", "axis"], ["y"]),
-        ],
-        "row_box",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, "H", "W"])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "H", "W"])],
-        initializer=[
-            numpy_helper.from_array(weight, "w"),
-            numpy_helper.from_array(np.array([1], dtype=np.int64), "axis"),
-        ],
-    )
-    return _save(graph, path)
+    return _row_mean(path, "row_box", 2 * radius + 1, "W", pads=[0, radius, 0, radius])
 
 
 def column_stride(path: Path, stride: int) -> Path:
     """output = channel 0 averaged over each run of ``stride`` columns (no padding, the last
     W mod stride columns dropped): (1, 3, H, W) -> (1, H, W // stride)."""
-    weight = np.zeros((1, 3, 1, stride), np.float32)
-    weight[0, 0] = 1.0 / stride
+    return _row_mean(path, "column_stride", stride, "Wo", strides=[1, stride])
+
+
+def _row_mean(path: Path, name: str, k: int, out_width: str, **conv: list[int]) -> Path:
+    """Channel 0 averaged over k columns by a (1, k) convolution with the attributes ``conv``,
+    squeezed to (1, H, out_width)."""
+    weight = np.zeros((1, 3, 1, k), np.float32)
+    weight[0, 0] = 1.0 / k
     graph = helper.make_graph(
         [
-            helper.make_node("Conv", ["x", "w"], ["c"], strides=[1, stride]),
+            helper.make_node("Conv", ["x", "w"], ["c"], **conv),
             helper.make_node("Squeeze", ["c", "axis"], ["y"]),
         ],
-        "column_stride",
+        name,
         [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, "H", "W"])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "H", "Wo"])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, "H", out_width])],
         initializer=[
             numpy_helper.from_array(weight, "w"),
             numpy_helper.from_array(np.array([1], dtype=np.int64), "axis"),
