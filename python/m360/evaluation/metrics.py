@@ -343,9 +343,7 @@ def edge_band(depth: np.ndarray, band: int = 4, jump: float = 0.05) -> np.ndarra
     edges = ((right > jump) | (down > jump)).astype(np.uint8)
     kernel = np.ones((2 * band + 1, 2 * band + 1), np.uint8)
     reach = min(band, edges.shape[1])
-    wrapped = (
-        np.concatenate([edges[:, -reach:], edges, edges[:, :reach]], axis=1) if reach else edges
-    )
+    wrapped = cv2.copyMakeBorder(edges, 0, 0, reach, reach, cv2.BORDER_WRAP)
     dilated = cv2.dilate(wrapped, kernel)
     return np.asarray(dilated[:, reach : reach + edges.shape[1]], dtype=bool)
 

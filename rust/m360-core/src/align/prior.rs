@@ -529,19 +529,15 @@ mod tests {
             problem.hold_prior_slope(0.3);
             // IRLS weights that are not all 1.
             problem.reweight_prior(&x, false);
-            let mut g = vec![0.0; x.len()];
-            let _ = problem.energy(&x, Some(&mut g));
-            let last = x.len() - 2;
-            for i in (0..x.len()).step_by(5).chain([last, last + 1]) {
-                let h = 1e-6;
-                let (mut xp, mut xm) = (x.clone(), x.clone());
-                xp[i] += h;
-                xm[i] -= h;
-                let fd = (problem.energy(&xp, None) - problem.energy(&xm, None)) / (2.0 * h);
-                let rel = (fd - g[i]).abs() / g[i].abs().max(1e-3);
-                assert!(rel < 1e-5, "{energy:?} unknown {i}: {} vs fd {fd}", g[i]);
-            }
+            assert_gradient_matches_finite_differences(&problem, &x, 5);
         }
+    }
+
+    /// The gradient at `x` against finite differences on every `stride`-th unknown and (α, β).
+    fn assert_gradient_matches_finite_differences(problem: &Problem, x: &[f64], stride: usize) {
+        let last = x.len() - 2;
+        let at = (0..x.len()).step_by(stride).chain([last, last + 1]);
+        crate::align::tests::assert_gradient_matches(problem, x, at, 1e-5);
     }
 
     /// Where a prior has holes does not change a level's pattern (so priors with holes in other
@@ -581,21 +577,7 @@ mod tests {
         assert_eq!(pa.pattern.start, pb.pattern.start);
         assert_eq!(pa.pattern.col, pb.pattern.col);
         // The energy's gradient (through the pattern's Hessian) against central differences.
-        let x = spread_point(pa.len());
-        let mut g = vec![0.0; x.len()];
-        let _ = pa.energy(&x, Some(&mut g));
-        for i in (0..x.len()).step_by(7).chain([x.len() - 2, x.len() - 1]) {
-            let h = 1e-6;
-            let (mut xp, mut xm) = (x.clone(), x.clone());
-            xp[i] += h;
-            xm[i] -= h;
-            let fd = (pa.energy(&xp, None) - pa.energy(&xm, None)) / (2.0 * h);
-            assert!(
-                (fd - g[i]).abs() <= 1e-5 * g[i].abs().max(1e-3),
-                "{i}: {} vs {fd}",
-                g[i]
-            );
-        }
+        assert_gradient_matches_finite_differences(&pa, &spread_point(pa.len()), 7);
     }
 
     /// A prior-only level's Newton step, per tangent with the Schur complement of (α, β), is
