@@ -838,13 +838,15 @@ impl Problem {
         params: LevelParams,
         prior: Option<(&PriorSamples, f64)>,
     ) -> Self {
-        let mut problem = Self::unassembled(layout, maps, overlaps, params, prior);
+        let mut problem = Self::unassembled(layout, maps, overlaps, params, prior, true);
         problem.assemble();
         problem
     }
 
     /// [`Problem::with_prior`] without the Hessian: for a caller that reweights (and so
-    /// assembles) before anything reads it.
+    /// assembles) before anything reads it. Without `views` the prior samples' views by the
+    /// other tangents are not found (they serve only the consensus that judges the prior: a
+    /// prior-only level takes its weights from the level before, [`LevelPrior::trust`]).
     #[expect(
         clippy::too_many_lines,
         reason = "sample filter, edges and weights of one problem read best together"
@@ -855,6 +857,7 @@ impl Problem {
         overlaps: &Overlaps,
         params: LevelParams,
         prior: Option<(&PriorSamples, f64)>,
+        views: bool,
     ) -> Self {
         let (h, w) = layout.tangent_shape();
         let n = layout.cameras.len();
@@ -961,7 +964,11 @@ impl Problem {
                     let p = ps.pixel[k] as usize;
                     let (x, y) = ((p % w) as f64, (p / w) as f64);
                     let (c, r, fx, fy) = grid_cell(x, y, w, h, cols, rows);
-                    let range = ps.view_start[k] as usize..ps.view_start[k + 1] as usize;
+                    let range = if views {
+                        ps.view_start[k] as usize..ps.view_start[k + 1] as usize
+                    } else {
+                        0..0
+                    };
                     let views = range
                         .filter_map(|v| {
                             let b = ps.view_tangent[v] as usize;
@@ -1313,28 +1320,35 @@ impl Problem {
     /// [`Problem::reweight_prior`] without reassembling (for a caller that reweights the data
     /// term next, which reassembles once for both).
     fn set_prior_weights(&mut self, x: &[f64], hard: bool) -> f64 {
-        let cols = self.params.cols;
-        let residuals: Vec<f64> = self.prior.as_ref().map_or_else(Vec::new, |prior| {
-            (0..prior.samples.len())
-                .into_par_iter()
-                .map(|k| prior.consensus_residual(k, x, cols))
-                .collect()
-        });
-        let Some(prior) = self.prior.as_mut() else {
-            return 0.0;
+        let (weights, sigma) = self.prior_trust(x, hard);
+        if let Some(prior) = self.prior.as_mut() {
+            prior.weights = weights;
+        }
+        sigma
+    }
+
+    /// The weights [`Problem::set_prior_weights`] gives the prior samples at `x`, and σ.
+    fn prior_trust(&self, x: &[f64], hard: bool) -> (Vec<f64>, f64) {
+        let Some(prior) = self.prior.as_ref() else {
+            return (Vec::new(), 0.0);
         };
+        let cols = self.params.cols;
+        let residuals: Vec<f64> = (0..prior.samples.len())
+            .into_par_iter()
+            .map(|k| prior.consensus_residual(k, x, cols))
+            .collect();
         let sigma = robust_scale(&residuals).max(MIN_PRIOR_SCALE);
         let weights: Vec<f64> = residuals
             .iter()
             .map(|&r| Loss::Cauchy.weight(r, sigma))
             .collect();
-        prior.weights = spread_trust(prior, &weights);
+        let mut weights = spread_trust(prior, &weights);
         if hard {
             // Priors are wrong on whole regions: a sample is trusted no more than its
             // neighbourhood (plus a slack), so the edges of a wrong region, where single samples
             // happen to agree with the tangents, do not pull the level along.
-            let cells = CellMeans::of(prior, &prior.weights, |_| true);
-            for (w, &cell) in prior.weights.iter_mut().zip(&prior.cell) {
+            let cells = CellMeans::of(prior, &weights, |_| true);
+            for (w, &cell) in weights.iter_mut().zip(&prior.cell) {
                 let cap = cells
                     .around(cell as usize)
                     .map_or(1.0, |m| m + NEIGHBOURHOOD_SLACK);
@@ -1344,7 +1358,7 @@ impl Problem {
                 }
             }
         }
-        sigma
+        (weights, sigma)
     }
 
     /// Whether the problem has no unknowns.
@@ -1536,7 +1550,8 @@ impl Problem {
     /// t = (B/2Q)^⅓. That ray is the global scale, which only the weak 1/s term fixes: Newton's
     /// quadratic model misses how its curvature changes along it and converged there only
     /// linearly (3–4 steps on the 8 × 7 level where 2 now suffice; docs/method.md, "Solver").
-    /// Not with the slope anchor, which is not homogeneous: 0 and `x` as it is.
+    /// Not with the slope anchor, which is not homogeneous, nor farther than a factor 2: 0 and
+    /// `x` as it is.
     fn rescale_to_ray_minimum(&self, x: &mut [f64]) -> f64 {
         if self.slope_anchor.is_some() || self.scale_weight <= 0.0 {
             return 0.0;
@@ -1555,6 +1570,12 @@ impl Problem {
             return 0.0;
         }
         let t = (b / (2.0 * q)).cbrt();
+        // Farther than 2× the data hardly fix the scale (a tangent without samples, whose s
+        // only the barrier holds, wants s → ∞): the jump would feed that runaway until the
+        // Hessian lost its last pivot (seen on 144-px layouts); Newton's own steps go there.
+        if !(0.5..=2.0).contains(&t) {
+            return 0.0;
+        }
         for v in x.iter_mut() {
             *v *= t;
         }
@@ -2331,6 +2352,10 @@ pub struct LevelPrior {
     pub confidence: Vec<f64>,
     /// Median |residual| at the end.
     pub residual: f64,
+    /// The weights a prior-only level starting from this level's result gives the prior
+    /// samples (its hard judgement, [`Problem::reweight_prior`]), found here where the
+    /// samples' views by the other tangents are at hand; empty on a prior-only level.
+    pub trust: Vec<f64>,
 }
 
 /// What an alignment could do with the overlap samples it had.
@@ -2661,7 +2686,7 @@ fn solve_levels(
         // before it can pull them (`prior_start`). A schedule of one level takes it there.
         let joins = !levels.is_empty() || i + 1 == schedule.len();
         let term = prior_term.filter(|_| joins);
-        let problem = level_problem(layout, maps, &transform, overlaps, *params, term);
+        let problem = level_problem(layout, maps, &transform, overlaps, *params, term, true);
         // Prior samples support a grid as overlap samples do (a partial panorama with little
         // overlap can still be aligned to its prior).
         let support = problem.samples() + problem.prior_samples();
@@ -2672,25 +2697,22 @@ fn solve_levels(
         let start = prior_start(
             layout, maps, &transform, overlaps, &problem, &levels, options,
         )?;
-        levels.push(solve_level(&mut transform, problem, options, t0, start)?);
+        levels.push(solve_level(
+            &mut transform,
+            problem,
+            options,
+            t0,
+            start,
+            None,
+        )?);
     }
     // The frequency split: a finer level on which only the prior (and the smoothness) acts, so
     // the prior dictates down to `prior_scale_deg` while the tangents keep the detail below.
-    if let (Some(samples), Some(last)) = (prior_samples.as_ref(), levels.last()) {
-        if let Some(params) = prior_level_params(layout, options, &last.params) {
-            let t0 = std::time::Instant::now();
-            let empty = Overlaps::default();
-            let problem = level_problem(layout, maps, &transform, &empty, params, prior_term);
-            let per_tangent = params.cols * params.rows;
-            let mut counts = vec![0usize; n];
-            for &t in &samples.tangent {
-                counts[t as usize] += 1;
-            }
-            if counts.iter().all(|&c| c * NODES_PER_SAMPLE >= per_tangent) {
-                let start =
-                    prior_start(layout, maps, &transform, &empty, &problem, &levels, options)?;
-                levels.push(solve_level(&mut transform, problem, options, t0, start)?);
-            }
+    if let Some(samples) = prior_samples.as_ref() {
+        if let Some(level) =
+            prior_only_level(layout, maps, &mut transform, samples, &levels, options)?
+        {
+            levels.push(level);
         }
     }
     let mut fallback = if skipped {
@@ -2704,12 +2726,19 @@ fn solve_levels(
         params.cols = 2;
         params.rows = 2;
         params.smoothness = params.smoothness.max(AFFINE_SMOOTHNESS);
-        let problem = level_problem(layout, maps, &transform, overlaps, params, prior_term);
+        let problem = level_problem(layout, maps, &transform, overlaps, params, prior_term, true);
         if (problem.samples() + problem.prior_samples()) * NODES_PER_SAMPLE >= n * 4 {
             let start = prior_start(
                 layout, maps, &transform, overlaps, &problem, &levels, options,
             )?;
-            levels.push(solve_level(&mut transform, problem, options, t0, start)?);
+            levels.push(solve_level(
+                &mut transform,
+                problem,
+                options,
+                t0,
+                start,
+                None,
+            )?);
             fallback = Fallback::Affine;
         } else {
             fallback = Fallback::Unaligned;
@@ -2738,6 +2767,50 @@ fn solve_levels(
         },
         transform,
     ))
+}
+
+/// The frequency split's prior-only level after the schedule's `levels`, when its grid is finer
+/// than theirs and every tangent has a prior sample per 4 of its nodes.
+fn prior_only_level(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &mut Transform,
+    samples: &PriorSamples,
+    levels: &[Level],
+    options: &Options,
+) -> Result<Option<Level>> {
+    let Some(last) = levels.last() else {
+        return Ok(None);
+    };
+    let Some(params) = prior_level_params(layout, options, &last.params) else {
+        return Ok(None);
+    };
+    let per_tangent = params.cols * params.rows;
+    let mut counts = vec![0usize; layout.cameras.len()];
+    for &t in &samples.tangent {
+        counts[t as usize] += 1;
+    }
+    if counts.iter().any(|&c| c * NODES_PER_SAMPLE < per_tangent) {
+        return Ok(None);
+    }
+    let t0 = std::time::Instant::now();
+    let empty = Overlaps::default();
+    let term = Some((samples, options.prior_weight));
+    // Judged by the last level (its `trust`): the samples' views are not needed. Its samples
+    // are these (the same maps, the same filter); were they not, judge them here.
+    let trust = last.prior.as_ref().map(|p| p.trust.clone());
+    let build = |views| level_problem(layout, maps, transform, &empty, params, term, views);
+    let mut problem = build(trust.is_none());
+    let trust = match trust {
+        Some(t) if t.len() == problem.prior_samples() => Some(t),
+        Some(_) => {
+            problem = build(true);
+            None
+        }
+        None => None,
+    };
+    let start = prior_start(layout, maps, transform, &empty, &problem, levels, options)?;
+    solve_level(transform, problem, options, t0, start, trust).map(Some)
 }
 
 /// The restore (spread, median) of an alignment with a prior and what was fitted: an absolute
@@ -2780,7 +2853,8 @@ fn prior_fit(
     )
 }
 
-/// The problem of a level on `maps` as `transform` leaves them.
+/// The problem of a level on `maps` as `transform` leaves them (`views`: see
+/// [`Problem::unassembled`]).
 fn level_problem(
     layout: &Layout,
     maps: &[f32],
@@ -2788,10 +2862,11 @@ fn level_problem(
     overlaps: &Overlaps,
     params: LevelParams,
     prior: Option<(&PriorSamples, f64)>,
+    views: bool,
 ) -> Problem {
     let view = Transformed { maps, transform };
     // With a prior, `solve_level` reweights it (and so assembles) before the first solve.
-    let mut problem = Problem::unassembled(layout, &view, overlaps, params, prior);
+    let mut problem = Problem::unassembled(layout, &view, overlaps, params, prior, views);
     if prior.is_none() {
         problem.assemble();
     }
@@ -2864,7 +2939,15 @@ fn prior_start(
         return Ok(Some(x));
     }
     if levels.is_empty() {
-        let alone = level_problem(layout, maps, transform, overlaps, problem.params, None);
+        let alone = level_problem(
+            layout,
+            maps,
+            transform,
+            overlaps,
+            problem.params,
+            None,
+            true,
+        );
         if alone.samples() * NODES_PER_SAMPLE >= alone.scale_nodes() {
             let (fields, _) = solve(
                 &alone,
@@ -2884,13 +2967,15 @@ fn prior_start(
 }
 
 /// Solve one level's `problem` (built from `t0` on) from `start` (identity fields when None),
-/// reweighting it for a robust loss, and add its fields to `transform`.
+/// reweighting it for a robust loss, and add its fields to `transform`. A prior-only level
+/// takes its prior samples' weights from `trust` when given (the level before judged them).
 fn solve_level(
     transform: &mut Transform,
     mut problem: Problem,
     options: &Options,
     t0: std::time::Instant,
     start: Option<Vec<f64>>,
+    trust: Option<Vec<f64>>,
 ) -> Result<Level> {
     let params = problem.params;
     let t1 = std::time::Instant::now();
@@ -2903,7 +2988,15 @@ fn solve_level(
         if prior_only {
             problem.hold_prior_slope(start[node]);
         }
-        problem.reweight_prior(&start, prior_only);
+        match (trust, problem.prior.as_mut()) {
+            (Some(weights), Some(prior)) if prior_only => {
+                prior.weights = weights;
+                problem.assemble();
+            }
+            _ => {
+                problem.reweight_prior(&start, prior_only);
+            }
+        }
     }
     let (mut fields, mut report) = solve(
         &problem,
@@ -2963,6 +3056,11 @@ fn solve_level(
             weights: term.weights.clone(),
             confidence: term.confidence.clone(),
             residual: median_abs(&problem.prior_residuals(&fields)),
+            trust: if prior_only {
+                Vec::new()
+            } else {
+                problem.prior_trust(&fields, true).0
+            },
         }
     });
     fields.truncate(scale_len);
@@ -3174,15 +3272,30 @@ mod tests {
         for energy in [Energy::Paper, Energy::Normalized] {
             let (_, _, problem) = setup(energy, 4, 3);
             let x = trial_point(problem.len());
-            let mut moved = x.clone();
-            let change = problem.rescale_to_ray_minimum(&mut moved);
-            let t = moved[0] / x[0];
-            assert!(
-                (t - 1.0).abs() > 1e-3,
-                "{energy:?}: t = {t}, nothing to check"
+            // Along the ray E(t·x) = t²·Q + B/t: Q and B from two energies, the minimum at
+            // t* = (B/2Q)^⅓. Start 1.5× below it (a start 3× off is left alone).
+            let scaled = |x: &[f64], f: f64| x.iter().map(|v| v * f).collect::<Vec<f64>>();
+            let (e1, e2) = (
+                problem.energy(&x, None),
+                problem.energy(&scaled(&x, 2.0), None),
             );
+            let q = (e2 - 0.5 * e1) / 3.5;
+            let best = ((e1 - q) / (2.0 * q)).cbrt();
+            let far = scaled(&x, best / 3.0);
+            let mut moved = far.clone();
+            let change = problem.rescale_to_ray_minimum(&mut moved);
+            assert!(
+                change.abs() < 1e-300,
+                "{energy:?}: a start 3x off changed {change}"
+            );
+            assert_eq!(moved, far, "{energy:?}: a start 3x off moved");
+            let start = scaled(&x, best / 1.5);
+            let mut moved = start.clone();
+            let change = problem.rescale_to_ray_minimum(&mut moved);
+            let t = moved[0] / start[0];
+            assert!((t - 1.5).abs() < 1e-6, "{energy:?}: t = {t}");
             // The change it reports is the energy's, evaluated sample by sample.
-            let (before, after) = (problem.energy(&x, None), problem.energy(&moved, None));
+            let (before, after) = (problem.energy(&start, None), problem.energy(&moved, None));
             assert!(
                 (after - before - change).abs() <= 1e-9 * before.abs(),
                 "{energy:?}: {change} vs {}",
@@ -3190,9 +3303,8 @@ mod tests {
             );
             // Least along the ray: both neighbours on it cost more.
             for f in [0.999, 1.001] {
-                let near: Vec<f64> = moved.iter().map(|v| v * f).collect();
                 assert!(
-                    problem.energy(&near, None) > after,
+                    problem.energy(&scaled(&moved, f), None) > after,
                     "{energy:?}: factor {f}"
                 );
             }
@@ -3472,7 +3584,15 @@ mod tests {
             transform.standardize(stats.clone());
             for level in &alignment.levels {
                 let direct = Problem::new(&layout, &passes, &overlaps, level.params);
-                let lazy = level_problem(&layout, &maps, &transform, &overlaps, level.params, None);
+                let lazy = level_problem(
+                    &layout,
+                    &maps,
+                    &transform,
+                    &overlaps,
+                    level.params,
+                    None,
+                    true,
+                );
                 assert_eq!(direct.origin, lazy.origin);
                 assert!(
                     direct.samples.len() > 500,

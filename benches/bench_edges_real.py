@@ -1,0 +1,156 @@
+"""Does ``edges="photo"`` help on real photos? ``refine_edges`` against a real network's edges.
+
+There is no true depth for the real panoramas, so the reference is a real network's own
+stitched disparity with the network run at a large input (``--reference-size``, larger than
+the tiles: its edges are as sharp as that network makes them). It is smeared as a network
+that sees each tile ``k`` times smaller would smear it (log disparity shrunk by area by ``k``,
+then brought back bilinearly), and ``m360.stitching.refine_edges`` (the defaults of
+``edges="photo"``) makes the smeared map sharp along the real photo. Printed per smear: the
+median over the photos of the log-disparity AbsRel (|exp(log d − log ref) − 1|) in a 4 px band
+(at 4096, in proportion) around the reference's jumps (over 0.05 in log disparity between
+neighbours) and over the whole map, smeared and refined, and on how many photos the refined
+map is nearer the reference.
+
+The synthetic rooms of ``bench_edges.py`` and ``bench_prior.py`` (their colour edges are
+exactly their depth edges) say 3× better in the band; this is the check on real colour
+statistics and a real network's depth (docs/method.md, "Sharp edges along the photo").
+
+Needs the real data (tests/real_data.py: ``shared/real`` beside the checkout or
+``M360_REAL_DATA``). Run: ``.venv/bin/python benches/bench_edges_real.py [--network pydnet]
+[--reference-size 512] [--smear 3 6]`` (about two minutes for the twelve 1K photos).
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+import _harness as h
+import m360
+import real_data
+from m360.estimators import load_estimator
+
+#: The shared networks with the options their files need (tests/real_data.py, the README there).
+NETWORKS: dict[str, tuple[str, dict[str, Any]]] = {
+    "pydnet": (
+        "mobile_pydnet_dynamic.onnx",
+        {
+            "normalize": "none",
+            "multiple_of": 64,
+            "output_kind": "negated_affine_disparity",
+        },
+    ),
+    "fastdepth": (
+        "fastdepth_dynamic.onnx",
+        {"normalize": "none", "multiple_of": 32, "output_kind": "affine_depth"},
+    ),
+}
+JUMP = 0.05  # log disparity between neighbours that marks a reference edge
+
+
+def load_rgb(path: Path) -> np.ndarray:
+    """The photo as RGB uint8."""
+    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    if bgr is None:
+        raise SystemExit(f"cannot read {path}")
+    return np.ascontiguousarray(bgr[:, :, ::-1])
+
+
+def smear(log_ref: np.ndarray, k: float) -> np.ndarray:
+    """``log_ref`` as a network seeing the tiles ``k`` times smaller would give it."""
+    hgt, wid = log_ref.shape
+    small = cv2.resize(log_ref, (round(wid / k), round(hgt / k)), interpolation=cv2.INTER_AREA)
+    return cv2.resize(small, (wid, hgt), interpolation=cv2.INTER_LINEAR)
+
+
+def edge_band(log_ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
+    """Pixels within 4 px (at a width of 4096, in proportion; at least 1) of a reference jump."""
+    step_x = np.abs(np.roll(log_ref, -1, axis=1) - log_ref)
+    step_y = np.zeros_like(log_ref)
+    step_y[:-1] = np.abs(log_ref[1:] - log_ref[:-1])
+    edges = (np.maximum(step_x, step_y) > JUMP) & valid
+    radius = max(1, round(4 * log_ref.shape[1] / 4096))
+    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
+    band: np.ndarray = cv2.dilate(edges.astype(np.uint8), kernel).astype(bool) & valid
+    return band
+
+
+def abs_rel(log_map: np.ndarray, log_ref: np.ndarray, where: np.ndarray) -> float:
+    return float(np.mean(np.abs(np.expm1(log_map[where] - log_ref[where]))))
+
+
+def one_photo(path: Path, network: str, size: int, smears: list[float]) -> list[list[float]]:
+    """Per smear: band and whole-map AbsRel of the smeared and the refined map."""
+    file, options = NETWORKS[network]
+    estimator = load_estimator(real_data.MODELS / file, input_size=size, **options)
+    rgb = load_rgb(path)
+    ref = m360.estimate(rgb, model=estimator).disparity
+    valid = np.isfinite(ref) & (ref > 0)
+    log_ref = np.log(np.where(valid, ref, np.nanmedian(ref[valid]))).astype(np.float32)
+    band = edge_band(log_ref, valid)
+    out = []
+    for k in smears:
+        log_smeared = smear(log_ref, k)
+        refined = m360.stitching.refine_edges(np.exp(log_smeared), rgb)
+        log_refined = np.log(np.maximum(refined, np.finfo(np.float32).tiny))
+        out.append(
+            [
+                abs_rel(log_smeared, log_ref, band),
+                abs_rel(log_refined, log_ref, band),
+                abs_rel(log_smeared, log_ref, valid),
+                abs_rel(log_refined, log_ref, valid),
+            ]
+        )
+    return out
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--network", choices=sorted(NETWORKS), default="pydnet")
+    parser.add_argument("--reference-size", type=int, default=512, help="network input, px")
+    parser.add_argument("--smear", type=float, nargs="+", default=[3.0, 6.0], metavar="K")
+    parser.add_argument("--photos", type=Path, nargs="*", help="default: the twelve 1K photos")
+    parser.add_argument("--json", type=Path, default=None, metavar="PATH")
+    args = parser.parse_args()
+    if not real_data.PANOS.is_dir():
+        raise SystemExit(real_data.MISSING)
+    photos = args.photos or sorted(real_data.PANOS.glob("*_1k.tonemapped.png"))
+    meta = h.metadata()
+    print(f"m360 {m360.__version__} @ {meta.get('git_commit')}, {args.network}")
+    per_photo = []
+    for path in photos:
+        per_photo.append(one_photo(path, args.network, args.reference_size, args.smear))
+        print(f"  done {path.name}", flush=True)
+    errors = np.array(per_photo)  # photo × smear × (band smeared, band refined, whole …)
+    rows = []
+    for i, k in enumerate(args.smear):
+        med = np.median(errors[:, i], axis=0)
+        nearer = int(np.sum(errors[:, i, 1] < errors[:, i, 0]))
+        rows.append([k, *med.round(4), f"{med[1] / med[0]:.2f}x", f"{nearer}/{len(photos)}"])
+    h.print_table(
+        f"refine_edges on {len(photos)} real photos, {args.network} at "
+        f"{args.reference_size} px as the reference: medians of the log-disparity AbsRel",
+        [
+            "smear k",
+            "band smeared",
+            "band refined",
+            "whole smeared",
+            "whole refined",
+            "band ratio",
+            "refined nearer",
+        ],
+        rows,
+    )
+    if args.json:
+        h.write_json(args.json, rows, meta)
+
+
+if __name__ == "__main__":
+    main()
