@@ -149,17 +149,20 @@ choice!(
 /// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
 /// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
 pub const ROBUST_ROUNDS: usize = 3;
-/// Robust rounds of a level with the prior. Its samples carry the robustness there: their
-/// consensus weights judge the prior against every tangent, the schedule's first level (without
-/// the prior) has had its [`ROBUST_ROUNDS`], and the prior-only level judges once more. On the 4
-/// rooms of `benches/bench_prior.py` (2K / 4K), 3, 2 and 1 rounds gave the same content errors
-/// (0.0124 / 0.0124) and affine errors (0.0097 / 0.0090, 0.0089, 0.0089), the wrong prior
-/// 0.0274 / 0.0258, 0.0275 / 0.0261, 0.0280 / 0.0262 (no prior: 0.0282 / 0.0251); on the 12 real
-/// 1K photos the same gain in correlation with a real prior (median +0.186, least +0.063); each
-/// round costs about 14 ms at any resolution. Without rounds the wrong prior's worst room went
-/// from 0.034 to 0.036 at 2K. (Without a prior one round instead of three on the 8 × 7 level
-/// cost content errors 0.0282 → 0.0285: the rounds stay there.)
+/// Robust rounds of a level with the prior where its consensus is deep ([`DEEP_CONSENSUS`]).
+/// Its samples carry the robustness there: their consensus weights judge the prior against every
+/// tangent, the schedule's first level (without the prior) has had its [`ROBUST_ROUNDS`], and
+/// the prior-only level judges once more. On the 4 rooms of `benches/bench_prior.py` (default
+/// layout, 2K / 4K), 3, 2 and 1 rounds gave the same content errors (0.0124 / 0.0124) and affine
+/// errors (0.0097 / 0.0090, 0.0089, 0.0089), the wrong prior 0.0274 / 0.0258, 0.0275 / 0.0261,
+/// 0.0280 / 0.0262 (no prior: 0.0282 / 0.0251); the 12 real 1K photos gained as much from a
+/// real prior with 1 as with 3. A round costs about 14 ms at any resolution.
 pub const PRIOR_ROBUST_ROUNDS: usize = 1;
+/// Other tangents that see a prior sample's direction, on average, for its consensus to stand in
+/// for the robust rounds: 4.6 on the default layout, 2.8 on the paper's padding, where one round
+/// let a wrong prior through (`tests/test_prior.py`: 0.0025 without a prior, 0.0032 with 3
+/// rounds, 0.0033 with 2, 0.0046 with 1).
+const DEEP_CONSENSUS: f64 = 3.5;
 
 /// Residual scale floor of the prior term (standardised units: the prior's mean absolute
 /// deviation is 1): disagreements within 1 % of the prior's spread are its resampling, not
@@ -1370,6 +1373,20 @@ impl Problem {
             }
         }
         (weights, sigma)
+    }
+
+    /// The robust rounds of this level: [`ROBUST_ROUNDS`], or [`PRIOR_ROBUST_ROUNDS`] with a
+    /// prior whose samples other tangents see [`DEEP_CONSENSUS`] deep on average.
+    fn robust_rounds(&self) -> usize {
+        let deep = self.prior.as_ref().is_some_and(|prior| {
+            let views = prior.views.len() as f64;
+            views >= DEEP_CONSENSUS * prior.samples.len() as f64
+        });
+        if deep {
+            PRIOR_ROBUST_ROUNDS
+        } else {
+            ROBUST_ROUNDS
+        }
     }
 
     /// Whether the problem has no unknowns.
@@ -2708,14 +2725,8 @@ fn solve_levels(
         let start = prior_start(
             layout, maps, &transform, overlaps, &problem, &levels, options,
         )?;
-        levels.push(solve_level(
-            &mut transform,
-            problem,
-            options,
-            t0,
-            start,
-            None,
-        )?);
+        let level = solve_level(&mut transform, problem, options, t0, start, None)?;
+        levels.push(level);
     }
     // The frequency split: a finer level on which only the prior (and the smoothness) acts, so
     // the prior dictates down to `prior_scale_deg` while the tangents keep the detail below.
@@ -2742,14 +2753,8 @@ fn solve_levels(
             let start = prior_start(
                 layout, maps, &transform, overlaps, &problem, &levels, options,
             )?;
-            levels.push(solve_level(
-                &mut transform,
-                problem,
-                options,
-                t0,
-                start,
-                None,
-            )?);
+            let level = solve_level(&mut transform, problem, options, t0, start, None)?;
+            levels.push(level);
             fallback = Fallback::Affine;
         } else {
             fallback = Fallback::Unaligned;
@@ -3021,11 +3026,7 @@ fn solve_level(
     // (windows, mirrors, sky), whatever the data term's loss.
     let has_prior = problem.prior.is_some();
     if (options.loss != Loss::Squared || has_prior) && !prior_only {
-        let rounds = if has_prior {
-            PRIOR_ROBUST_ROUNDS
-        } else {
-            ROBUST_ROUNDS
-        };
+        let rounds = problem.robust_rounds();
         for _ in 0..rounds {
             // Both weights depend on `fields` only: the Hessian is assembled once for both.
             if options.loss == Loss::Squared {

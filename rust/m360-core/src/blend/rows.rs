@@ -645,23 +645,24 @@ fn prior_vote(
     inv_c: f32,
 ) {
     // Branch-free over each run's columns (contiguous), so the loops vectorise: a sample with
-    // no finite distance (its value or the prior unknown) counts as distance 0 and is then
-    // multiplied out (nearest) or given the factor (1 − t) + t = 1 (t is 0 where the prior is
-    // unknown; an invalid sample's weight is not read by the blend).
-    nearest.fill(0.0);
+    // no finite distance (its value or the prior unknown) counts as infinitely far for the
+    // nearest, and as distance 0, given the factor (1 − t) + t = 1, in the weights (t is 0
+    // where the prior is unknown; an invalid sample's weight is not read by the blend). The
+    // nearest sample's Cauchy weight is that of the least squared distance (1/(1 + x) is
+    // monotonic in floating point too): one division per column, not one per sample.
+    nearest.fill(f32::INFINITY);
     for run in &row.runs {
         let cols = run.columns();
         let values = &row.values[run.taps()];
         let near = &mut nearest[cols.clone()];
         for ((&v, &p), n) in values.iter().zip(&prior[cols]).zip(near.iter_mut()) {
             let e = (v - p) * inv_c * (1.0 / PRIOR_TRUST_SCALE);
-            let ok = e.is_finite();
-            let e = if ok { e } else { 0.0 };
-            *n = n.max(f32::from(u8::from(ok)) / (1.0 + e * e));
+            let e2 = if e.is_finite() { e * e } else { f32::INFINITY };
+            *n = n.min(e2);
         }
     }
-    for (t, n) in trust.iter_mut().zip(nearest.iter()) {
-        *t *= n;
+    for (t, &n) in trust.iter_mut().zip(nearest.iter()) {
+        *t *= 1.0 / (1.0 + n);
     }
     for run in &row.runs {
         let cols = run.columns();
