@@ -1577,7 +1577,7 @@ impl Problem {
     /// part), so along the ray E(t·x) = t²·Q + B/t with Q = ½·xᵀHx and B the 1/s term, least at
     /// t = (B/2Q)^⅓. That ray is the global scale, which only the weak 1/s term fixes: Newton's
     /// quadratic model misses how its curvature changes along it and converged there only
-    /// linearly (3–4 steps on the 8 × 7 level where 2 now suffice; docs/method.md, "Solver").
+    /// linearly (3–4 steps on the 8 × 7 level where 2 now suffice; docs/method.md, "Solvers").
     /// Not with the slope anchor, which is not homogeneous, nor farther than a factor 2: 0 and
     /// `x` as it is.
     fn rescale_to_ray_minimum(&self, x: &mut [f64]) -> f64 {
