@@ -7,9 +7,9 @@ that sees each tile ``k`` times smaller would smear it (log disparity shrunk by 
 then brought back bilinearly), and ``m360.stitching.refine_edges`` (the defaults of
 ``edges="photo"``) makes the smeared map sharp along the real photo. Printed per smear: the
 median over the photos of the log-disparity AbsRel (|exp(log d − log ref) − 1|) in a 4 px band
-(at 4096, in proportion) around the reference's jumps (over 0.05 in log disparity between
-neighbours) and over the whole map, smeared and refined, and on how many photos the refined
-map is nearer the reference.
+(at 4096, in proportion) around the reference's jumps (``m360.eval.edge_band``: over 5 % in
+disparity between neighbours) and over the whole map, smeared and refined, and on how many
+photos the refined map is nearer the reference.
 
 The synthetic rooms of ``bench_edges.py`` and ``bench_prior.py`` (their colour edges are
 exactly their depth edges) say 3× better in the band; this is the check on real colour
@@ -52,7 +52,7 @@ NETWORKS: dict[str, tuple[str, dict[str, Any]]] = {
         {"normalize": "none", "multiple_of": 32, "output_kind": "affine_depth"},
     ),
 }
-JUMP = 0.05  # log disparity between neighbours that marks a reference edge
+JUMP = 0.05  # relative disparity jump between neighbours that marks a reference edge
 
 
 def load_rgb(path: Path) -> np.ndarray:
@@ -70,18 +70,6 @@ def smear(log_ref: np.ndarray, k: float) -> np.ndarray:
     return cv2.resize(small, (wid, hgt), interpolation=cv2.INTER_LINEAR)
 
 
-def edge_band(log_ref: np.ndarray, valid: np.ndarray) -> np.ndarray:
-    """Pixels within 4 px (at a width of 4096, in proportion; at least 1) of a reference jump."""
-    step_x = np.abs(np.roll(log_ref, -1, axis=1) - log_ref)
-    step_y = np.zeros_like(log_ref)
-    step_y[:-1] = np.abs(log_ref[1:] - log_ref[:-1])
-    edges = (np.maximum(step_x, step_y) > JUMP) & valid
-    radius = max(1, round(4 * log_ref.shape[1] / 4096))
-    kernel = np.ones((2 * radius + 1, 2 * radius + 1), np.uint8)
-    band: np.ndarray = cv2.dilate(edges.astype(np.uint8), kernel).astype(bool) & valid
-    return band
-
-
 def abs_rel(log_map: np.ndarray, log_ref: np.ndarray, where: np.ndarray) -> float:
     return float(np.mean(np.abs(np.expm1(log_map[where] - log_ref[where]))))
 
@@ -94,7 +82,9 @@ def one_photo(path: Path, network: str, size: int, smears: list[float]) -> list[
     ref = m360.estimate(rgb, model=estimator).disparity
     valid = np.isfinite(ref) & (ref > 0)
     log_ref = np.log(np.where(valid, ref, np.nanmedian(ref[valid]))).astype(np.float32)
-    band = edge_band(log_ref, valid)
+    # The band of bench_prior.py: 4 px at 4096, in proportion (at least 1).
+    radius = max(1, round(4 * ref.shape[1] / 4096))
+    band = m360.eval.edge_band(np.exp(-log_ref), band=radius, jump=JUMP) & valid
     out = []
     for k in smears:
         log_smeared = smear(log_ref, k)
