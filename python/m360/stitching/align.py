@@ -53,7 +53,7 @@ loss
 
 prior_weight, prior_scale_deg
     Used only with ``prior=`` (:mod:`m360.stitching.prior`): the weight λ of the prior term
-    (default 1) and the frequency split in degrees (default 4): a prior-only level with grid
+    (default 1) and the frequency split in degrees (default 3): a prior-only level with grid
     nodes this far apart runs after the schedule, and the tangents are compared with the prior
     averaged over half this radius; finer detail stays the tangents'. Measured in
     benches/bench_prior.py (docs/method.md, "Global prior").

@@ -756,6 +756,9 @@ pub struct Problem {
     /// (α₀, κ) of a term κ·(α − α₀)² that holds the prior's slope (the prior-only level's,
     /// [`Problem::hold_prior_slope`]).
     slope_anchor: Option<(f64, f64)>,
+    /// Weight per tangent node of (s − 1)² + o², which keeps a level's fields near identity (the
+    /// prior-only level's, [`Problem::damp_fields`]); 0 elsewhere.
+    damping: f64,
     /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
     /// of 2×2 node blocks on `pattern`, block `[ss, so, os, oo]` row-major over (s, o) of the
     /// row's node × (s, o) of the column's.
@@ -1062,6 +1065,7 @@ impl Problem {
             scale_weight,
             gauge_weight: GAUGE,
             slope_anchor: None,
+            damping: 0.0,
             pattern: Arc::default(),
             blocks: Vec::new(),
             data_groups: Groups::default(),
@@ -1183,6 +1187,12 @@ impl Problem {
         }
         if let (Some(prior), Some((_, kappa))) = (&self.prior, self.slope_anchor) {
             blocks[pattern.diagonal_at[prior.node as usize] as usize][0] += 2.0 * kappa;
+        }
+        if self.damping > 0.0 {
+            for &i in &pattern.diagonal_at[..self.scale_nodes()] {
+                blocks[i as usize][0] += 2.0 * self.damping;
+                blocks[i as usize][3] += 2.0 * self.damping;
+            }
         }
         self.blocks = blocks;
     }
@@ -1310,6 +1320,17 @@ impl Problem {
         if let Some(prior) = &self.prior {
             let kappa = SLOPE_ANCHOR * prior.scale * prior.samples.len() as f64;
             self.slope_anchor = Some((alpha, kappa));
+        }
+    }
+
+    /// Keep the fields near identity (the maps as the levels before left them): adds
+    /// μ·Σ ((s − 1)² + o²) over the tangents' nodes with μ = `relative`·λ / nodes, so that at
+    /// `relative` = 1 it weighs about as much as the prior term at a node (takes effect at the
+    /// next assembly). For the prior-only level (docs/method.md, "Global prior").
+    pub fn damp_fields(&mut self, relative: f64) {
+        if let Some(prior) = &self.prior {
+            let lambda = prior.scale * prior.samples.len() as f64;
+            self.damping = relative * lambda / self.scale_nodes().max(1) as f64;
         }
     }
 
@@ -1526,6 +1547,13 @@ impl Problem {
         for node in x[..scale_len].chunks_exact(2) {
             energy += self.scale_weight / node[0] + self.gauge_weight * node[1] * node[1];
         }
+        if self.damping > 0.0 {
+            let drift: f64 = x[..scale_len]
+                .chunks_exact(2)
+                .map(|node| (node[0] - 1.0).powi(2) + node[1] * node[1])
+                .sum();
+            energy += self.damping * drift;
+        }
         if let Some(prior) = &self.prior {
             let cols = self.params.cols;
             let count = prior.samples.len();
@@ -1563,7 +1591,8 @@ impl Problem {
             .chunks_exact_mut(2)
             .zip(x[..scale_len].chunks_exact(2))
         {
-            g[0] -= self.scale_weight / (node[0] * node[0]);
+            // H·x holds the damping's 2μ·s; its gradient is 2μ·(s − 1).
+            g[0] -= self.scale_weight / (node[0] * node[0]) + 2.0 * self.damping;
         }
         // H·x holds the anchor's 2κ·α; its gradient is 2κ·(α − α₀).
         if let (Some(prior), Some((alpha0, kappa))) = (&self.prior, self.slope_anchor) {
@@ -1581,7 +1610,7 @@ impl Problem {
     /// Not with the slope anchor, which is not homogeneous, nor farther than a factor 2: 0 and
     /// `x` as it is.
     fn rescale_to_ray_minimum(&self, x: &mut [f64]) -> f64 {
-        if self.slope_anchor.is_some() || self.scale_weight <= 0.0 {
+        if self.slope_anchor.is_some() || self.damping > 0.0 || self.scale_weight <= 0.0 {
             return 0.0;
         }
         let mut hx = vec![0.0; x.len()];
@@ -2930,6 +2959,18 @@ const PRIOR_LEVEL_SMOOTHNESS: f64 = 0.003;
 /// samples.
 const PRIOR_LEVEL_BARRIER: f64 = 0.01;
 
+/// The prior-only level's pull towards identity fields (the maps as the schedule aligned them),
+/// relative to the prior term ([`Problem::damp_fields`]). Without it nothing but the weak
+/// smoothness resisted the prior there: the fields followed the prior's own smooth error, and
+/// where a wrong region's samples had lost their pull they were interpolated from its edges,
+/// so the level carried the wrong region in (a prior 30 % wrong on a fifth of the sphere, one
+/// room at 2K: 0.027 with the schedule alone, 0.028 after the level at 3°, 0.11 at 10°). On 4
+/// synthetic rooms at 2K (content errors, affine errors, the wrong prior; none: 0.0124, 0.0097,
+/// 0.0280): 0.03 gave 0.0120, 0.0096, 0.0227; 0.05 0.0120, 0.0096, 0.0221; 0.1 0.0121, 0.0096,
+/// 0.0216; 0.3 0.0124, 0.0098, 0.0213; 1 0.0132, 0.0099, 0.0212 (docs/method.md, "Global
+/// prior").
+const PRIOR_LEVEL_DAMPING: f64 = 0.05;
+
 /// Where a level with a prior starts: identity fields, with (α, β) from the previous level if
 /// it had the prior; else (α, β) fitted robustly to the tangents' own consensus, so the prior's
 /// first weights judge it against the tangents before it could pull them: the maps as the
@@ -3003,6 +3044,7 @@ fn solve_level(
     if let Some(node) = problem.prior.as_ref().map(|p| 2 * p.node as usize) {
         if prior_only {
             problem.hold_prior_slope(start[node]);
+            problem.damp_fields(PRIOR_LEVEL_DAMPING);
         }
         match (trust, problem.prior.as_mut()) {
             (Some(weights), Some(prior)) if prior_only => {

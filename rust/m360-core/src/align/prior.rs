@@ -525,8 +525,9 @@ mod tests {
             );
             assert!(problem.prior_samples() > 100);
             let x = spread_point(problem.len());
-            // The prior-only level's slope anchor, away from x's α.
+            // The prior-only level's slope anchor, away from x's α, and its damping.
             problem.hold_prior_slope(0.3);
+            problem.damp_fields(0.5);
             // IRLS weights that are not all 1.
             problem.reweight_prior(&x, false);
             assert_gradient_matches_finite_differences(&problem, &x, 5);
