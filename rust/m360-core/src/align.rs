@@ -759,9 +759,9 @@ pub struct Problem {
     /// Weight per tangent node of (s − 1)² + o², which keeps a level's fields near identity (the
     /// prior-only level's, [`Problem::damp_fields`]); 0 elsewhere.
     damping: f64,
-    /// Hessian of the quadratic terms (data, smoothness, gauge), symmetric, in compressed rows
-    /// of 2×2 node blocks on `pattern`, block `[ss, so, os, oo]` row-major over (s, o) of the
-    /// row's node × (s, o) of the column's.
+    /// Hessian of the quadratic terms (data, smoothness, gauge, prior, anchor, damping),
+    /// symmetric, in compressed rows of 2×2 node blocks on `pattern`, block `[ss, so, os, oo]`
+    /// row-major over (s, o) of the row's node × (s, o) of the column's.
     pattern: Arc<Pattern>,
     blocks: Vec<[f64; 4]>,
     /// The data samples grouped by their cells, and the prior samples by theirs: a function of
@@ -2964,7 +2964,7 @@ const PRIOR_LEVEL_BARRIER: f64 = 0.01;
 /// smoothness resisted the prior there: the fields followed the prior's own smooth error, and
 /// where a wrong region's samples had lost their pull they were interpolated from its edges,
 /// so the level carried the wrong region in (a prior 30 % wrong on a fifth of the sphere, one
-/// room at 2K: 0.027 with the schedule alone, 0.028 after the level at 3°, 0.11 at 10°). On 4
+/// room at 2K: 0.027 at 3°, 0.11 at 10°; damped 0.020 at 3°; no prior 0.027). On 4
 /// synthetic rooms at 2K (content errors, affine errors, the wrong prior; none: 0.0124, 0.0097,
 /// 0.0280): 0.03 gave 0.0120, 0.0096, 0.0227; 0.05 0.0120, 0.0096, 0.0221; 0.1 0.0121, 0.0096,
 /// 0.0216; 0.3 0.0124, 0.0098, 0.0213; 1 0.0132, 0.0099, 0.0212 (docs/method.md, "Global
