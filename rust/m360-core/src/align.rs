@@ -2844,6 +2844,8 @@ fn prior_only_level(
     // Judged by the last level (its `trust`): the samples' views are not needed. Its samples
     // are these (the same maps, the same filter); were they not, judge them here.
     let trust = last.prior.as_ref().map(|p| p.trust.clone());
+    #[cfg(test)]
+    let trust = trust.filter(|_| !JUDGE_AFRESH.with(std::cell::Cell::get));
     let build = |views| level_problem(layout, maps, transform, &empty, params, term, views);
     let mut problem = build(trust.is_none());
     let trust = match trust {
@@ -2856,6 +2858,13 @@ fn prior_only_level(
     };
     let start = prior_start(layout, maps, transform, &empty, &problem, levels, options)?;
     solve_level(transform, problem, options, t0, start, trust).map(Some)
+}
+
+#[cfg(test)]
+thread_local! {
+    /// Tests only: the prior-only level judges its samples itself instead of inheriting the
+    /// last level's judgement (`prior::tests`, which checks that both agree).
+    pub(crate) static JUDGE_AFRESH: std::cell::Cell<bool> = const { std::cell::Cell::new(false) };
 }
 
 /// The restore (spread, median) of an alignment with a prior and what was fitted: an absolute

@@ -673,6 +673,58 @@ mod tests {
         }
     }
 
+    /// The prior-only level takes its samples' judgement from the schedule's last level, which
+    /// made it on the same maps at its end; judging them afresh at the level's start gives the
+    /// same weights (a prior wrong on a cap, so that some samples lose their pull) and result.
+    #[test]
+    fn the_prior_only_level_inherits_the_judgement_it_would_make() {
+        let (layout, maps, mut options) = setup(Energy::Normalized);
+        options.prior_scale_deg = 8.0; // a grid this small layout's prior samples support
+        let prior = prior_map(64, false, |d| if d.x > 0.6 { 1.3 } else { 1.0 });
+        let overlaps = Overlaps::build(&layout, options.sample_fraction, 0.0);
+        let run = |afresh: bool| {
+            JUDGE_AFRESH.with(|f| f.set(afresh));
+            let mut out = maps.clone();
+            let alignment = align_with_prior(&layout, &mut out, &overlaps, &options, Some(&prior));
+            JUDGE_AFRESH.with(|f| f.set(false));
+            (out, alignment.expect("align"))
+        };
+        let (inherited, a) = run(false);
+        let (afresh, b) = run(true);
+        let schedule = options.level_params().len();
+        assert_eq!(a.levels.len(), schedule + 1, "the prior-only level ran");
+        let weights = |al: &Alignment| {
+            al.levels[schedule]
+                .prior
+                .as_ref()
+                .expect("prior")
+                .weights
+                .clone()
+        };
+        let (wa, wb) = (weights(&a), weights(&b));
+        assert!(wa.contains(&0.0) && wa.iter().any(|&w| w > 0.0));
+        // The same samples trusted; the weights agree to the rounding of the f32 maps the
+        // fresh judgement reads (the inherited one saw the fields in f64).
+        let flips = wa
+            .iter()
+            .zip(&wb)
+            .filter(|(x, y)| (**x == 0.0) != (**y == 0.0))
+            .count();
+        let apart = wa
+            .iter()
+            .zip(&wb)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0, f64::max);
+        assert_eq!(flips, 0);
+        assert!(apart < 1e-3, "{apart}");
+        let largest = inherited
+            .iter()
+            .zip(&afresh)
+            .map(|(x, y)| (x - y).abs())
+            .fold(0.0f32, f32::max);
+        assert!(largest < 1e-5, "{largest}");
+    }
+
     /// A relative prior 30 % wrong on a cap of about a fifth of the sphere: the tangents agree
     /// with each other there, so the prior's samples lose their pull and the result stays at
     /// the truth (up to the global affine map).
