@@ -2973,7 +2973,7 @@ const PRIOR_LEVEL_BARRIER: f64 = 0.01;
 /// smoothness resisted the prior there: the fields followed the prior's own smooth error, and
 /// where a wrong region's samples had lost their pull they were interpolated from its edges,
 /// so the level carried the wrong region in (a prior 30 % wrong on a fifth of the sphere, one
-/// room at 2K: 0.027 at 3°, 0.11 at 10°; damped 0.020 at 3°; no prior 0.027). On 4
+/// room at 2K: 0.027 at 3°, 0.11 at 10°; damped 0.020 at 3°). On 4
 /// synthetic rooms at 2K (content errors, affine errors, the wrong prior; none: 0.0124, 0.0097,
 /// 0.0280): 0.03 gave 0.0120, 0.0096, 0.0227; 0.05 0.0120, 0.0096, 0.0221; 0.1 0.0121, 0.0096,
 /// 0.0216; 0.3 0.0124, 0.0098, 0.0213; 1 0.0132, 0.0099, 0.0212 (docs/method.md, "Global
