@@ -98,26 +98,47 @@ def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     assert report is not None and 0.1 < report["outvoted"] < 0.4, report
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("scale_deg", [3.0, 10.0])
-def test_a_wrong_region_does_not_leak_in_through_the_prior_only_level(scale_deg: float) -> None:
-    """The default layout at 1K runs the prior-only level. A prior 30 % wrong on a fifth of the
-    sphere does no harm there: where its samples lost their pull, the level's fields stay as the
-    schedule left them instead of following the region's edges in (undamped, this room gave
-    0.0304 at 3° and 0.0615 at 10° against 0.0255 without the prior)."""
+def test_a_wrong_region_of_the_prior_does_no_harm(seed: int, scale_deg: float) -> None:
+    """A prior 30 % wrong on a fifth of the sphere, three rooms at 1K (the default layout runs
+    the prior-only level there): over the whole map the result is within 0.002 of the stitch
+    without the prior, and at the default split also inside the wrong region within 40 % of it.
+
+    Two faults are held here. Undamped, the prior-only level followed the region's edges in where
+    its samples had lost their pull (room 0: 0.0304 at 3° and 0.0615 at 10°, no prior 0.0255).
+    Judged softly (Cauchy weights, never 0), the region kept pulling the schedule's levels:
+    inside it 1.55 and 1.92 times the error without the prior in rooms 1 and 2, and over the
+    whole map 0.0365 against 0.0294 (room 1 at 10°) and 0.0255 against 0.0233 (room 2 at 3°)."""
     width = 1024
     layout = m360.Layout.icosahedron(width)
-    scene = syn.room(0)
+    scene = syn.room(seed)
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
-    wrong = syn.content_errors(exact, 200, blur=0.5)
-    tiles = syn.distort(wrong, 100, field=0.1, noise=0.01)
-    prior = syn.panoramic_prior(
-        scene, 300, regions=(1, 1), region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3)
+    wrong = syn.content_errors(exact, seed + 200, blur=0.5)
+    tiles = syn.distort(wrong, seed + 100, field=0.1, noise=0.01)
+    prior, regions = syn.panoramic_prior(
+        scene,
+        seed + 300,
+        regions=(1, 1),
+        region_share=(0.2, 0.2),
+        region_amplitude=(0.3, 0.3),
+        return_regions=True,
     )
     depth = _distance(scene, width // 2)
-    plain = m360.eval.depth_metrics(m360.stitch(tiles, layout), depth)["abs_rel"]
-    res = m360.stitch(tiles, layout, prior=prior, prior_scale_deg=scale_deg)
-    err = m360.eval.depth_metrics(res, depth)["abs_rel"]
+    # The region map at the prior's size, nearest to each result pixel.
+    rows = np.arange(width // 2) * regions.shape[0] // (width // 2)
+    cols = np.arange(width) * regions.shape[1] // width
+    inside = regions[rows[:, None], cols[None, :]] != 0
+
+    def errors(disparity: np.ndarray) -> tuple[float, float]:
+        whole = m360.eval.depth_metrics(disparity, depth)["abs_rel"]
+        return whole, m360.eval.depth_metrics(disparity, depth, valid=inside)["abs_rel"]
+
+    plain, plain_inside = errors(m360.stitch(tiles, layout))
+    err, err_inside = errors(m360.stitch(tiles, layout, prior=prior, prior_scale_deg=scale_deg))
     assert err < plain + 0.002, (err, plain)
+    if scale_deg == 3.0:
+        assert err_inside < 1.4 * plain_inside, (err_inside, plain_inside)
 
 
 @pytest.mark.parametrize(

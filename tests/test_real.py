@@ -194,7 +194,7 @@ def test_a_real_network_as_the_prior_of_another() -> None:
     padding, and its seam reached the result through the blend's vote until the panoramic
     estimator ran across it), the fit is reported and the prior recorded, and the result agrees
     better with the prior (log-disparity correlation) than the stitch without it, on every
-    panorama and by a median of 0.1 at least (0.19 measured, the least gain 0.06). Until the
+    panorama and by a median of 0.1 at least (0.13 measured, the least gain 0.05). Until the
     prior's slope was fitted symmetrically and held on the prior-only level, a prior these
     tangents barely agree with was fitted a nearly flat slope that flattened them: median gain
     0.08, a park lost 0.09 (docs/method.md, "On real networks"). The two networks disagree a lot

@@ -1340,22 +1340,22 @@ impl Problem {
         self.prior.as_ref().map_or(&[], |p| &p.weights)
     }
 
-    /// Set every prior sample's weight to the Cauchy IRLS weight of its consensus residual at
-    /// `x` (the smallest over the tangents that see its direction: a prior region is outvoted
-    /// only when no tangent agrees with it) with their own scale σ = 1.4826·median|r| (at least
-    /// [`MIN_PRIOR_SCALE`]), and reassemble. With `hard`, weights below [`HARD_TRUST`] become
-    /// 0: for a level where nothing else would resist their pull.
+    /// Judge every prior sample at `x` and reassemble: its weight is the Cauchy IRLS weight of
+    /// its consensus residual (the smallest over the tangents that see its direction: a prior
+    /// region is outvoted only when no tangent agrees with it) at their own scale
+    /// σ = 1.4826·median|r| (at least [`MIN_PRIOR_SCALE`]), at most its neighbourhood's mean
+    /// plus [`NEIGHBOURHOOD_SLACK`], and 0 below [`HARD_TRUST`]: a sample is trusted or not.
     /// Returns σ (0 without a prior).
-    pub fn reweight_prior(&mut self, x: &[f64], hard: bool) -> f64 {
-        let sigma = self.set_prior_weights(x, hard);
+    pub fn reweight_prior(&mut self, x: &[f64]) -> f64 {
+        let sigma = self.set_prior_weights(x);
         self.assemble();
         sigma
     }
 
     /// [`Problem::reweight_prior`] without reassembling (for a caller that reweights the data
     /// term next, which reassembles once for both).
-    fn set_prior_weights(&mut self, x: &[f64], hard: bool) -> f64 {
-        let (weights, sigma) = self.prior_trust(x, hard);
+    fn set_prior_weights(&mut self, x: &[f64]) -> f64 {
+        let (weights, sigma) = self.prior_trust(x);
         if let Some(prior) = self.prior.as_mut() {
             prior.weights = weights;
         }
@@ -1363,7 +1363,7 @@ impl Problem {
     }
 
     /// The weights [`Problem::set_prior_weights`] gives the prior samples at `x`, and σ.
-    fn prior_trust(&self, x: &[f64], hard: bool) -> (Vec<f64>, f64) {
+    fn prior_trust(&self, x: &[f64]) -> (Vec<f64>, f64) {
         let Some(prior) = self.prior.as_ref() else {
             return (Vec::new(), 0.0);
         };
@@ -1378,19 +1378,19 @@ impl Problem {
             .map(|&r| Loss::Cauchy.weight(r, sigma))
             .collect();
         let mut weights = spread_trust(prior, &weights);
-        if hard {
-            // Priors are wrong on whole regions: a sample is trusted no more than its
-            // neighbourhood (plus a slack), so the edges of a wrong region, where single samples
-            // happen to agree with the tangents, do not pull the level along.
-            let cells = CellMeans::of(prior, &weights, |_| true);
-            for (w, &cell) in weights.iter_mut().zip(&prior.cell) {
-                let cap = cells
-                    .around(cell as usize)
-                    .map_or(1.0, |m| m + NEIGHBOURHOOD_SLACK);
-                *w = w.min(cap);
-                if *w < HARD_TRUST {
-                    *w = 0.0;
-                }
+        // Priors are wrong on whole regions: a sample is trusted no more than its neighbourhood
+        // (plus a slack), so the edges of a wrong region, where single samples happen to agree
+        // with the tangents, do not pull the level along; and a sample the consensus doubts
+        // does not pull at all (a Cauchy weight never reaches 0: a fifth of the sphere wrong by
+        // 30 % kept pulling the schedule's levels at weights of 0.2-0.4, docs/method.md).
+        let cells = CellMeans::of(prior, &weights, |_| true);
+        for (w, &cell) in weights.iter_mut().zip(&prior.cell) {
+            let cap = cells
+                .around(cell as usize)
+                .map_or(1.0, |m| m + NEIGHBOURHOOD_SLACK);
+            *w = w.min(cap);
+            if *w < HARD_TRUST {
+                *w = 0.0;
             }
         }
         (weights, sigma)
@@ -1665,18 +1665,19 @@ impl Problem {
     }
 }
 
-/// The prior-only level trusts only prior samples whose weight is at least this (|r| within
+/// Only prior samples whose weight is at least this are trusted, the others weigh 0 (|r| within
 /// 1.2 c of the consensus, c the Cauchy scale): measured on synthetic rooms with a prior 30 %
-/// wrong on a fifth of the sphere (benches/bench_prior.py), ½ let the level follow a third of
-/// the wrong region, 0.8 kept the gain on content errors and lost that.
+/// wrong on a fifth of the sphere (benches/bench_prior.py), on the prior-only level ½ let it
+/// follow a third of the wrong region, 0.8 kept the gain on content errors and lost that.
 const HARD_TRUST: f64 = 0.8;
 
-/// On the prior-only level a sample's weight is at most its trust cell's neighbourhood mean plus
-/// this. Measured on 4 synthetic rooms at 4K with the prior 30 % wrong on a fifth of the sphere
-/// (`benches/bench_prior.py`, slopes held, the level's smoothness at 1/100): no cap 0.0300 (no
-/// prior: 0.0251), slack 0.3 0.0249, 0.2 0.0241, 0.1 0.0226; under content errors with a right
-/// prior 0.0132, 0.0133, 0.0135, 0.0137. With the smoothness at 3/1000 (below), 0.3 let the
-/// wrong prior reach 0.0274 at 4K (the goal: no prior + 0.002) and 0.2 0.0258.
+/// A prior sample's weight is at most its trust cell's neighbourhood mean plus this. Measured
+/// when only the prior-only level judged this way, on 4 synthetic rooms at 4K with the prior
+/// 30 % wrong on a fifth of the sphere (`benches/bench_prior.py`, slopes held, the level's
+/// smoothness at 1/100): no cap 0.0300 (no prior: 0.0251), slack 0.3 0.0249, 0.2 0.0241, 0.1
+/// 0.0226; under content errors with a right prior 0.0132, 0.0133, 0.0135, 0.0137. With the
+/// smoothness at 3/1000 (below), 0.3 let the wrong prior reach 0.0274 at 4K (the goal: no
+/// prior + 0.002) and 0.2 0.0258.
 const NEIGHBOURHOOD_SLACK: f64 = 0.2;
 
 /// The slope anchor's weight κ, per unit of the prior weight λ: a hundred times the prior
@@ -2410,7 +2411,7 @@ pub struct LevelPrior {
     /// Median |residual| at the end.
     pub residual: f64,
     /// The weights a prior-only level starting from this level's result gives the prior
-    /// samples (its hard judgement, [`Problem::reweight_prior`]), found here where the
+    /// samples (its judgement, [`Problem::reweight_prior`]), found here where the
     /// samples' views by the other tangents are at hand; empty on a prior-only level.
     pub trust: Vec<f64>,
 }
@@ -3047,8 +3048,8 @@ fn solve_level(
     let t1 = std::time::Instant::now();
     let start = start.unwrap_or_else(|| problem.identity());
     // A prior-only level (the frequency split's, no overlap samples) judges the prior once, at
-    // its start (the tangents as the schedule aligned them), with hard weights: reweighted from
-    // its own solution it would trust whatever it had just followed.
+    // its start (the tangents as the schedule aligned them): reweighted from its own solution
+    // it would trust whatever it had just followed.
     let prior_only = problem.prior.is_some() && problem.samples() == 0;
     if let Some(node) = problem.prior.as_ref().map(|p| 2 * p.node as usize) {
         if prior_only {
@@ -3061,7 +3062,7 @@ fn solve_level(
                 problem.assemble();
             }
             _ => {
-                problem.reweight_prior(&start, prior_only);
+                problem.reweight_prior(&start);
             }
         }
     }
@@ -3073,18 +3074,18 @@ fn solve_level(
         options.tolerance,
     )?;
     let mut robust_scale = 0.0;
-    // The prior's samples are always reweighted (Cauchy): a prior is wrong on whole regions
-    // (windows, mirrors, sky), whatever the data term's loss.
+    // The prior's samples are always judged again (`Problem::reweight_prior`): a prior is
+    // wrong on whole regions (windows, mirrors, sky), whatever the data term's loss.
     let has_prior = problem.prior.is_some();
     if (options.loss != Loss::Squared || has_prior) && !prior_only {
         let rounds = problem.robust_rounds();
         for _ in 0..rounds {
             // Both weights depend on `fields` only: the Hessian is assembled once for both.
             if options.loss == Loss::Squared {
-                problem.reweight_prior(&fields, false);
+                problem.reweight_prior(&fields);
             } else {
                 if has_prior {
-                    problem.set_prior_weights(&fields, false);
+                    problem.set_prior_weights(&fields);
                 }
                 robust_scale = problem.reweight(&fields, options.loss);
             }
@@ -3127,7 +3128,7 @@ fn solve_level(
             trust: if prior_only {
                 Vec::new()
             } else {
-                problem.prior_trust(&fields, true).0
+                problem.prior_trust(&fields).0
             },
         }
     });

@@ -294,7 +294,7 @@ pub(crate) fn alignment_energy<'py>(
                 });
             }
         }
-        problem.reweight_prior(&at, false);
+        problem.reweight_prior(&at);
         let mut grad = vec![0.0; x.len()];
         let energy = problem.energy(&x, Some(&mut grad));
         Ok::<_, m360_core::CoreError>((energy, grad, x))

@@ -529,7 +529,7 @@ mod tests {
             problem.hold_prior_slope(0.3);
             problem.damp_fields(0.5);
             // IRLS weights that are not all 1.
-            problem.reweight_prior(&x, false);
+            problem.reweight_prior(&x);
             assert_gradient_matches_finite_differences(&problem, &x, 5);
         }
     }
@@ -569,7 +569,7 @@ mod tests {
                 params,
                 Some((samples, 0.7)),
             );
-            p.reweight_prior(&p.identity(), false);
+            p.reweight_prior(&p.identity());
             p
         };
         let (pa, pb) = (problem(&a), problem(&b));
@@ -603,7 +603,7 @@ mod tests {
         assert_eq!(problem.samples(), 0);
         let x = spread_point(problem.len());
         problem.hold_prior_slope(0.3);
-        problem.reweight_prior(&x, false);
+        problem.reweight_prior(&x);
         let mut g = vec![0.0; x.len()];
         let _ = problem.energy(&x, Some(&mut g));
         let mut global = NewtonSystem::new(&problem).expect("global");
@@ -667,8 +667,11 @@ mod tests {
                 "{energy:?} {solver:?}: median relative error {med}"
             );
             assert!((fit.affine.0 - 1.0).abs() < 1e-2, "{fit:?}");
+            // The judgement is hard: a sample beyond 1.2 σ of the consensus weighs 0 even when
+            // right (σ at least MIN_PRIOR_SCALE, here the resampling's floor), about a sixth
+            // here. A perfect prior must not lose more than that.
             if energy == Energy::Normalized {
-                assert!(fit.outvoted < 0.05, "{fit:?}");
+                assert!(fit.outvoted < 0.2, "{fit:?}");
             }
         }
     }
