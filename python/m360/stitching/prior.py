@@ -5,9 +5,10 @@ consistent but coarse ERP map; the tangents give the detail. With ``prior=`` the
 one more term (docs/method.md, "Global prior"): at deterministic sample pixels of every tangent
 its aligned disparity, averaged over ``prior_scale_deg`` degrees (the frequency split: finer
 detail stays the tangents'), is pulled towards α·P + β, with (α, β) solved jointly with the
-fields; each prior sample has its own robust (Cauchy) weight times its ``prior_confidence``, so
-prior regions that the tangents all contradict (windows, mirrors, sky) lose their pull, and
-``prior_weight`` sets the term's weight against the overlaps'.
+fields; each prior sample is judged against the tangents that see its direction (a Cauchy
+weight, capped by its neighbourhood's and 0 below 0.8: trusted or not) and weighs that times its
+``prior_confidence``, so prior regions that the tangents all contradict (windows, mirrors, sky)
+lose their pull, and ``prior_weight`` sets the term's weight against the overlaps'.
 
 Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estimators.kinds`):
 
