@@ -1666,9 +1666,10 @@ impl Problem {
 }
 
 /// Only prior samples whose weight is at least this are trusted, the others weigh 0 (|r| within
-/// 1.2 c of the consensus, c the Cauchy scale): measured on synthetic rooms with a prior 30 %
-/// wrong on a fifth of the sphere (benches/bench_prior.py), on the prior-only level ½ let it
-/// follow a third of the wrong region, 0.8 kept the gain on content errors and lost that.
+/// 1.2 σ of the consensus, half the Cauchy scale c = 2.385 σ): measured on synthetic rooms with
+/// a prior 30 % wrong on a fifth of the sphere (benches/bench_prior.py), on the prior-only level
+/// ½ let it follow a third of the wrong region, 0.8 kept the gain on content errors and lost
+/// that.
 const HARD_TRUST: f64 = 0.8;
 
 /// A prior sample's weight is at most its trust cell's neighbourhood mean plus this. Measured

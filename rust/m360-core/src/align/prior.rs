@@ -668,8 +668,8 @@ mod tests {
             );
             assert!((fit.affine.0 - 1.0).abs() < 1e-2, "{fit:?}");
             // The judgement is hard: a sample beyond 1.2 σ of the consensus weighs 0 even when
-            // right (σ at least MIN_PRIOR_SCALE, here the resampling's floor), about a sixth
-            // here. A perfect prior must not lose more than that.
+            // right (σ at least MIN_PRIOR_SCALE, here the resampling's floor), 0.15 of the pull
+            // here. A perfect prior loses no more than that.
             if energy == Energy::Normalized {
                 assert!(fit.outvoted < 0.2, "{fit:?}");
             }
