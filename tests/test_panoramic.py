@@ -289,6 +289,15 @@ def test_models_check_cli_prints_panoramic_use(graphs: dict[str, Path], capsys) 
     assert code == 0
     assert "--model-kind panoramic --output-kind distance" in out
     assert f"--prior {graphs['distance']} --prior-kind distance" in out
+    # What feeds it, as the prior's own flags (m360 run --prior-normalize …).
+    code = main(["models", "check", str(graphs["distance"]), "--model-kind", "panoramic",
+                 "--normalize", "unit", "--threads", "1"])  # fmt: skip
+    out = capsys.readouterr().out
+    assert code == 0
+    line = next(ln for ln in out.splitlines() if ln.startswith("as a prior:"))
+    assert line.endswith(
+        f"--prior {graphs['distance']} --prior-kind distance --prior-normalize unit"
+    ), line  # its threads are the main model's: not a prior flag
 
 
 # --------------------------------------------------------------------------------------------

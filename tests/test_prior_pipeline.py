@@ -252,11 +252,69 @@ def test_prior_options_are_checked_before_the_network_runs(
         ({"prior": 3}, InputError, "must be an ERP map"),
         ({"prior": good, "prior_kind": "distance", "align": "none"}, InputError, "alignment"),
         ({"prior": str(priors["broken"])}, ModelError, "the prior model cannot be used"),
+        ({"prior_options": {"normalize": "unit"}}, InputError, "need a prior"),
+        (
+            {"prior": good, "prior_kind": "distance", "prior_options": {"normalize": "unit"}},
+            InputError,
+            "go with a prior model given by path",
+        ),
+        (
+            {
+                "prior": load_estimator(str(priors["distance"]), kind="panoramic"),
+                "prior_options": m360.ModelOptions(normalize="unit"),
+            },
+            InputError,
+            "loaded with its own options",
+        ),
+        (
+            {"prior": str(priors["distance"]), "prior_options": {"threads": 2}},
+            InputError,
+            "main model's threads",
+        ),
+        (
+            {"prior": str(priors["distance"]), "prior_options": {"output_kind": "distance"}},
+            InputError,
+            "give prior_kind",
+        ),
+        (
+            {"prior": str(priors["distance"]), "prior_options": {"gamma": 2}},
+            InputError,
+            "no option 'gamma'",
+        ),
+        (
+            {"prior": str(priors["distance"]), "prior_options": {"normalize": "sometimes"}},
+            InputError,
+            "normalize",
+        ),
+        ({"prior": str(priors["distance"]), "prior_options": 3}, InputError, "m360.ModelOptions"),
         ({"prior": "nowhere/pano.onnx"}, ModelError, "the prior model cannot be used"),
     ]
     for keywords, error, message in cases:
         with pytest.raises(error, match=message):
             m360.estimate(rgb, network, **keywords)
+
+
+@pytest.mark.parametrize("given", ["dict", "ModelOptions"])
+def test_a_prior_model_is_fed_as_prior_options_say(
+    room: tuple, network: SimulatedEstimator, stitched: list, tmp_path: Path, given: str
+) -> None:
+    # The prior network outputs the mean over RGB of what it is fed, so the map the stitch gets
+    # shows the normalisation: raw 0-255 values are 255 × the unit ones, and (x − ½)/½ is
+    # 2·unit − 1, exactly (every step in between is linear); its size is the input size asked.
+    model = str(g.affine_of_mean(tmp_path / "mean.onnx", 1.0, 0.0))
+
+    def prior_map(**feed: Any) -> np.ndarray:
+        options = feed if given == "dict" else m360.ModelOptions(**feed)
+        m360.estimate(room[0], network, prior=model, prior_options=options, **FAST)
+        return np.asarray(stitched[-1]["prior"], np.float64)
+
+    unit = prior_map(input_size=(32, 64), normalize="unit")
+    assert unit.shape == (32, 64) and 0.05 < np.nanmean(unit) < 0.95
+    raw = prior_map(input_size=(32, 64), normalize="none")
+    np.testing.assert_allclose(raw, 255 * unit, rtol=1e-5)
+    centred = prior_map(input_size=(32, 64), mean=(0.5, 0.5, 0.5), std=(0.5, 0.5, 0.5))
+    np.testing.assert_allclose(centred, 2 * unit - 1, rtol=1e-5, atol=1e-5)
+    assert prior_map(input_size=(64, 128), normalize="unit").shape == (64, 128)
 
 
 def test_the_fallback_without_alignment_stitches_without_the_prior(
@@ -410,6 +468,19 @@ def test_cli_run_with_a_prior_model(
     assert code == 0, capsys.readouterr().err
     assert stitched[0]["prior_kind"] == "distance"
     assert _sidecar(tmp_path / "out")["options"]["prior"]["name"] == "distance.onnx"
+    # The prior model's own feed: --prior-* flags, recorded, and a change redoes the image.
+    mean = g.affine_of_mean(tmp_path / "mean.onnx", 1.0, 1.0)
+    fed = [*base, "--prior", str(mean), "--prior-input-size", "32", "64"]
+    assert main([*fed, "--prior-normalize", "unit"]) == 0, capsys.readouterr().err
+    record = _sidecar(tmp_path / "out")["options"]["prior"]
+    assert (record["mean"], record["std"], record["input_size"]) == ([0, 0, 0], [1, 1, 1], [32, 64])
+    assert np.asarray(stitched[-1]["prior"]).shape == (32, 64)
+    calls = len(stitched)
+    assert main([*fed, "--prior-normalize", "unit"]) == 0  # the same: skipped
+    assert len(stitched) == calls
+    assert main([*fed, "--prior-mean", "0.5", "0.5", "0.5", "--prior-std", "1", "1", "1"]) == 0
+    assert len(stitched) == calls + 1
+    assert _sidecar(tmp_path / "out")["options"]["prior"]["mean"] == [0.5, 0.5, 0.5]
     code = main([*base, "--prior", str(priors["broken"])])
     assert code == 1
     assert "the prior model cannot be used" in capsys.readouterr().err

@@ -49,6 +49,7 @@ from .pipeline import masks as m360_masks
 from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
 from .pipeline.options import JobKeywords, PriorKeywords
+from .pipeline.prior import PRIOR_MODEL_OPTIONS
 from .stitching.options import StitchKeywords, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -516,13 +517,25 @@ def _models_check(args: argparse.Namespace) -> int:
     return 0
 
 
-def _flag_text(flags: dict[str, object]) -> str:
-    """``{"multiple_of": 32}`` → ``--multiple-of 32`` (each model option's own flag)."""
+def _flag_text(flags: dict[str, object], *, prior: bool = False) -> str:
+    """``{"multiple_of": 32}`` → ``--multiple-of 32`` (each model option's own flag).
+
+    ``prior``: the flags of a prior model (``--prior-kind`` for its output kind, and the
+    ``--prior-...`` flags of ``prior_options``).
+    """
     entries = definition(ModelKeywords)
+    prior_entries = definition(PriorKeywords)["prior_options"].parts
     parts = []
     for key, value in flags.items():
         shown = " ".join(str(v) for v in value) if isinstance(value, list) else str(value)
-        flag = entries[key].flag_name(key) if key in entries else f"--{key.replace('_', '-')}"
+        if prior and key == "output_kind":
+            flag = "--prior-kind"
+        elif prior and key in prior_entries:
+            flag = prior_entries[key].flag_name(key)
+        elif key in entries:
+            flag = entries[key].flag_name(key)
+        else:
+            flag = f"--{key.replace('_', '-')}"
         parts.append(f"{flag} {shown}")
     return " ".join(parts)
 
@@ -624,18 +637,16 @@ def _check_report(info: dict[str, Any]) -> list[str]:
         lines.append(f"usable:        no: {info['problem']}")
     elif panoramic:
         options = ", ".join(f"{k}={v!r}" for k, v in info["options"].items())
-        prior_flags = {k: v for k, v in info["options"].items() if k != "kind"}
-        as_prior = f"--prior {info['path']}" + (
-            f" --prior-kind {prior_flags.pop('output_kind')}"
-            if "output_kind" in prior_flags
-            else ""
-        )
+        # Its kind first; its providers and threads are the main model's (prior_options takes
+        # neither).
+        prior_flags = {k: v for k, v in info["options"].items() if k == "output_kind"}
+        prior_flags.update((k, v) for k, v in info["options"].items() if k in PRIOR_MODEL_OPTIONS)
+        as_prior = f"--prior {info['path']} " + _flag_text(prior_flags, prior=True)
         lines += [
             "usable:        yes" + (", with the flags below" if flags else ""),
             f"use:           m360 run IN -o OUT --model {info['path']} "
             + _flag_text(info["options"]),
-            f"as a prior:    m360 run IN -o OUT --model TANGENT_MODEL {as_prior}"
-            + ("" if not prior_flags else " (other options: load it in Python)"),
+            f"as a prior:    m360 run IN -o OUT --model TANGENT_MODEL {as_prior.rstrip()}",
             f"python:        m360.ModelOptions({options})",
         ]
     elif not flags:

@@ -110,6 +110,7 @@ class _Settings:
     prior: Any = None
     prior_kind: str | None = None
     prior_confidence: Any = None
+    prior_options: Any = None  # how a prior model given by path or name is fed
     prior_pixels: int = 0  # the prior map's pixels, for the memory check
     panoramic: bool = False  # the model is panoramic (one pass on the whole ERP)
     stereo: dict[str, Any] = field(default_factory=dict)  # m360.io.stereo.StereoKeywords given
@@ -131,6 +132,7 @@ class _Settings:
             self.prior,
             self.prior_kind,
             self.prior_confidence,
+            prior_options=self.prior_options,
             providers=self.model_options.providers,
             threads=self.threads if threads is None else threads,
         )

@@ -460,14 +460,15 @@ def run(
         Every option of :func:`m360.estimate` beyond its named ones, for every image: one list,
         :class:`m360.pipeline.options.EstimateKeywords` (the stitching options, the model
         options, ``working_width``, ``upsample``, ``padding``, ``sky``, and the global prior
-        ``prior``, ``prior_kind``, ``prior_confidence``). ``threads`` is also the core's
-        threads per worker with ``workers > 1`` (default: the CPU count divided among the
-        workers). A prior model (a path or registry name, loaded with ``kind="panoramic"``) is
-        loaded once before any image (a :class:`m360.ModelError` if it cannot be) and runs on
-        each photo; a prior map applies to every image. The resume fingerprint holds the prior
-        (a model's name, sha256, output kind and preprocessing; a map's sha256), so a rerun with
-        another prior redoes the images. Also the stereo formats' ``ipd``, ``pole_fade`` and
-        ``median_distance`` (:class:`m360.io.stereo.StereoKeywords`; see :func:`m360.save`).
+        ``prior``, ``prior_kind``, ``prior_confidence``, ``prior_options``). ``threads`` is also
+        the core's threads per worker with ``workers > 1`` (default: the CPU count divided among
+        the workers). A prior model (a path or registry name, loaded with ``kind="panoramic"``
+        and ``prior_options``) is loaded once before any image (a :class:`m360.ModelError` if it
+        cannot be) and runs on each photo; a prior map applies to every image. The resume
+        fingerprint holds the prior (a model's name, sha256, output kind and preprocessing; a
+        map's sha256), so a rerun with another prior redoes the images. Also the stereo
+        formats' ``ipd``, ``pole_fade`` and ``median_distance``
+        (:class:`m360.io.stereo.StereoKeywords`; see :func:`m360.save`).
 
     Returns
     -------
@@ -531,6 +532,7 @@ def run(
         prior_given.get("prior"),
         prior_given.get("prior_kind"),
         prior_given.get("prior_confidence"),
+        prior_options=prior_given.get("prior_options"),
         providers=model_opts.providers,
         threads=model_opts.threads,
     )
@@ -563,6 +565,7 @@ def run(
         else prior_given.get("prior"),
         prior_kind=prior_given.get("prior_kind"),
         prior_confidence=None if prior is None else prior.confidence,
+        prior_options=prior_given.get("prior_options"),
         prior_pixels=_prior_pixels(prior),
         panoramic=panoramic,
         stereo=checked(stereo_keywords, StereoKeywords),

@@ -232,11 +232,13 @@ def estimate(
           the working-resolution photo at its own size); ``prior_kind``, what it holds
           (``affine_disparity``, ``disparity``, ``affine_depth``, ``distance``; required for a
           map, a model's output kind otherwise); ``prior_confidence``, a map's per-pixel trust
-          in [0, 1]. The prior is fitted to the job (an ERP grid no larger than the working
-          ERP, NaN under the masks) and given to :func:`m360.stitch`, whose alignment follows
-          it (``align="none"`` is refused with a prior); a prior in metres
-          (``disparity``, ``distance``) gives the result its metres. ``options["prior"]``
-          records it (kind, model name and sha256, or ``"array"``).
+          in [0, 1]; ``prior_options``, how a model given by path or name is fed (an
+          :class:`m360.ModelOptions` or a dict of its ``input_size``, ``resize``,
+          ``multiple_of``, ``normalize``, ``mean``, ``std``). The prior is fitted to the job
+          (an ERP grid no larger than the working ERP, NaN under the masks) and given to
+          :func:`m360.stitch`, whose alignment follows it (``align="none"`` is refused with a
+          prior); a prior in metres (``disparity``, ``distance``) gives the result its metres.
+          ``options["prior"]`` records it (kind, model name and sha256, or ``"array"``).
 
         With a panoramic model (``kind="panoramic"``, or a panoramic estimator object) the
         network runs once on the whole photo at its own size and its map is upsampled to the
@@ -440,6 +442,7 @@ def _load_prior(
         given.get("prior"),
         given.get("prior_kind"),
         given.get("prior_confidence"),
+        prior_options=given.get("prior_options"),
         providers=None if model_opts is None else model_opts.providers,
         threads=None if model_opts is None else model_opts.threads,
     )

@@ -10,9 +10,10 @@ lists (m360._keywords).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from typing import Annotated, Any, TypedDict
 
-from .._keywords import Option, document
+from .._keywords import Option, definition, document
 from .._validate import one_of
 from ..estimators.options import ModelKeywords
 from ..geometry.layout import DEFAULT_PADDING, PAPER_PADDING, default_layout
@@ -21,7 +22,13 @@ from ..stitching.options import StitchKeywords
 from ..stitching.upsample import UPSAMPLE_METHODS
 from .masks import SKY_MODES, SKY_THRESHOLD
 from .memory import DEFAULT_WORKING_WIDTH, NATIVE_WIDTH_LIMIT, check_working_width
-from .prior import PRIOR_KINDS, check_prior, check_prior_confidence
+from .prior import (
+    PRIOR_KINDS,
+    PRIOR_MODEL_OPTIONS,
+    check_prior,
+    check_prior_confidence,
+    check_prior_options,
+)
 
 __all__ = ["EstimateKeywords", "JobKeywords", "PriorKeywords"]
 
@@ -115,6 +122,20 @@ class JobKeywords(TypedDict, total=False):
     ]
 
 
+def _prior_model_flags() -> dict[str, Option]:
+    """Give the flags of ``prior_options``: the model options' own, named ``--prior-...``."""
+    flags = {}
+    for key in PRIOR_MODEL_OPTIONS:
+        option = definition(ModelKeywords)[key]
+        flags[key] = dataclasses.replace(
+            option,
+            flag="--prior-" + key.replace("_", "-"),
+            aliases=(),
+            help=f"as {option.flag_name(key)}, for a prior model given by path or name",
+        )
+    return flags
+
+
 @document
 class PriorKeywords(TypedDict, total=False):
     """The global prior: what the whole sphere looks like at a low resolution (docs/method.md)."""
@@ -151,6 +172,17 @@ class PriorKeywords(TypedDict, total=False):
             metavar="MAP",
         ),
     ]
+    prior_options: Annotated[
+        Any,
+        Option(
+            "how a prior model given by path or name is fed: an m360.ModelOptions or a dict "
+            "of its input_size, resize, multiple_of, normalize, mean and std (on the command "
+            "line --prior-input-size, --prior-normalize …); its providers and threads are the "
+            "main model's",
+            check=lambda v, n: check_prior_options(v, n),
+            parts=_prior_model_flags(),
+        ),
+    ]
 
 
 @document
@@ -161,5 +193,5 @@ class EstimateKeywords(StitchKeywords, ModelKeywords, JobKeywords, PriorKeywords
     :mod:`m360.blend`), the model options (``providers``, ``threads``, ``input_size``,
     ``kind``, ``output_kind``, ``mean``, ``std``), the job's own (``working_width``,
     ``upsample``, ``padding``, ``sky``) and the global prior (``prior``, ``prior_kind``,
-    ``prior_confidence``). None or absent: the default.
+    ``prior_confidence``, ``prior_options``). None or absent: the default.
     """

@@ -13,23 +13,27 @@ from __future__ import annotations
 
 import hashlib
 import os
+from collections.abc import Mapping
 from dataclasses import dataclass
 from typing import Any
 
 import cv2
 import numpy as np
 
+from .._keywords import checked
 from .._validate import erp_map
 from ..errors import InputError, M360Error, ModelError
-from ..estimators import OnnxEstimator, estimator_kind, load_estimator
+from ..estimators import ModelKeywords, ModelOptions, OnnxEstimator, estimator_kind, load_estimator
 from ..estimators.kinds import PANORAMIC_METRIC_KINDS, PANORAMIC_OUTPUT_KINDS
 
 __all__ = [
     "PRIOR_KINDS",
+    "PRIOR_MODEL_OPTIONS",
     "Prior",
     "as_keywords",
     "check_prior",
     "check_prior_confidence",
+    "check_prior_options",
     "describe",
     "fit_to_job",
     "is_model",
@@ -45,6 +49,24 @@ METRIC_PRIOR_KINDS: tuple[str, ...] = PANORAMIC_METRIC_KINDS
 #: A ``prior`` path with one of these suffixes is a prior map read from the file
 #: (:func:`m360.io.read_array`); any other path is a model.
 MAP_SUFFIXES: tuple[str, ...] = (".npy", ".pfm", ".exr")
+#: The model options (:class:`m360.estimators.ModelKeywords`) a prior model given by path or
+#: name takes in ``prior_options``: how it is fed. Its role is panoramic, its output kind is
+#: ``prior_kind``, and it runs on the main model's providers and threads.
+PRIOR_MODEL_OPTIONS: tuple[str, ...] = (
+    "input_size",
+    "resize",
+    "multiple_of",
+    "normalize",
+    "mean",
+    "std",
+)
+#: Where each other model option of a prior model comes from.
+_PRIOR_OPTION_SOURCE = {
+    "kind": "a prior model is always panoramic",
+    "output_kind": "give prior_kind",
+    "providers": "a prior model runs on the main model's providers",
+    "threads": "a prior model runs on the main model's threads",
+}
 
 
 @dataclass(frozen=True)
@@ -133,11 +155,39 @@ def check_prior_confidence(value: Any, name: str = "prior_confidence") -> Any:
     return array
 
 
+def check_prior_options(value: Any, name: str = "prior_options") -> dict[str, Any] | None:
+    """Check a ``prior_options`` option: how a prior model given by path or name is fed.
+
+    An :class:`m360.ModelOptions` or a mapping of :data:`PRIOR_MODEL_OPTIONS` (``input_size``,
+    ``resize``, ``multiple_of``, ``normalize``, ``mean``, ``std``), each checked as the model
+    option of that name. Returns the options given, as keywords (None for none).
+    """
+    if value is None:
+        return None
+    if isinstance(value, ModelOptions):
+        value = value.keywords()
+    if not isinstance(value, Mapping):
+        raise InputError(
+            f"{name} must be an m360.ModelOptions or a dict of model options, got "
+            f"{type(value).__name__}"
+        )
+    for key in value:
+        if key in _PRIOR_OPTION_SOURCE:
+            raise InputError(f"{name} cannot set {key!r}: {_PRIOR_OPTION_SOURCE[key]}")
+        if key not in PRIOR_MODEL_OPTIONS:
+            raise InputError(
+                f"{name} has no option {key!r}; choose from {', '.join(PRIOR_MODEL_OPTIONS)}"
+            )
+    given = checked({k: v for k, v in value.items() if v is not None}, ModelKeywords)
+    return given or None
+
+
 def load_prior(
     prior: Any,
     prior_kind: str | None = None,
     prior_confidence: Any = None,
     *,
+    prior_options: Any = None,
     providers: Any = None,
     threads: int | None = None,
 ) -> Prior | None:
@@ -155,6 +205,10 @@ def load_prior(
         own, which a different ``prior_kind`` contradicts).
     prior_confidence : (Hp, Wp) array in [0, 1], optional
         Per-pixel trust in an array prior (same shape).
+    prior_options : ModelOptions or dict, optional
+        How a prior model given by path or name is fed (:func:`check_prior_options`: its
+        input size, resize, multiple_of, normalize, mean, std); refused for a map or an
+        estimator object (load that one with its options).
     providers, threads : optional
         ONNX Runtime's providers and threads for a prior model given by path or name (the
         main model's, so that a GPU run runs both on the GPU).
@@ -183,10 +237,17 @@ def load_prior(
             f"{', '.join(PRIOR_KINDS)}{extra}"
         )
     confidence = check_prior_confidence(prior_confidence)
+    feed = check_prior_options(prior_options)
     if value is None:
-        if prior_kind is not None or confidence is not None:
-            raise InputError("prior_kind and prior_confidence need a prior")
+        if prior_kind is not None or confidence is not None or feed is not None:
+            raise InputError("prior_kind, prior_confidence and prior_options need a prior")
         return None
+    named_model = isinstance(value, str) and os.path.splitext(value)[1].lower() not in MAP_SUFFIXES
+    if feed is not None and not named_model:
+        raise InputError(
+            "prior_options go with a prior model given by path or name; a map is not run, "
+            "and an estimator object is loaded with its own options"
+        )
     if isinstance(value, str) and os.path.splitext(value)[1].lower() in MAP_SUFFIXES:
         from ..io import read_array
 
@@ -214,6 +275,7 @@ def load_prior(
                 output_kind=prior_kind,
                 providers=providers,
                 threads=threads,
+                **(feed or {}),
             )
         except ModelError as exc:
             raise ModelError(f"the prior model cannot be used: {exc}") from exc
