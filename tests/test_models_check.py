@@ -253,6 +253,35 @@ def test_the_guess_against_an_independent_oracle() -> None:
     assert _probe.rank_correlation(a, b) == pytest.approx(scipy_stats.spearmanr(a, b)[0])
 
 
+def test_the_normalisation_hint_follows_the_declared_kind() -> None:
+    # The rule on scores given here (the oracle): a declared kind's sign must hold; the winner
+    # must follow depth (0.3) and lead the next by 0.12.
+    fastdepth_as_pano = {"imagenet": 0.18, "unit": 0.27, "none": -0.77}  # measured, stop 39
+    assert _probe.best_normalisation(fastdepth_as_pano) == "none"  # no kind: either sign
+    assert _probe.best_normalisation(fastdepth_as_pano, +1) is None  # a depth must grow
+    assert _probe.best_normalisation(fastdepth_as_pano, -1) == "none"  # a disparity falls
+    fastdepth_tangent = {"imagenet": 0.52, "unit": 0.82, "none": -0.46}
+    for direction in (0, +1):
+        assert _probe.best_normalisation(fastdepth_tangent, direction) == "unit"
+    assert _probe.best_normalisation({"unit": 0.5, "imagenet": 0.45}) is None  # no clear lead
+    assert _probe.best_normalisation({"unit": -0.9, "imagenet": 0.5}, +1) == "imagenet"
+    assert _probe.best_normalisation({"unit": 0.9}) is None  # nothing to compare with
+    assert _probe.DEPTH_DIRECTION.keys() == set(m360.estimators.kinds.ALL_OUTPUT_KINDS)
+
+
+def test_a_real_panoramic_depth_is_not_told_to_take_raw_input() -> None:
+    # The shared FastDepth run on the probe corridor as one panorama: on raw 0-255 input its
+    # output falls with distance (-0.77), which once made check name --normalize none for a
+    # model declared as a depth; the depth it declares must grow with distance.
+    path = REAL / "fastdepth_dynamic.onnx"
+    if not path.is_file():
+        pytest.skip(f"real networks not available ({REAL} is absent)")
+    info = models.check(path, kind="panoramic", output_kind="affine_depth")
+    assert info["usable"]
+    assert info["normalize_scores"]["none"] < -0.3  # the trap is there
+    assert info["normalize_guess"] != "none" and info["flags"].get("normalize") != "none"
+
+
 def test_probe_size_gives_odd_multiples_nearest() -> None:
     from m360.estimators.onnx import probe_size
 

@@ -22,7 +22,15 @@ import numpy as np
 from ..evaluation import synthetic
 from ..geometry.sphere import camera_pixel_directions, erp_directions
 
-__all__ = ["KindGuess", "erp_views", "guess_kind", "rank_correlation", "views"]
+__all__ = [
+    "DEPTH_DIRECTION",
+    "KindGuess",
+    "best_normalisation",
+    "erp_views",
+    "guess_kind",
+    "rank_correlation",
+    "views",
+]
 
 #: |rank correlation| with depth below which the output is taken not to follow depth at all.
 FOLLOWS_DEPTH = 0.3
@@ -34,6 +42,15 @@ METRIC_FACTOR = 3.0
 #: hint: brightness and normalisation are confounded (a dark scene under ImageNet's constants
 #: looks like a normal one in [0, 1]), so only a clear lead counts.
 NORMALIZE_MARGIN = 0.12
+#: Whether a network's raw output of each kind grows (+1) or falls (−1) with depth.
+DEPTH_DIRECTION: dict[str, int] = {
+    "affine_disparity": -1,
+    "disparity": -1,
+    "affine_depth": 1,
+    "metric_depth": 1,
+    "distance": 1,
+    "negated_affine_disparity": 1,
+}
 #: (yaw, pitch) in degrees of the probe views: down the corridor, a little to each side, and
 #: more steeply down (the floor's regular depth gradient is what weak networks get right).
 VIEW_ANGLES = ((0.0, -10.0), (15.0, -12.0), (-15.0, -12.0), (0.0, -18.0))
@@ -126,6 +143,25 @@ def erp_views(shape: tuple[int, int]) -> tuple[tuple[np.ndarray, np.ndarray], ..
     rgb.flags.writeable = False
     distance.flags.writeable = False
     return ((rgb, distance),)
+
+
+def best_normalisation(scores: dict[str, float], direction: int = 0) -> str | None:
+    """Name the normalisation under which the output follows depth most clearly, if one does.
+
+    ``scores`` holds the output's rank correlation with depth per named normalisation. With a
+    declared output kind, ``direction`` is its :data:`DEPTH_DIRECTION`: only correlations of
+    that sign count, because an output that runs the other way is a broken input, however
+    strongly it correlates. With 0 (no kind declared) either sign counts. The winner must follow
+    depth (:data:`FOLLOWS_DEPTH`) and lead the next by :data:`NORMALIZE_MARGIN`; else None.
+    """
+    strength = {k: (direction * v if direction else abs(v)) for k, v in scores.items()}
+    ranked = sorted(strength, key=lambda k: -strength[k])
+    if len(ranked) < 2:
+        return None
+    best, second = strength[ranked[0]], strength[ranked[1]]
+    if best >= FOLLOWS_DEPTH and best - second >= NORMALIZE_MARGIN:
+        return ranked[0]
+    return None
 
 
 def rank_correlation(a: np.ndarray, b: np.ndarray) -> float:

@@ -735,12 +735,11 @@ def _probe_scene(
     }
     named = {k: v for k, v in scores.items() if k != "as given"}
     info["normalize_scores"] = {k: round(v, 3) for k, v in named.items()}
-    ranked = sorted(named, key=lambda k: -abs(named[k]))
-    guess = None
-    if len(ranked) >= 2:
-        best, second = abs(named[ranked[0]]), abs(named[ranked[1]])
-        if best >= _probe.FOLLOWS_DEPTH and best - second >= _probe.NORMALIZE_MARGIN:
-            guess = ranked[0]
+    # A declared kind says which way the output must follow depth (the shared FastDepth as a
+    # panoramic depth falls with depth on raw 0-255 input, -0.77, and was told to take it).
+    declared = given.get("output_kind") is not None or info["registry"] is not None
+    direction = _probe.DEPTH_DIRECTION.get(est.output_kind, 0) if declared else 0
+    guess = _probe.best_normalisation(named, direction)
     info["normalize_guess"] = guess
     chosen = "as given"
     # A registry entry knows its normalisation, and the user's explicit one wins: a hint only.
