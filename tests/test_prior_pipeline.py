@@ -21,6 +21,7 @@ import onnx_graphs as g
 import pytest
 import ray_helpers
 import real_data
+from check_graphs import unet
 from m360.cli import main
 from m360.errors import InputError, ModelError
 from m360.estimators import SimulatedEstimator, _probe, load_estimator
@@ -315,6 +316,22 @@ def test_a_prior_model_is_fed_as_prior_options_say(
     centred = prior_map(input_size=(32, 64), mean=(0.5, 0.5, 0.5), std=(0.5, 0.5, 0.5))
     np.testing.assert_allclose(centred, 2 * unit - 1, rtol=1e-5, atol=1e-5)
     assert prior_map(input_size=(64, 128), normalize="unit").shape == (64, 128)
+
+
+def test_a_prior_model_that_needs_other_sizes_names_the_prior_flags(
+    room: tuple, network: SimulatedEstimator, stitched: list, tmp_path: Path
+) -> None:
+    # A U-Net that runs only at multiples of 8: as the prior, at 36 x 72 (wrapped at the seam
+    # to a width of 90) it fails, and the hint names the prior's own option, not the model's.
+    model = str(unet(tmp_path / "unet.onnx", levels=3))
+    with pytest.raises(ModelError, match=r"^prior model: unet.onnx: ONNX Runtime failed") as e:
+        m360.estimate(room[0], network, prior=model, prior_options={"input_size": (36, 72)})
+    assert "pass --prior-multiple-of 8 (or prior_options={'multiple_of': 8})" in str(e.value)
+    # As the hint says, it runs.
+    feed = {"input_size": (36, 72), "multiple_of": 8}
+    m360.estimate(room[0], network, prior=model, prior_options=feed, **FAST)
+    given = np.asarray(stitched[-1]["prior"])
+    assert given.shape[1] == 2 * given.shape[0] and np.isfinite(given).all()
 
 
 def test_the_fallback_without_alignment_stitches_without_the_prior(

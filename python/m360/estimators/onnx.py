@@ -227,6 +227,13 @@ class OnnxEstimator:
     expected_normalization : (mean, std), optional
         The normalisation the network was trained with (default ImageNet's).
 
+    Attributes
+    ----------
+    role : {"model", "prior"}
+        What the job uses it as; a prior's error hints name the prior's own options
+        (``--prior-multiple-of``, ``prior_options``). Set by
+        :func:`m360.pipeline.prior.load_prior`.
+
     Notes
     -----
     Sessions are cached per process by (sha256 of the bytes, folder, providers, threads); the
@@ -236,6 +243,8 @@ class OnnxEstimator:
     overshoot at depth edges). uint8 tangents are divided by 255; float tangents are taken as RGB in
     [0, 1].
     """
+
+    role: str = "model"
 
     def __init__(
         self,
@@ -537,10 +546,12 @@ class OnnxEstimator:
         if rule is None:
             return f"{head}; it runs at none of the sizes tried near {h}x{w}; {check}"
         if rule > 1 and (h % rule or w % rule):
-            return (
-                f"{head}: this model needs input sizes that are multiples of {rule}: pass "
-                f"--multiple-of {rule} (or multiple_of={rule})"
+            how = (
+                f"--prior-multiple-of {rule} (or prior_options={{'multiple_of': {rule}}})"
+                if self.role == "prior"
+                else f"--multiple-of {rule} (or multiple_of={rule})"
             )
+            return f"{head}: this model needs input sizes that are multiples of {rule}: pass {how}"
         return f"{head}; other sizes near it run, so the size is not the cause; {check}"
 
     def __repr__(self) -> str:

@@ -279,6 +279,8 @@ def load_prior(
             )
         except ModelError as exc:
             raise ModelError(f"the prior model cannot be used: {exc}") from exc
+        if isinstance(estimator, OnnxEstimator):
+            estimator.role = "prior"  # its error hints name the prior's own options
     else:
         estimator = load_estimator(value, kind="panoramic")
         if prior_kind is not None and prior_kind != estimator.output_kind:
@@ -333,6 +335,10 @@ def run_prior(estimator: Any, image: np.ndarray, what: str = "prior model") -> n
     """
     try:
         raw = estimator.predict(image)
+    except ModelError as exc:
+        if what == "prior model":  # say whose options to change
+            raise ModelError(f"{what}: {exc}") from exc
+        raise
     except M360Error:
         raise
     except Exception as exc:  # a user estimator may raise anything; a batch needs M360Error
