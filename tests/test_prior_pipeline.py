@@ -548,7 +548,7 @@ def local_ray() -> Any:
 
 
 def test_ray_engine_panoramic_model_and_prior_equal_the_local_engine(
-    local_ray: Any, photo_folder: Path, priors: dict[str, Path], tmp_path: Path
+    local_ray: Any, photo_folder: Path, tmp_path: Path
 ) -> None:
     model = g.affine_of_mean(tmp_path / "enc.onnx", 7.0, 0.0)
     pano = {"kind": "panoramic", "output_kind": "distance", "input_size": (64, 128)}
@@ -568,13 +568,17 @@ def test_ray_engine_panoramic_model_and_prior_equal_the_local_engine(
         out = tmp_path / f"prior-{engine}"
         report = m360.batch.run([photo_folder], out, model=str(tangent), engine=engine,
                                 progress=False, input_size=(64, 64), threads=1,
-                                prior=str(priors["distance"]), prior_kind="distance",
+                                prior=str(model), prior_kind="distance",
+                                prior_options={"input_size": (32, 64), "normalize": "unit"},
                                 **FAST)  # fmt: skip
         assert report.exit_code == 0, report.summary()
         runs[engine] = out
     for name in ("room.depth.npy", "room.disparity.npy"):
         assert (runs["local"] / name).read_bytes() == (runs["ray"] / name).read_bytes()
-    assert _sidecar(runs["ray"])["options"]["prior"] == _sidecar(runs["local"])["options"]["prior"]
+    # The prior model's own options reached the model actors (its output depends on them).
+    record = _sidecar(runs["ray"])["options"]["prior"]
+    assert record == _sidecar(runs["local"])["options"]["prior"]
+    assert (record["input_size"], record["mean"], record["std"]) == ([32, 64], [0] * 3, [1] * 3)
 
 
 # --------------------------------------------------------------------------------------------
