@@ -121,6 +121,31 @@ def test_load_accepts_any_file_of_the_set_and_a_format(tmp_path: Path) -> None:
         m360.load(tmp_path / "pano", format="npy")
 
 
+def test_read_map_reads_one_file_of_an_output_or_any_array(tmp_path: Path) -> None:
+    result = _result()
+    m360.save(result, tmp_path / "pano", formats=("png16", "exr"))
+    png16 = m360.load(tmp_path / "pano", format="png16")
+    for quantity in ("disparity", "depth"):
+        # A 16-bit PNG of an output: its codes mapped back by the sidecar, as load does.
+        got = io.read_map(tmp_path / f"pano.{quantity}.png")
+        np.testing.assert_array_equal(got, getattr(png16, quantity))
+        finite = np.isfinite(getattr(result, quantity))
+        assert np.isfinite(got).tolist() == finite.tolist()
+        # A float file of the output: its values, bit for bit.
+        exr = io.read_map(tmp_path / f"pano.{quantity}.exr")
+        assert np.array_equal(exr.view(np.uint32), getattr(result, quantity).view(np.uint32))
+    # A 16-bit PNG another tool wrote (no sidecar): its codes minus one, 0 = unknown.
+    codes = np.array([[0, 1, 1000, 65535], [7, 0, 2, 3]], np.uint16)
+    assert cv2.imwrite(str(tmp_path / "lidar_mm.png"), codes)
+    want = np.where(codes == 0, np.nan, codes.astype(np.float32) - 1)
+    np.testing.assert_array_equal(io.read_map(tmp_path / "lidar_mm.png"), want)
+    # A file named like an output's but without the sidecar is just an array.
+    (tmp_path / "pano.json").unlink()
+    codes_back = cv2.imread(str(tmp_path / "pano.depth.png"), cv2.IMREAD_UNCHANGED)
+    want = np.where(codes_back == 0, np.nan, codes_back.astype(np.float32) - 1)
+    np.testing.assert_array_equal(io.read_map(tmp_path / "pano.depth.png"), want)
+
+
 def test_load_names_a_corrupt_or_missing_file(tmp_path: Path) -> None:
     m360.save(_result(), tmp_path / "pano", formats=("npy", "pfm"))
     (tmp_path / "pano.disparity.npy").write_bytes(b"\x93NUMPY garbage")

@@ -365,6 +365,30 @@ def test_a_prior_map_file(
     assert res.options["prior"]["source"] == "array"
 
 
+def test_a_prior_map_as_a_16_bit_png(
+    room: tuple, network: SimulatedEstimator, stitched: list, tmp_path: Path
+) -> None:
+    # What other tools and LiDAR exports write most: a 16-bit PNG (here millimetres, 0 = no
+    # return). It was taken for an ONNX model ("does not start like an ONNX protobuf").
+    codes = np.random.default_rng(1).integers(1000, 5000, (16, 32)).astype(np.uint16)
+    codes[0, :4] = 0
+    assert cv2.imwrite(str(tmp_path / "lidar_mm.png"), codes)
+    res = m360.estimate(
+        room[0], network, prior=str(tmp_path / "lidar_mm.png"), prior_kind="affine_depth", **FAST
+    )
+    want = np.where(codes == 0, np.nan, codes.astype(np.float32) - 1)
+    np.testing.assert_array_equal(stitched[-1]["prior"], want)
+    assert res.options["prior"]["source"] == "array"
+    # An earlier run's 16-bit PNG output: read with its sidecar, as m360.load reads it.
+    m360.save(res, tmp_path / "earlier", formats=("png16",))
+    m360.estimate(
+        room[0], network, prior=str(tmp_path / "earlier.depth.png"), prior_kind="affine_depth",
+        **FAST,
+    )  # fmt: skip
+    earlier = m360.load(tmp_path / "earlier").depth
+    np.testing.assert_array_equal(stitched[-1]["prior"], earlier)
+
+
 def test_the_memory_estimate_counts_the_prior() -> None:
     layout = m360.geometry.default_layout(2048)
     without = memory.estimate_memory(4096, 2048, "consensus", layout)

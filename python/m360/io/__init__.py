@@ -42,7 +42,7 @@ from .files import (
     save_png,
     write_array,
 )
-from .reading import SavedResult, listed_files, load, read_sidecar
+from .reading import SavedResult, listed_files, load, read_map, read_sidecar
 from .writing import save
 
 __all__ = [
@@ -75,6 +75,7 @@ __all__ = [
     "read_array",
     "read_image",
     "read_input_bytes",
+    "read_map",
     "read_sidecar",
     "reading",
     "remove_stale_temporaries",

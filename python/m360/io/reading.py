@@ -13,6 +13,7 @@ import numpy as np
 
 from ..errors import InputError, ReadError
 from .files import (
+    FORMAT_SUFFIXES,
     QUANTITIES,
     SAVE_FORMATS,
     output_stem,
@@ -93,6 +94,26 @@ def load(stem: str | os.PathLike[str], *, format: str | None = None) -> SavedRes
             )
         arrays[quantity] = values
     return SavedResult(arrays["disparity"], arrays["depth"], meta, base, format)
+
+
+def read_map(path: str | os.PathLike[str]) -> np.ndarray:
+    """Read one (H, W) float32 map from a file: an m360 output's, or any array file.
+
+    A file of an output set (``STEM.depth.png``, ``STEM.disparity.exr`` … with its sidecar
+    ``STEM.json`` beside it) is read as :func:`load` reads it, so a 16-bit PNG's codes are
+    mapped back to values by the sidecar; any other file by :func:`m360.io.read_array` (a
+    16-bit PNG without an m360 sidecar: its codes minus one, 0 = unknown). Raises
+    :class:`m360.ReadError` for a missing, empty or corrupt file.
+    """
+    p = Path(path)
+    stem = output_stem(p)
+    if stem != p and stem.with_name(stem.name + ".json").is_file():
+        for quantity in QUANTITIES:
+            for fmt, suffix in FORMAT_SUFFIXES.items():
+                if p.name == f"{stem.name}.{quantity}{suffix}":
+                    values: np.ndarray = getattr(load(stem, format=fmt), quantity)
+                    return values
+    return read_array(p)
 
 
 def listed_files(meta: Mapping[str, Any], stem: Path) -> dict[str, dict[str, str]]:

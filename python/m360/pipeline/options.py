@@ -146,7 +146,8 @@ class PriorKeywords(TypedDict, total=False):
             "a global prior the alignment pulls the tangents' low frequencies toward: a "
             "panoramic model (an .onnx path or registry name, loaded with kind panoramic and "
             "run on each photo at its own size) or an ERP map (Hp, 2 Hp) of any resolution, "
-            "NaN = unknown (on the command line a .npy, .pfm or .exr file); needs alignment",
+            "NaN = unknown (on the command line a .npy, .pfm, .exr, .tif or 16-bit .png file; "
+            "an m360 output's is read with its sidecar); needs alignment",
             check=lambda v, n: check_prior(v, n),
             parse=str,
             metavar="MODEL|MAP",
@@ -166,7 +167,7 @@ class PriorKeywords(TypedDict, total=False):
         Any,
         Option(
             "per-pixel trust in a prior map, (Hp, Wp) in [0, 1] (on the command line a .npy, "
-            ".pfm or .exr file)",
+            ".pfm, .exr, .tif or 16-bit .png file)",
             check=lambda v, n: check_prior_confidence(v, n),
             parse=str,
             metavar="MAP",

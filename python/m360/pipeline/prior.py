@@ -47,8 +47,9 @@ PRIOR_KINDS: tuple[str, ...] = PANORAMIC_OUTPUT_KINDS
 #: The prior kinds in metres (or 1/metres): with one, the result keeps the prior's scale.
 METRIC_PRIOR_KINDS: tuple[str, ...] = PANORAMIC_METRIC_KINDS
 #: A ``prior`` path with one of these suffixes is a prior map read from the file
-#: (:func:`m360.io.read_array`); any other path is a model.
-MAP_SUFFIXES: tuple[str, ...] = (".npy", ".pfm", ".exr")
+#: (:func:`m360.io.read_map`: an m360 output's map, or an array file; a 16-bit PNG is what
+#: other tools and LiDAR exports write most); any other path is a model.
+MAP_SUFFIXES: tuple[str, ...] = (".npy", ".pfm", ".exr", ".png", ".tif", ".tiff")
 #: The model options (:class:`m360.estimators.ModelKeywords`) a prior model given by path or
 #: name takes in ``prior_options``: how it is fed. Its role is panoramic, its output kind is
 #: ``prior_kind``, and it runs on the main model's providers and threads.
@@ -136,14 +137,15 @@ def check_prior(value: Any, name: str = "prior") -> Any:
 def check_prior_confidence(value: Any, name: str = "prior_confidence") -> Any:
     """Check a ``prior_confidence`` map: (Hp, 2 Hp) in [0, 1] (NaN: 0, unknown).
 
-    A path is read as an array file (:func:`m360.io.read_array`: .npy, .pfm, .exr).
+    A path is read as a map file (:func:`m360.io.read_map`: .npy, .pfm, .exr, .tif, or a
+    16-bit .png).
     """
     if value is None:
         return None
     if isinstance(value, (str, os.PathLike)):
-        from ..io import read_array
+        from ..io import read_map
 
-        value = read_array(value)
+        value = read_map(value)
     array = _erp_map(value, name).copy()
     finite = array[np.isfinite(array)]
     if finite.size and (finite.min() < 0 or finite.max() > 1):
@@ -249,9 +251,9 @@ def load_prior(
             "and an estimator object is loaded with its own options"
         )
     if isinstance(value, str) and os.path.splitext(value)[1].lower() in MAP_SUFFIXES:
-        from ..io import read_array
+        from ..io import read_map
 
-        value = _erp_map(read_array(value), f"prior map {value}")
+        value = _erp_map(read_map(value), f"prior map {value}")
     if isinstance(value, np.ndarray):
         if prior_kind is None:
             raise InputError(
