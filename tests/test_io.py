@@ -139,6 +139,10 @@ def test_read_map_reads_one_file_of_an_output_or_any_array(tmp_path: Path) -> No
     assert cv2.imwrite(str(tmp_path / "lidar_mm.png"), codes)
     want = np.where(codes == 0, np.nan, codes.astype(np.float32) - 1)
     np.testing.assert_array_equal(io.read_map(tmp_path / "lidar_mm.png"), want)
+    # An 8-bit image is refused, saying what is taken instead.
+    assert cv2.imwrite(str(tmp_path / "preview8.png"), codes.astype(np.uint8))
+    with pytest.raises(m360.ReadError, match=r"uint8 values; expected a float map .* 16-bit PNG"):
+        io.read_map(tmp_path / "preview8.png")
     # A file named like an output's but without the sidecar is just an array.
     (tmp_path / "pano.json").unlink()
     codes_back = cv2.imread(str(tmp_path / "pano.depth.png"), cv2.IMREAD_UNCHANGED)

@@ -234,7 +234,10 @@ def read_array(
     if values.dtype == np.uint16 and suffix == ".png":
         return _png16_values(values, png16)
     if values.dtype.kind != "f":
-        raise ReadError(f"{p} holds {values.dtype} values; expected a float map")
+        raise ReadError(
+            f"{p} holds {values.dtype} values; expected a float map (.npy, .pfm, .exr, .tif) or "
+            "a 16-bit PNG (an 8-bit image is too coarse for depth, and often a colour preview)"
+        )
     return values.astype(np.float32, copy=False)  # type: ignore[no-any-return]  # numpy stubs: Any
 
 
