@@ -101,18 +101,16 @@ def read_map(path: str | os.PathLike[str]) -> np.ndarray:
 
     A file of an output set (``STEM.depth.png``, ``STEM.disparity.exr`` … with its sidecar
     ``STEM.json`` beside it) is read as :func:`load` reads it, so a 16-bit PNG's codes are
-    mapped back to values by the sidecar; any other file by :func:`m360.io.read_array` (a
-    16-bit PNG without an m360 sidecar: its codes minus one, 0 = unknown). Raises
-    :class:`m360.ReadError` for a missing, empty or corrupt file.
+    mapped back to values by the sidecar (only that file is read); any other file by
+    :func:`m360.io.read_array` (a 16-bit PNG without an m360 sidecar: its codes minus one, 0 =
+    unknown). Raises :class:`m360.ReadError` for a missing, empty or corrupt file.
     """
     p = Path(path)
     stem = output_stem(p)
-    if stem != p and stem.with_name(stem.name + ".json").is_file():
+    if stem != p and stem.with_name(stem.name + ".json").is_file() and p.suffix == ".png":
         for quantity in QUANTITIES:
-            for fmt, suffix in FORMAT_SUFFIXES.items():
-                if p.name == f"{stem.name}.{quantity}{suffix}":
-                    values: np.ndarray = getattr(load(stem, format=fmt), quantity)
-                    return values
+            if p.name == f"{stem.name}.{quantity}{FORMAT_SUFFIXES['png16']}":
+                return read_array(p, png16=_png16_params(read_sidecar(stem), quantity, stem))
     return read_array(p)
 
 
