@@ -81,9 +81,46 @@ def test_the_prior_fixes_what_the_tangents_cannot(room: tuple) -> None:
     assert err < plain, (err, plain)
 
 
+def test_consistent_tangents_are_trusted_over_the_priors_smooth_error(room: tuple) -> None:
+    """A deformation shared by all tangents is invisible to their overlaps, so a prior's own
+    smooth error (here +-3 %) would pass into the result in full. Tangents that agree with each
+    other (exact up to per-tangent affine maps: spread 1e-4) move the prior towards them in
+    full: the result stays near the stitch without the prior, far from the prior's error.
+    Tangents with content errors and +-10 % fields (spread 2 %) leave the prior as it is."""
+    cv2 = pytest.importorskip("cv2")
+    layout, tiles, depth, scene = room
+    prior = np.asarray(syn.panoramic_prior(scene, 5, regions=(0, 0)))
+    alone = cv2.resize(prior, (WIDTH, WIDTH // 2), interpolation=cv2.INTER_AREA)
+    prior_err = m360.eval.depth_metrics(alone, depth)["abs_rel"]
+    plain = m360.eval.depth_metrics(m360.stitch(tiles, layout), depth)["abs_rel"]
+    res = m360.stitch(tiles, layout, prior=prior, return_details=True)
+    err = m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
+    report = res.report["prior"]
+    assert report is not None
+    assert report["tangent_share"] == 1.0, report
+    assert report["tangent_spread"] is not None and report["tangent_spread"] < 0.004, report
+    assert err < 0.4 * prior_err and err < plain + 0.001, (err, prior_err, plain)
+
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    wrong = syn.content_errors(exact, 11, regions=(2, 3), amplitude=(0.2, 0.3))
+    rough = syn.distort(wrong, 7, scale=(0.5, 2.0), shift=0.3, field=0.1, noise=0.0)
+    report = m360.stitch(rough, layout, prior=prior, return_details=True).report["prior"]
+    assert report is not None and report["tangent_share"] == 0.0, report
+    assert report["tangent_spread"] is not None and report["tangent_spread"] > 0.012, report
+    # One level: nothing solved without the prior first, so nothing measured or fused.
+    report = m360.stitch(tiles, layout, align=[(4, 3)], prior=prior, return_details=True).report[
+        "prior"
+    ]
+    assert report is not None and report["tangent_spread"] is None, report
+    assert report["tangent_share"] == 0.0, report
+
+
 def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     """A prior 30 % wrong on a fifth of the sphere: most of the wrong region's samples lose
-    their pull, and the result stays as good as without a prior."""
+    their pull, and the result stays as good as without a prior. The outvoted share is about
+    the region's plus what the hard judgement costs right samples beyond 1.2 sigma: 0.36 with
+    the prior as given, 0.43 fused with these exact tangents (the prior's residual scale
+    shrinks, so more right samples fall beyond it; the error is the lower: 0.00271 vs 0.00277)."""
     layout, tiles, depth, scene = room
     h = 64
     prior = 1.0 / _distance(scene, h)
@@ -95,7 +132,7 @@ def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     err = m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
     assert err < plain + 0.002, (err, plain)
     report = res.report["prior"]
-    assert report is not None and 0.1 < report["outvoted"] < 0.4, report
+    assert report is not None and 0.1 < report["outvoted"] < 0.5, report
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])

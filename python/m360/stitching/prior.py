@@ -62,6 +62,13 @@ class PriorReport(TypedDict):
     #: Median |residual| at the prior samples, in standardised units (1 = the prior's mean
     #: absolute deviation).
     residual: float
+    #: The tangents' relative spread (std/mean) where two or more see a prior sample, after
+    #: the first alignment level; None when not measured (a one-level schedule).
+    tangent_spread: float | None
+    #: Share (0-1) of the tangents' low-frequency disagreement with the prior that moved the
+    #: prior before it joined: 1 where the tangents agree to 0.4 %, 0 from 1.2 % (real
+    #: networks: 5-16 %). docs/method.md, "The tangents' own low frequencies".
+    tangent_share: float
 
 
 def check_prior(

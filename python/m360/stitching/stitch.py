@@ -296,6 +296,10 @@ def stitch(
                 outvoted=float(fit["outvoted"]),
                 weight=float(fit["weight"]),
                 residual=float(fit["residual"]),
+                tangent_spread=(
+                    None if fit["tangent_spread"] is None else float(fit["tangent_spread"])
+                ),
+                tangent_share=float(fit["tangent_share"]),
             )
     return StitchResult(
         disparity=disparity,

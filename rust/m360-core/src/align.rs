@@ -29,7 +29,8 @@ use std::sync::{Arc, Mutex, PoisonError};
 mod pattern;
 mod prior;
 mod transform;
-pub use prior::{Prior, PriorFit, PriorSamples};
+use prior::Fusion;
+pub use prior::{Prior, PriorFit, PriorSamples, TRUSTED_SPREAD, UNTRUSTED_SPREAD};
 pub use transform::MapValues;
 use transform::{FactorTable, Transform, Transformed};
 
@@ -993,23 +994,9 @@ impl Problem {
                         .filter_map(|v| {
                             let b = ps.view_tangent[v] as usize;
                             let [xb, yb] = ps.view_xy[v].map(f64::from);
-                            let at = prior::view_corner(ps.view_xy[v], w, h);
-                            let (x0, y0) = (at % w, at / w);
-                            let base = b * tp + at;
                             // The raw corners kept at the build, through this level's
                             // transform (the values `maps.value` would read).
-                            let (raw, step) = (ps.view_raw[v], [0, 1, w, w + 1]);
-                            let corners: [f64; 4] = std::array::from_fn(|c| {
-                                f64::from(maps.through(base + step[c], raw[c]))
-                            });
-                            if corners.iter().any(|v| !v.is_finite()) {
-                                return None;
-                            }
-                            let db = bilinear_weights(xb - x0 as f64, yb - y0 as f64)
-                                .iter()
-                                .zip(&corners)
-                                .map(|(w, v)| w * v)
-                                .sum();
+                            let db = ps.view_value(v, maps, w, h)?;
                             let (cb, rb, bx, by) = grid_cell(xb, yb, w, h, cols, rows);
                             Some(PriorView {
                                 node: (b * per + rb * cols + cb) as u32,
@@ -1715,17 +1702,23 @@ struct CellMeans {
 }
 
 impl CellMeans {
-    /// Over the samples k with `include(k)`.
+    /// Of the sample weights `weights`, over the samples k with `include(k)`.
     fn of(prior: &PriorTerm, weights: &[f64], include: impl Fn(usize) -> bool) -> Self {
-        let cells = prior::TRUST_ROWS * 2 * prior::TRUST_ROWS;
-        let (mut sum, mut count) = (vec![0.0; cells], vec![0.0; cells]);
-        for (k, &w) in weights.iter().enumerate() {
-            if include(k) {
-                sum[prior.cell[k] as usize] += w;
-                count[prior.cell[k] as usize] += 1.0;
-            }
+        let counted: Vec<f64> = (0..weights.len())
+            .map(|k| if include(k) { 1.0 } else { 0.0 })
+            .collect();
+        Self::weighted(&prior.cell, weights, &counted)
+    }
+
+    /// Of `values` at samples in cells `cells`, each counted with its weight in `weights`.
+    fn weighted(cells: &[u32], values: &[f64], weights: &[f64]) -> Self {
+        let count = prior::TRUST_ROWS * 2 * prior::TRUST_ROWS;
+        let (mut sum, mut total) = (vec![0.0; count], vec![0.0; count]);
+        for ((&cell, &v), &w) in cells.iter().zip(values).zip(weights) {
+            sum[cell as usize] += w * v;
+            total[cell as usize] += w;
         }
-        Self { sum, count }
+        Self { sum, count: total }
     }
 
     /// The mean weight over `cell` and its 8 neighbours (wrapping in longitude, cut at the
@@ -2736,16 +2729,33 @@ fn solve_levels(
         .transpose()?;
     let prior_term = prior_samples.as_ref().map(|p| (p, options.prior_weight));
     let n = layout.cameras.len();
-    let mut levels = Vec::with_capacity(options.levels.len());
+    let mut levels: Vec<Level> = Vec::with_capacity(options.levels.len());
     let mut skipped = false;
     let schedule = options.level_params();
+    // The units the alignment restores (the tangents' mean median and spread).
+    let frame = common_frame(&stats);
+    let mut fusion: Option<Fusion> = None;
     for (i, params) in schedule.iter().enumerate() {
         let t0 = std::time::Instant::now();
+        if fusion.is_none() {
+            fusion = fuse_after_first_level(
+                layout,
+                maps,
+                &transform,
+                prior_samples.as_ref(),
+                &levels,
+                frame,
+            );
+        }
+        let samples = fusion
+            .as_ref()
+            .and_then(|f| f.samples.as_ref())
+            .or(prior_samples.as_ref());
         // The prior joins from the schedule's second solved level: the first one, solved
         // without it, is the tangents' own consensus, against which the prior is judged
         // before it can pull them (`prior_start`). A schedule of one level takes it there.
         let joins = !levels.is_empty() || i + 1 == schedule.len();
-        let term = prior_term.filter(|_| joins);
+        let term = samples.map(|p| (p, options.prior_weight)).filter(|_| joins);
         let problem = level_problem(layout, maps, &transform, overlaps, *params, term, true);
         // Prior samples support a grid as overlap samples do (a partial panorama with little
         // overlap can still be aligned to its prior).
@@ -2762,7 +2772,8 @@ fn solve_levels(
     }
     // The frequency split: a finer level on which only the prior (and the smoothness) acts, so
     // the prior dictates down to `prior_scale_deg` while the tangents keep the detail below.
-    if let Some(samples) = prior_samples.as_ref() {
+    let fused = fusion.as_ref().and_then(|f| f.samples.as_ref());
+    if let Some(samples) = fused.or(prior_samples.as_ref()) {
         if let Some(level) =
             prior_only_level(layout, maps, &mut transform, samples, &levels, options)?
         {
@@ -2792,20 +2803,13 @@ fn solve_levels(
             fallback = Fallback::Unaligned;
         }
     }
-    let count = stats.len() as f64;
-    let median = stats.iter().map(|s| s.0).sum::<f64>() / count;
-    // Constant tangents (spread 0) say nothing about the scale.
-    let varied = stats.iter().filter(|s| s.1 > 0.0).count();
-    let spread = if varied == 0 {
-        1.0
-    } else {
-        stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
-    };
     let fit = prior_samples
         .as_ref()
         .zip(levels.last().and_then(|l| l.prior.as_ref()))
-        .map(|(samples, level)| prior_fit(samples, level, spread, median, options.prior_weight));
-    let (spread, median) = fit.as_ref().map_or((spread, median), |f| f.0);
+        .map(|(samples, level)| {
+            prior_fit(samples, level, frame, options.prior_weight, fusion.as_ref())
+        });
+    let (spread, median) = fit.as_ref().map_or(frame, |f| f.0);
     transform.restore(spread, median);
     Ok((
         Alignment {
@@ -2815,6 +2819,39 @@ fn solve_levels(
         },
         transform,
     ))
+}
+
+/// The prior fused with the tangents' own low frequencies where they agree well enough
+/// ([`PriorSamples::fused`]), once the schedule's first level, solved without the prior, has
+/// left them as their own consensus; None before that or without a prior.
+fn fuse_after_first_level(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &Transform,
+    samples: Option<&PriorSamples>,
+    levels: &[Level],
+    frame: (f64, f64),
+) -> Option<Fusion> {
+    match (samples, levels) {
+        (Some(samples), [first]) if first.prior.is_none() => {
+            let (h, w) = layout.tangent_shape();
+            samples.fused(&Transformed { maps, transform }, h, w, frame)
+        }
+        _ => None,
+    }
+}
+
+/// (spread, median) the alignment restores: the tangents' mean median and mean spread (constant
+/// tangents, spread 0, say nothing about the scale).
+fn common_frame(stats: &[(f64, f64)]) -> (f64, f64) {
+    let median = stats.iter().map(|s| s.0).sum::<f64>() / stats.len() as f64;
+    let varied = stats.iter().filter(|s| s.1 > 0.0).count();
+    let spread = if varied == 0 {
+        1.0
+    } else {
+        stats.iter().map(|s| s.1).sum::<f64>() / varied as f64
+    };
+    (spread, median)
 }
 
 /// The frequency split's prior-only level after the schedule's `levels`, when its grid is finer
@@ -2871,18 +2908,18 @@ thread_local! {
 }
 
 /// The restore (spread, median) of an alignment with a prior and what was fitted: an absolute
-/// prior's units replace the tangents' mean units.
+/// prior's units replace the tangents' mean units (`frame`), and the fusion is reported.
 fn prior_fit(
     samples: &PriorSamples,
     level: &LevelPrior,
-    spread: f64,
-    median: f64,
+    frame: (f64, f64),
     weight: f64,
+    fusion: Option<&Fusion>,
 ) -> ((f64, f64), PriorFit) {
     let (alpha, beta) = level.affine;
     let (p_median, p_spread) = samples.stats;
     // The maps now match α·(P − m_P)/s_P + β; as the result, v·spread + median.
-    let (mut spread, mut median) = (spread, median);
+    let (mut spread, mut median) = frame;
     if samples.absolute && alpha.abs() > f64::MIN_POSITIVE {
         // Express the result in the prior's units: v ← ((v − β)/α)·s_P + m_P.
         spread = p_spread / alpha;
@@ -2906,6 +2943,8 @@ fn prior_fit(
             outvoted: if pull > 0.0 { lost / pull } else { 0.0 },
             weight,
             residual: level.residual,
+            tangent_spread: fusion.map(|f| f.spread),
+            tangent_share: fusion.map_or(0.0, |f| f.share),
         },
     )
 }

@@ -78,6 +78,8 @@ fn prior_dict<'py>(py: Python<'py>, fit: &PriorFit) -> PyResult<Bound<'py, PyDic
     d.set_item("outvoted", fit.outvoted)?;
     d.set_item("weight", fit.weight)?;
     d.set_item("residual", fit.residual)?;
+    d.set_item("tangent_spread", fit.tangent_spread)?;
+    d.set_item("tangent_share", fit.tangent_share)?;
     Ok(d)
 }
 

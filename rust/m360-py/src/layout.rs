@@ -272,7 +272,9 @@ impl Plan {
     /// `absolute` whether the result is to be expressed in the prior's units. Returns what
     /// `align` does and the prior's fit: a dict `affine` (a, b: the prior in the result's units
     /// is a·P + b), `samples`, `outvoted` (share of the prior's pull lost to its IRLS weights),
-    /// `weight`, `residual` (median |residual|, standardised), or None when no level ran.
+    /// `weight`, `residual` (median |residual|, standardised), `tangent_spread` (the tangents'
+    /// relative spread after the first level, or None) and `tangent_share` (how much of their
+    /// low-frequency disagreement moved the prior), or None when no level ran.
     #[pyo3(signature = (maps, align, prior, prior_confidence=None, absolute=false, in_place=false))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn align_with_prior<'py>(
