@@ -373,9 +373,11 @@ impl PriorSamples {
     /// The median spread s over the samples seen twice or more sets the share
     /// γ = (UNTRUSTED − s)/(UNTRUSTED − TRUSTED) in [0, 1]. The disagreement c − (α·P + β), with
     /// (α, β) fitted as the prior joins ([`super::symmetric_line`]), is low-passed over 6° trust
-    /// cells and their 8 neighbours (≈ 18°, confidence-weighted), its affine part in P removed
+    /// cells and their 8 neighbours (≈ 18°; weighted by confidence and by the Cauchy weight of
+    /// the gap, only where two tangents or more see the sample), its affine part in P removed
     /// (the fusion changes the prior's shape, not its units), and γ of it moves each sample's
-    /// value. None when no sample is seen twice or the fit is degenerate.
+    /// value. None when no sample is seen twice, the fit is degenerate or fewer than
+    /// [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
     pub(super) fn fused<M: MapValues + ?Sized>(
         &self,
         maps: &M,
