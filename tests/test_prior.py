@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import re
 
+import cv2
 import m360
 import m360.synthetic as syn
 import numpy as np
@@ -87,7 +88,6 @@ def test_consistent_tangents_are_trusted_over_the_priors_smooth_error(room: tupl
     other (exact up to per-tangent affine maps: spread 1e-4) move the prior towards them in
     full: the result stays near the stitch without the prior, far from the prior's error.
     Tangents with content errors and +-10 % fields (spread 2 %) leave the prior as it is."""
-    cv2 = pytest.importorskip("cv2")
     layout, tiles, depth, scene = room
     prior = np.asarray(syn.panoramic_prior(scene, 5, regions=(0, 0)))
     alone = cv2.resize(prior, (WIDTH, WIDTH // 2), interpolation=cv2.INTER_AREA)

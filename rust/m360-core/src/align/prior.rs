@@ -412,7 +412,7 @@ impl PriorSamples {
         if (finite as f64) < FUSION_MIN_COVERAGE * self.drawn as f64 {
             return None;
         }
-        let mut spreads: Vec<f64> = consensus
+        let spreads: Vec<f64> = consensus
             .iter()
             .flatten()
             .filter(|c| c.2 >= 2)
@@ -421,8 +421,7 @@ impl PriorSamples {
         if spreads.is_empty() {
             return None;
         }
-        let mid = spreads.len() / 2;
-        let (_, &mut spread, _) = spreads.select_nth_unstable_by(mid, f64::total_cmp);
+        let spread = super::median_abs(&spreads); // spreads are ≥ 0
         let share =
             ((UNTRUSTED_SPREAD - spread) / (UNTRUSTED_SPREAD - TRUSTED_SPREAD)).clamp(0.0, 1.0);
         if share <= 0.0 {
