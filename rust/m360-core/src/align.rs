@@ -29,7 +29,7 @@ use std::sync::{Arc, Mutex, PoisonError};
 mod pattern;
 mod prior;
 mod transform;
-use prior::Fusion;
+use prior::{Consensus, Fusion};
 pub use prior::{Prior, PriorFit, PriorSamples, TRUSTED_SPREAD, UNTRUSTED_SPREAD};
 pub use transform::MapValues;
 use transform::{FactorTable, Transform, Transformed};
@@ -675,6 +675,9 @@ struct PriorView {
 #[derive(Debug, Clone)]
 struct PriorTerm {
     samples: Vec<PriorSample>,
+    /// Index of each sample in the [`PriorSamples`] it came from (those its tangent has no value
+    /// at are left out).
+    source: Vec<u32>,
     /// Sample k's views by the other tangents: `views[view_start[k]..view_start[k + 1]]`.
     view_start: Vec<u32>,
     /// Trust-grid cell of each sample ([`prior::TRUST_ROWS`]).
@@ -974,7 +977,7 @@ impl Problem {
         }
         let prior = prior.map(|(ps, weight)| {
             let node = (n * per) as u32;
-            let built: Vec<(PriorSample, f64, Vec<PriorView>, u32)> = (0..ps.len())
+            let built: Vec<(u32, PriorSample, f64, Vec<PriorView>, u32)> = (0..ps.len())
                 .into_par_iter()
                 .filter_map(|k| {
                     let d = ps.tangent_value(k, maps, tp);
@@ -1007,6 +1010,7 @@ impl Problem {
                         })
                         .collect();
                     Some((
+                        k as u32,
                         PriorSample {
                             node: (t * per + r * cols + c) as u32,
                             frac: [fx, fy],
@@ -1025,7 +1029,9 @@ impl Problem {
             let mut view_start = vec![0u32];
             let mut views = Vec::new();
             let mut cell = Vec::with_capacity(built.len());
-            for (sample, conf, sample_views, c) in built {
+            let mut source = Vec::with_capacity(built.len());
+            for (k, sample, conf, sample_views, c) in built {
+                source.push(k);
                 samples.push(sample);
                 cell.push(c);
                 confidence.push(conf);
@@ -1033,6 +1039,7 @@ impl Problem {
                 view_start.push(views.len() as u32);
             }
             PriorTerm {
+                source,
                 view_start,
                 views,
                 cell,
@@ -1272,6 +1279,31 @@ impl Problem {
     #[must_use]
     pub fn prior_samples(&self) -> usize {
         self.prior.as_ref().map_or(0, |p| p.samples.len())
+    }
+
+    /// The tangents' consensus at each of the `len` prior samples the problem was built from,
+    /// by their index there (None where the sample's own tangent has no value): its own value
+    /// and its views', as the problem's maps read them. None without a prior. Built without
+    /// views ([`Problem::unassembled`]) it holds the own values alone.
+    fn prior_consensus(&self, len: usize) -> Option<Vec<Option<Consensus>>> {
+        let prior = self.prior.as_ref()?;
+        let mut consensus = vec![None; len];
+        for (k, (sample, &i)) in prior.samples.iter().zip(&prior.source).enumerate() {
+            let range = prior.view_start[k] as usize..prior.view_start[k + 1] as usize;
+            let views = prior.views[range].iter().map(|v| v.d);
+            consensus[i as usize] = Some(Consensus::of(std::iter::once(sample.d).chain(views)));
+        }
+        Some(consensus)
+    }
+
+    /// The prior samples' values replaced by `values`, indexed as the samples the problem was
+    /// built from (the fused prior's, [`PriorSamples::fused`]).
+    fn set_prior_values(&mut self, values: &[f64]) {
+        if let Some(prior) = self.prior.as_mut() {
+            for (sample, &i) in prior.samples.iter_mut().zip(&prior.source) {
+                sample.p = values[i as usize];
+            }
+        }
     }
 
     /// Residual of every prior sample at `x`, in sample order (empty without a prior).
@@ -2737,16 +2769,6 @@ fn solve_levels(
     let mut fusion: Option<Fusion> = None;
     for (i, params) in schedule.iter().enumerate() {
         let t0 = std::time::Instant::now();
-        if fusion.is_none() {
-            fusion = fuse_after_first_level(
-                layout,
-                maps,
-                &transform,
-                prior_samples.as_ref(),
-                &levels,
-                frame,
-            );
-        }
         let samples = fusion
             .as_ref()
             .and_then(|f| f.samples.as_ref())
@@ -2756,7 +2778,10 @@ fn solve_levels(
         // before it can pull them (`prior_start`). A schedule of one level takes it there.
         let joins = !levels.is_empty() || i + 1 == schedule.len();
         let term = samples.map(|p| (p, options.prior_weight)).filter(|_| joins);
-        let problem = level_problem(layout, maps, &transform, overlaps, *params, term, true);
+        let mut problem = level_problem(layout, maps, &transform, overlaps, *params, term, true);
+        if fusion.is_none() {
+            fusion = fuse_as_prior_joins(&mut problem, prior_samples.as_ref(), &levels, frame);
+        }
         // Prior samples support a grid as overlap samples do (a partial panorama with little
         // overlap can still be aligned to its prior).
         let support = problem.samples() + problem.prior_samples();
@@ -2822,23 +2847,22 @@ fn solve_levels(
 }
 
 /// The prior fused with the tangents' own low frequencies where they agree well enough
-/// ([`PriorSamples::fused`]), once the schedule's first level, solved without the prior, has
-/// left them as their own consensus; None before that or without a prior.
-fn fuse_after_first_level(
-    layout: &Layout,
-    maps: &[f32],
-    transform: &Transform,
+/// ([`PriorSamples::fused`]), when `problem` is the level the prior joins after the schedule's
+/// first level, solved without it, left the tangents as their own consensus: read off the
+/// problem's prior samples and their views (this level's transform, as a pass of its own would
+/// read them), the fused values then replace the prior's in the problem. None otherwise.
+fn fuse_as_prior_joins(
+    problem: &mut Problem,
     samples: Option<&PriorSamples>,
     levels: &[Level],
     frame: (f64, f64),
 ) -> Option<Fusion> {
-    match (samples, levels) {
-        (Some(samples), [first]) if first.prior.is_none() => {
-            let (h, w) = layout.tangent_shape();
-            samples.fused(&Transformed { maps, transform }, h, w, frame)
-        }
-        _ => None,
+    let samples = samples.filter(|_| matches!(levels, [first] if first.prior.is_none()))?;
+    let fusion = samples.fused(&problem.prior_consensus(samples.len())?, frame)?;
+    if let Some(fused) = &fusion.samples {
+        problem.set_prior_values(&fused.value);
     }
+    Some(fusion)
 }
 
 /// (spread, median) the alignment restores: the tangents' mean median and mean spread (constant

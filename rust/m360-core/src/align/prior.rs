@@ -332,6 +332,29 @@ pub(super) struct Fusion {
     pub(super) share: f64,
 }
 
+/// The tangents' values at a prior sample's direction (its own tangent's, then its views'):
+/// their mean, standard deviation and number.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub(super) struct Consensus {
+    pub(super) mean: f64,
+    pub(super) std: f64,
+    pub(super) seen_by: usize,
+}
+
+impl Consensus {
+    /// Of `values` (at least one).
+    pub(super) fn of(values: impl Iterator<Item = f64> + Clone) -> Self {
+        let n = values.clone().count();
+        let mean = values.clone().sum::<f64>() / n as f64;
+        let var = values.map(|v| (v - mean).powi(2)).sum::<f64>() / n as f64;
+        Self {
+            mean,
+            std: var.sqrt(),
+            seen_by: n,
+        }
+    }
+}
+
 impl PriorSamples {
     /// The value at view v (of another tangent than the sample's) through `maps`: the bilinear
     /// mean of the four raw pixels kept at the build, read as `maps` reads them; None when one is
@@ -362,14 +385,16 @@ impl PriorSamples {
         )
     }
 
-    /// The prior moved towards the tangents' consensus as `maps` (h×w tangents, after the
-    /// schedule's first level, which is solved without the prior) leave them, where the tangents
-    /// agree with each other well enough to be trusted: a deformation shared by all tangents is
-    /// invisible to their overlaps, so without this the result takes the prior's own smooth
-    /// error in full, however good the tangents (exact ones: 0.004 → 0.009 AbsRel at 2K).
+    /// The prior moved towards the tangents' `consensus` at its samples (indexed as they are,
+    /// None where the sample's own tangent has no value; [`super::Problem::prior_consensus`]
+    /// reads it off the problem of the level the prior joins, after the schedule's first level,
+    /// which is solved without the prior), where the tangents agree with each other well enough
+    /// to be trusted: a deformation shared by all tangents is invisible to their overlaps, so
+    /// without this the result takes the prior's own smooth error in full, however good the
+    /// tangents (exact ones: 0.004 → 0.009 AbsRel at 2K).
     ///
-    /// At each sample the consensus c is the mean of the tangents that see its direction, and
-    /// their relative spread there std/|c| (in the units `frame` = (spread, median) restores).
+    /// The tangents' relative spread at a sample is std/|c| (in the units `frame` =
+    /// (spread, median) restores).
     /// The median spread s over the samples seen twice or more sets the share
     /// γ = (UNTRUSTED − s)/(UNTRUSTED − TRUSTED) in [0, 1]. The disagreement c − (α·P + β), with
     /// (α, β) fitted as the prior joins ([`super::symmetric_line`]), is low-passed over 6° trust
@@ -378,31 +403,19 @@ impl PriorSamples {
     /// (the fusion changes the prior's shape, not its units), and γ of it moves each sample's
     /// value. None when no sample is seen twice, the fit is degenerate or fewer than
     /// [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
-    pub(super) fn fused<M: MapValues + ?Sized>(
+    pub(super) fn fused(
         &self,
-        maps: &M,
-        h: usize,
-        w: usize,
+        consensus: &[Option<Consensus>],
         frame: (f64, f64),
     ) -> Option<Fusion> {
-        let tp = h * w;
-        // Per sample: (consensus, relative spread, tangents seeing it).
-        let consensus: Vec<Option<(f64, f64, usize)>> = (0..self.len())
-            .into_par_iter()
-            .map(|k| {
-                let own = f64::from(self.tangent_value(k, maps, tp));
-                if !own.is_finite() {
-                    return None;
-                }
-                let range = self.view_start[k] as usize..self.view_start[k + 1] as usize;
-                let values: Vec<f64> = std::iter::once(own)
-                    .chain(range.filter_map(|v| self.view_value(v, maps, w, h)))
-                    .collect();
-                let n = values.len() as f64;
-                let mean = values.iter().sum::<f64>() / n;
-                let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
-                let level = (mean * frame.0 + frame.1).abs().max(f64::MIN_POSITIVE);
-                Some((mean, var.sqrt() * frame.0.abs() / level, values.len()))
+        debug_assert_eq!(consensus.len(), self.len());
+        let consensus: Vec<Option<(f64, f64, usize)>> = consensus
+            .iter()
+            .map(|c| {
+                c.map(|c| {
+                    let level = (c.mean * frame.0 + frame.1).abs().max(f64::MIN_POSITIVE);
+                    (c.mean, c.std * frame.0.abs() / level, c.seen_by)
+                })
             })
             .collect();
         // The first level determines the tangents' common shape only where they overlap all
@@ -986,6 +999,94 @@ mod tests {
         (residual.iter().map(|r| r * r).sum::<f64>() / n / var).sqrt()
     }
 
+    /// Independently of a problem: the consensus at each of `samples` from the tangent maps
+    /// (h×w), its own tangent's window value and its views' bilinear values.
+    fn consensus_of<M: MapValues + ?Sized>(
+        samples: &PriorSamples,
+        maps: &M,
+        h: usize,
+        w: usize,
+    ) -> Vec<Option<Consensus>> {
+        (0..samples.len())
+            .map(|k| {
+                let own = f64::from(samples.tangent_value(k, maps, h * w));
+                if !own.is_finite() {
+                    return None;
+                }
+                let range = samples.view_start[k] as usize..samples.view_start[k + 1] as usize;
+                let values: Vec<f64> = std::iter::once(own)
+                    .chain(range.filter_map(|v| samples.view_value(v, maps, w, h)))
+                    .collect();
+                let n = values.len() as f64;
+                let mean = values.iter().sum::<f64>() / n;
+                let var = values.iter().map(|v| (v - mean).powi(2)).sum::<f64>() / n;
+                Some(Consensus {
+                    mean,
+                    std: var.sqrt(),
+                    seen_by: values.len(),
+                })
+            })
+            .collect()
+    }
+
+    /// The consensus the alignment reads off a level's problem is the one the maps give, and
+    /// the fused values the problem takes are the fused prior's.
+    #[test]
+    fn the_problems_consensus_is_the_maps() {
+        let layout = Layout::icosahedron(256, 0.3, None).expect("layout");
+        let (h, w) = layout.tangent_shape();
+        let maps = tangents(&layout);
+        let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y);
+        let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
+        // Maps read with a hole in tangent 3 (as a transform gone non-finite would leave them):
+        // samples there drop out of the problem, the others keep their index.
+        struct Holed<'a>(&'a [f32], std::ops::Range<usize>);
+        impl MapValues for Holed<'_> {
+            fn value(&self, index: usize) -> f32 {
+                self.through(index, self.0[index])
+            }
+            fn through(&self, index: usize, raw: f32) -> f32 {
+                if self.1.contains(&index) {
+                    f32::NAN
+                } else {
+                    raw
+                }
+            }
+        }
+        let maps = Holed(&maps, 3 * h * w..3 * h * w + 40 * w);
+        let overlaps = Overlaps::build(&layout, 0.05, 0.0);
+        let (_, _, options) = setup(Energy::Normalized);
+        let params = options.level_params()[1];
+        let mut problem =
+            Problem::with_prior(&layout, &maps, &overlaps, params, Some((&samples, 1.0)));
+        let expected = consensus_of(&samples, &maps, h, w);
+        let got = problem
+            .prior_consensus(samples.len())
+            .expect("a prior term");
+        assert!(
+            expected.iter().any(Option::is_none),
+            "the hole drops samples"
+        );
+        assert_eq!(got.len(), expected.len());
+        for (g, e) in got.iter().zip(&expected) {
+            match (g, e) {
+                (None, None) => {}
+                (Some(g), Some(e)) => {
+                    assert_eq!(g.seen_by, e.seen_by);
+                    assert!((g.mean - e.mean).abs() <= 1e-12 * e.mean.abs().max(1.0));
+                    assert!((g.std - e.std).abs() <= 1e-9 * e.mean.abs().max(1.0));
+                }
+                _ => panic!("{g:?} vs {e:?}"),
+            }
+        }
+        let values: Vec<f64> = (0..samples.len()).map(|k| 0.5 * k as f64).collect();
+        problem.set_prior_values(&values);
+        let term = problem.prior.as_ref().expect("a prior term");
+        for (sample, &k) in term.samples.iter().zip(&term.source) {
+            assert_eq!(sample.p, values[k as usize]);
+        }
+    }
+
     /// Tangents that agree with each other (here exactly the truth) move a prior with a smooth
     /// error of its own towards them in full: the fused values lie on a line in the truth, the
     /// prior's did not.
@@ -997,7 +1098,7 @@ mod tests {
         let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y + 0.05 * d.z);
         let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
         let fusion = samples
-            .fused(maps.as_slice(), h, w, (1.0, 0.0))
+            .fused(&consensus_of(&samples, maps.as_slice(), h, w), (1.0, 0.0))
             .expect("a fusion");
         assert!(fusion.spread < TRUSTED_SPREAD, "{}", fusion.spread);
         assert!((fusion.share - 1.0).abs() < 1e-12, "{}", fusion.share);
@@ -1023,7 +1124,7 @@ mod tests {
         let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y);
         let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
         let fusion = samples
-            .fused(maps.as_slice(), h, w, (1.0, 0.0))
+            .fused(&consensus_of(&samples, maps.as_slice(), h, w), (1.0, 0.0))
             .expect("a fusion");
         assert!(fusion.spread > UNTRUSTED_SPREAD, "{}", fusion.spread);
         assert!(fusion.share <= 0.0, "{}", fusion.share);
