@@ -192,7 +192,8 @@ def test_run_passes_every_stitching_flag(
             "--solver", "lbfgs", "--iterations", "9", "--tolerance", "1e-5",
             "--sample-fraction", "0.02", "--pole-cap-deg", "2", "--smoothness", "3",
             "--scale-weight", "0.05", "--offsets", "perspective", "--loss", "huber",
-            "--prior-weight", "0.5", "--prior-scale-deg", "2", "--blend", "poisson",
+            "--prior-weight", "0.5", "--prior-scale-deg", "2", "--prior-fusion", "off",
+            "--blend", "poisson",
             "--fidelity", "nn", "--poisson-lam", "0.2", "--poisson-tolerance", "1e-5",
             "--poisson-iterations", "800", "--poisson-solver", "fused",
         ]
@@ -213,6 +214,7 @@ def test_run_passes_every_stitching_flag(
         "loss": "huber",
         "prior_weight": 0.5,
         "prior_scale_deg": 2.0,
+        "prior_fusion": "off",
     }
     assert options["blend"] == {
         "method": "poisson",

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 from conftest import layout, scene, tangent_disparity
 from m360 import _core
-from m360.align import AlignSolver, Energy, Offsets
+from m360.align import AlignSolver, Energy, Loss, Offsets, PriorFusion
 from m360.blend import BLEND_METHODS, BlendMethod, Fidelity, PoissonSolver
 from m360.errors import InputError
 from m360.estimators import SimulatedEstimator
@@ -33,6 +33,8 @@ from m360.estimators import SimulatedEstimator
         (Energy, "energy"),
         (AlignSolver, "solver"),
         (Offsets, "offsets"),
+        (Loss, "loss"),
+        (PriorFusion, "prior_fusion"),
     ],
 )
 def test_literal_types_spell_the_cores_choices(literal: object, kind: str) -> None:

@@ -115,6 +115,23 @@ def test_consistent_tangents_are_trusted_over_the_priors_smooth_error(room: tupl
     assert report["tangent_share"] == 0.0, report
 
 
+def test_fusion_off_keeps_the_priors_low_frequencies(room: tuple) -> None:
+    """prior_fusion="off": the prior is not moved towards the tangents however well they agree.
+    With the same +-3 % prior as above the result then follows the prior's smooth error (worse
+    than fused); the report says nothing was measured or moved."""
+    layout, tiles, depth, scene = room
+    prior = np.asarray(syn.panoramic_prior(scene, 5, regions=(0, 0)))
+    fused = m360.stitch(tiles, layout, prior=prior, return_details=True)
+    kept = m360.stitch(tiles, layout, prior=prior, prior_fusion="off", return_details=True)
+    assert kept.report["prior"] is not None and fused.report["prior"] is not None
+    assert kept.report["prior"]["tangent_share"] == 0.0
+    assert kept.report["prior"]["tangent_spread"] is None
+    assert fused.report["prior"]["tangent_share"] == 1.0
+    err_fused = m360.eval.depth_metrics(fused.disparity, depth)["abs_rel"]
+    err_kept = m360.eval.depth_metrics(kept.disparity, depth)["abs_rel"]
+    assert err_kept > 1.25 * err_fused, (err_kept, err_fused)  # 0.0039 against 0.0029
+
+
 def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     """A prior 30 % wrong on a fifth of the sphere: most of the wrong region's samples lose
     their pull, and the result stays as good as without a prior. The outvoted share is about

@@ -454,12 +454,19 @@ def test_batch_resume_redoes_an_image_when_the_prior_changes(
     weighted = run(prior=str(tmp_path / "map.npy"), prior_kind="distance", prior_weight=2.0)
     assert len(weighted.done) == 1
     assert _sidecar(out)["batch"]["fingerprint"]["prior_options"]["prior_weight"] == 2.0
+    kept = run(
+        prior=str(tmp_path / "map.npy"), prior_kind="distance", prior_weight=2.0, prior_fusion="off"
+    )
+    assert len(kept.done) == 1
+    assert _sidecar(out)["batch"]["fingerprint"]["prior_options"]["prior_fusion"] == "off"
     # No prior at all: redone, and its fingerprint has no prior and none of the prior's options
     # (as before the prior existed, so earlier runs' outputs stay valid).
     assert len(run().done) == 1
     fingerprint = _sidecar(out)["batch"]["fingerprint"]
     assert "prior" not in fingerprint and "prior_options" not in fingerprint
-    assert not {"prior_weight", "prior_scale_deg"} & set(fingerprint["stitch"]["align"])
+    assert not {"prior_weight", "prior_scale_deg", "prior_fusion"} & set(
+        fingerprint["stitch"]["align"]
+    )
     # Without a prior its weight changes no byte: skipped.
     assert len(run(prior_weight=3.0).skipped) == 1
 

@@ -753,9 +753,9 @@ def make_output_folder(out: Path) -> None:
         raise InputError(f"the output folder {out} is not writable")
 
 
-#: Stitching options that act only with a prior (``StitchTuning``'s ``prior_weight`` and
-#: ``prior_scale_deg``).
-PRIOR_OPTIONS = ("prior_weight", "prior_scale_deg")
+#: Stitching options that act only with a prior (``StitchTuning``'s ``prior_weight``,
+#: ``prior_scale_deg`` and ``prior_fusion``).
+PRIOR_OPTIONS = ("prior_weight", "prior_scale_deg", "prior_fusion")
 
 
 def fingerprint(

@@ -30,6 +30,7 @@ from .align import (
     Energy,
     Loss,
     Offsets,
+    PriorFusion,
 )
 from .blend import BlendMethod, Fidelity, PoissonSolver
 
@@ -164,6 +165,15 @@ class StitchTuning(TypedDict, total=False):
             parse=float,
         ),
     ]
+    prior_fusion: Annotated[
+        PriorFusion | None,
+        Option(
+            "whether the prior's low frequencies move towards the tangents' own where they "
+            "agree with each other (auto: by their measured spread; off: never, for a prior more "
+            f"accurate than any network; default {_ALIGN['prior_fusion']})",
+            choices=_CHOICES["prior_fusion"],
+        ),
+    ]
     blend_options: Annotated[
         Mapping[str, Any] | None,
         Option(
@@ -254,6 +264,7 @@ class AlignOptions(TypedDict):
     loss: Loss
     prior_weight: float
     prior_scale_deg: float
+    prior_fusion: PriorFusion
 
 
 class _BlendMethodOnly(TypedDict):
@@ -292,9 +303,9 @@ class StitchOptions:
     pole_cap_deg, smoothness, scale_weight, offsets, loss : optional
         Alignment options; None takes the core's default (see :mod:`m360.align`). Ignored with
         ``align="none"``.
-    prior_weight, prior_scale_deg : optional
-        The global prior's term weight and frequency split (see :mod:`m360.stitching.prior`);
-        used only when a prior is given.
+    prior_weight, prior_scale_deg, prior_fusion : optional
+        The global prior's term weight, frequency split and fusion with the tangents' own low
+        frequencies (see :mod:`m360.stitching.prior`); used only when a prior is given.
     blend_options : mapping, optional
         Poisson options ``fidelity``, ``lam``, ``tolerance``, ``iterations``, ``solver`` (see
         :mod:`m360.blend`); refused for another method; given without ``blend``, they select
@@ -338,6 +349,7 @@ class StitchOptions:
                 **{k: _real(given.get(k), k) for k in _REAL_KEYS},
                 "offsets": _choice(offsets, "offsets", "offsets"),
                 "loss": _choice(loss, "loss", "loss"),
+                "prior_fusion": _choice(given.get("prior_fusion"), "prior_fusion", "prior_fusion"),
             }
             raw_align = {k: v for k, v in raw_align.items() if v is not None}
         if blend is not None:

@@ -8,7 +8,10 @@ detail stays the tangents'), is pulled towards α·P + β, with (α, β) solved 
 fields; each prior sample is judged against the tangents that see its direction (a Cauchy
 weight, capped by its neighbourhood's and 0 below 0.8: trusted or not) and weighs that times its
 ``prior_confidence``, so prior regions that the tangents all contradict (windows, mirrors, sky)
-lose their pull, and ``prior_weight`` sets the term's weight against the overlaps'.
+lose their pull, and ``prior_weight`` sets the term's weight against the overlaps'. Where the
+tangents agree with each other better than the prior can be trusted (a smooth error of the
+prior that they do not share), the prior's low frequencies are first moved towards theirs
+(``prior_fusion="auto"``, the default; ``"off"`` keeps the prior's as they are).
 
 Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estimators.kinds`):
 
@@ -63,7 +66,8 @@ class PriorReport(TypedDict):
     #: absolute deviation).
     residual: float
     #: The tangents' relative spread (std/mean) where two or more see a prior sample, after
-    #: the first alignment level; None when not measured (a one-level schedule).
+    #: the first alignment level; None when not measured (a one-level schedule, or
+    #: ``prior_fusion="off"``).
     tangent_spread: float | None
     #: Share (0-1) of the tangents' low-frequency disagreement with the prior that moved the
     #: prior before it joined: 1 where the tangents agree to 0.4 %, 0 from 1.2 % (real

@@ -147,6 +147,25 @@ choice!(
     ]
 );
 
+/// Whether the prior is first moved towards the tangents' own low frequencies where they agree
+/// with each other well enough ([`PriorSamples::fused`]; docs/method.md, "The tangents' own low
+/// frequencies").
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum PriorFusion {
+    /// By the tangents' measured spread: in full where they agree to 0.4 %, not at all where
+    /// they disagree by 1.2 % or more (every real network measured so far).
+    Auto,
+    /// Never: the prior's low frequencies are taken as they are (a prior known to be more
+    /// accurate than any tangent, such as a LiDAR scan).
+    Off,
+}
+
+choice!(
+    PriorFusion,
+    "prior_fusion",
+    [(PriorFusion::Auto, "auto"), (PriorFusion::Off, "off")]
+);
+
 /// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
 /// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
 pub const ROBUST_ROUNDS: usize = 3;
@@ -2540,6 +2559,9 @@ pub struct Options {
     /// averaged over half this radius, so finer detail stays the tangents' (used only with a
     /// prior; 0: no prior-only level, point values).
     pub prior_scale_deg: f64,
+    /// Whether the prior is fused with the tangents' own low frequencies (used only with a
+    /// prior).
+    pub prior_fusion: PriorFusion,
 }
 
 impl Options {
@@ -2573,6 +2595,7 @@ impl Options {
             loss: energy.default_loss(),
             prior_weight: Self::DEFAULT_PRIOR_WEIGHT,
             prior_scale_deg: Self::DEFAULT_PRIOR_SCALE_DEG,
+            prior_fusion: PriorFusion::Auto,
         }
     }
 
@@ -2779,7 +2802,7 @@ fn solve_levels(
         let joins = !levels.is_empty() || i + 1 == schedule.len();
         let term = samples.map(|p| (p, options.prior_weight)).filter(|_| joins);
         let mut problem = level_problem(layout, maps, &transform, overlaps, *params, term, true);
-        if fusion.is_none() {
+        if fusion.is_none() && options.prior_fusion == PriorFusion::Auto {
             fusion = fuse_as_prior_joins(&mut problem, prior_samples.as_ref(), &levels, frame);
         }
         // Prior samples support a grid as overlap samples do (a partial panorama with little

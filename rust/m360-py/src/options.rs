@@ -2,7 +2,7 @@
 //! and limits Python reads (`CHOICES`, `LIMITS`, `DEFAULTS`) come from the core's types.
 
 use crate::errors::{core, input_error};
-use m360_core::align::{self, Energy, Loss, Offsets, Solver};
+use m360_core::align::{self, Energy, Loss, Offsets, PriorFusion, Solver};
 use m360_core::blend::{Fidelity, Method, PoissonParams, PoissonSolver, Weighting};
 use m360_core::layout;
 use m360_core::options::{
@@ -25,6 +25,7 @@ const ALIGN_KEYS: &[&str] = &[
     "loss",
     "prior_weight",
     "prior_scale_deg",
+    "prior_fusion",
 ];
 const POISSON_KEYS: &[&str] = &["fidelity", "lam", "tolerance", "iterations", "solver"];
 
@@ -107,6 +108,9 @@ pub(crate) fn align_options(
     }
     if let Some(v) = get::<f64>(dict, "prior_scale_deg", number)? {
         options.prior_scale_deg = v;
+    }
+    if let Some(v) = get_choice::<PriorFusion>(dict, "prior_fusion")? {
+        options.prior_fusion = v;
     }
     core(options.validate(tangent_shape))
 }
@@ -193,6 +197,7 @@ pub(crate) fn align_dict<'py>(py: Python<'py>, o: &align::Options) -> PyResult<B
     d.set_item("loss", o.loss.name())?;
     d.set_item("prior_weight", o.prior_weight)?;
     d.set_item("prior_scale_deg", o.prior_scale_deg)?;
+    d.set_item("prior_fusion", o.prior_fusion.name())?;
     Ok(d)
 }
 
@@ -249,6 +254,7 @@ pub(crate) fn choices(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("solver", names::<Solver>(py)?)?;
     d.set_item("offsets", names::<Offsets>(py)?)?;
     d.set_item("loss", names::<Loss>(py)?)?;
+    d.set_item("prior_fusion", names::<PriorFusion>(py)?)?;
     d.set_item("weights", names::<Weighting>(py)?)?;
     Ok(d)
 }

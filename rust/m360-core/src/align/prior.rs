@@ -999,6 +999,22 @@ mod tests {
         (residual.iter().map(|r| r * r).sum::<f64>() / n / var).sqrt()
     }
 
+    /// Maps read with a hole (the range of flat indices reads NaN), as a transform gone
+    /// non-finite would leave them.
+    struct Holed<'a>(&'a [f32], std::ops::Range<usize>);
+    impl MapValues for Holed<'_> {
+        fn value(&self, index: usize) -> f32 {
+            self.through(index, self.0[index])
+        }
+        fn through(&self, index: usize, raw: f32) -> f32 {
+            if self.1.contains(&index) {
+                f32::NAN
+            } else {
+                raw
+            }
+        }
+    }
+
     /// Independently of a problem: the consensus at each of `samples` from the tangent maps
     /// (h×w), its own tangent's window value and its views' bilinear values.
     fn consensus_of<M: MapValues + ?Sized>(
@@ -1038,21 +1054,8 @@ mod tests {
         let maps = tangents(&layout);
         let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y);
         let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
-        // Maps read with a hole in tangent 3 (as a transform gone non-finite would leave them):
-        // samples there drop out of the problem, the others keep their index.
-        struct Holed<'a>(&'a [f32], std::ops::Range<usize>);
-        impl MapValues for Holed<'_> {
-            fn value(&self, index: usize) -> f32 {
-                self.through(index, self.0[index])
-            }
-            fn through(&self, index: usize, raw: f32) -> f32 {
-                if self.1.contains(&index) {
-                    f32::NAN
-                } else {
-                    raw
-                }
-            }
-        }
+        // A hole in tangent 3: samples there drop out of the problem, the others keep their
+        // index.
         let maps = Holed(&maps, 3 * h * w..3 * h * w + 40 * w);
         let overlaps = Overlaps::build(&layout, 0.05, 0.0);
         let (_, _, options) = setup(Energy::Normalized);
@@ -1083,7 +1086,7 @@ mod tests {
         problem.set_prior_values(&values);
         let term = problem.prior.as_ref().expect("a prior term");
         for (sample, &k) in term.samples.iter().zip(&term.source) {
-            assert_eq!(sample.p, values[k as usize]);
+            assert!((sample.p - values[k as usize]).abs() < f64::EPSILON);
         }
     }
 
@@ -1110,6 +1113,32 @@ mod tests {
         let after = off_the_line(&at, &fused.value);
         assert!(before > 0.05, "the prior's own error {before}");
         assert!(after < 0.3 * before, "{before} -> {after}");
+    }
+
+    /// `prior_fusion` off: the alignment neither measures the tangents' spread nor moves the
+    /// prior (auto, on the same consistent tangents, fuses in full).
+    #[test]
+    fn fusion_off_leaves_the_prior_unmeasured_and_unmoved() {
+        let (layout, maps, mut options) = setup(Energy::Normalized);
+        let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y);
+        let overlaps = Overlaps::build(&layout, options.sample_fraction, 0.0);
+        let mut fit = |fusion: PriorFusion| {
+            options.prior_fusion = fusion;
+            let mut out = maps.clone();
+            align_with_prior(&layout, &mut out, &overlaps, &options, Some(&prior))
+                .expect("align")
+                .prior
+                .expect("a prior fit")
+        };
+        let auto = fit(PriorFusion::Auto);
+        assert!(
+            auto.tangent_spread.is_some_and(|s| s < TRUSTED_SPREAD),
+            "{auto:?}"
+        );
+        assert!((auto.tangent_share - 1.0).abs() < 1e-12, "{auto:?}");
+        let off = fit(PriorFusion::Off);
+        assert_eq!(off.tangent_spread, None);
+        assert!(off.tangent_share.abs() < f64::EPSILON);
     }
 
     /// Tangents that disagree with each other by 10 % and more leave the prior as it is.
