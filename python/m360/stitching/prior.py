@@ -9,9 +9,9 @@ fields; each prior sample is judged against the tangents that see its direction 
 weight, capped by its neighbourhood's and 0 below 0.8: trusted or not) and weighs that times its
 ``prior_confidence``, so prior regions that the tangents all contradict (windows, mirrors, sky)
 lose their pull, and ``prior_weight`` sets the term's weight against the overlaps'. Where the
-tangents agree with each other better than the prior can be trusted (a smooth error of the
-prior that they do not share), the prior's low frequencies are first moved towards theirs
-(``prior_fusion="auto"``, the default; ``"off"`` keeps the prior's as they are).
+tangents agree closely with each other (a relative spread under 1.2 %), the prior's low
+frequencies are first moved towards theirs, since a smooth error of the prior is invisible to
+their overlaps (``prior_fusion="auto"``, the default; ``"off"`` keeps the prior's as they are).
 
 Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estimators.kinds`):
 

@@ -191,7 +191,8 @@ def stitch(
         A global prior ERP map of any resolution (a panoramic network's output, another tool's,
         the previous video frame), NaN = unknown: the alignment follows its low frequencies
         while the blend keeps the tangents' detail (:mod:`m360.stitching.prior`; the weight
-        and frequency split are ``prior_weight`` and ``prior_scale_deg``). Needs alignment.
+        and frequency split are ``prior_weight`` and ``prior_scale_deg``, its fusion with the
+        tangents' own low frequencies ``prior_fusion``). Needs alignment.
         None (default): no prior, the result is exactly that of a stitch without one.
     prior_kind : str
         What the prior holds: ``"affine_disparity"`` (default; spherical disparity up to scale
@@ -208,7 +209,7 @@ def stitch(
         The other stitching options, :class:`m360.stitching.options.StitchTuning` (``energy``,
         ``solver``, ``iterations``, ``tolerance``, ``sample_fraction``, ``pole_cap_deg``,
         ``smoothness``, ``scale_weight``, ``offsets``, ``loss``, ``prior_weight``,
-        ``prior_scale_deg``, ``blend_options``; see
+        ``prior_scale_deg``, ``prior_fusion``, ``blend_options``; see
         :mod:`m360.align` and :mod:`m360.blend`); None or absent takes the core's default. A
         Poisson solve that does not reach its tolerance raises :class:`m360.SolverError`.
 

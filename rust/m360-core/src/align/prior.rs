@@ -393,9 +393,9 @@ impl PriorSamples {
     /// without this the result takes the prior's own smooth error in full, however good the
     /// tangents (exact ones: 0.004 → 0.009 AbsRel at 2K).
     ///
-    /// The tangents' relative spread at a sample is std/|c| (in the units `frame` =
-    /// (spread, median) restores).
-    /// The median spread s over the samples seen twice or more sets the share
+    /// The tangents' relative spread at a sample is std/|c|, c their mean (in the units
+    /// `frame` = (spread, median) restores). The median spread s over the samples seen twice or
+    /// more sets the share
     /// γ = (UNTRUSTED − s)/(UNTRUSTED − TRUSTED) in [0, 1]. The disagreement c − (α·P + β), with
     /// (α, β) fitted as the prior joins ([`super::symmetric_line`]), is low-passed over 6° trust
     /// cells and their 8 neighbours (≈ 18°; weighted by confidence and by the Cauchy weight of
