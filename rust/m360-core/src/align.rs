@@ -148,8 +148,8 @@ choice!(
 );
 
 /// Whether the prior is first moved towards the tangents' own low frequencies where they agree
-/// with each other well enough ([`PriorSamples::fused`]; docs/method.md, "The tangents' own low
-/// frequencies").
+/// with each other well enough (`PriorSamples::fused` in `align/prior.rs`; docs/method.md, "The
+/// tangents' own low frequencies").
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub enum PriorFusion {
     /// By the tangents' measured spread: in full where they agree to 0.4 %, not at all where
