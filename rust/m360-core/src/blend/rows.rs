@@ -13,7 +13,7 @@ use rayon::prelude::*;
 /// One ERP row's samples, face by face: the row's runs and, per tap (in run order), the face's
 /// value there (NaN = invalid), its blending weight (none stored: all 1) and its nearness rank
 /// at its pixel (0 = nearest axis).
-#[derive(Debug, Default)]
+#[derive(Debug, Default, Clone)]
 pub(crate) struct RowSamples {
     pub runs: Vec<Run>,
     pub values: Vec<f32>,
@@ -637,7 +637,48 @@ const MIN_PRIOR_VOTE: f32 = 1e-3;
 /// times the Cauchy weight of the nearest sample's distance at [`PRIOR_TRUST_SCALE`] c_P).
 /// Only the weights change: the consensus is still a mean of the faces' own values, so the
 /// prior picks among the faces where they disagree and never blurs their detail.
-fn prior_vote(
+pub(super) fn prior_vote(
+    row: &mut RowSamples,
+    prior: &[f32],
+    trust: &mut [f32],
+    nearest: &mut [f32],
+    inv_c: f32,
+) {
+    // The same element-wise operations 8 lanes wide where the CPU has AVX2 (no FMA, no
+    // reduction across lanes): the same bits as the baseline build's 4 lanes (tested), with
+    // half the instructions. With SSE2 alone the vote was a tenth of an 8K blend's time.
+    #[cfg(target_arch = "x86_64")]
+    if std::arch::is_x86_feature_detected!("avx2") {
+        // SAFETY: the CPU supports AVX2 (checked just above).
+        unsafe { prior_vote_avx2(row, prior, trust, nearest, inv_c) };
+        return;
+    }
+    prior_vote_lanes(row, prior, trust, nearest, inv_c);
+}
+
+/// [`prior_vote`] compiled for AVX2.
+///
+/// # Safety
+/// The CPU must support AVX2.
+#[cfg(target_arch = "x86_64")]
+#[target_feature(enable = "avx2")]
+unsafe fn prior_vote_avx2(
+    row: &mut RowSamples,
+    prior: &[f32],
+    trust: &mut [f32],
+    nearest: &mut [f32],
+    inv_c: f32,
+) {
+    prior_vote_lanes(row, prior, trust, nearest, inv_c);
+}
+
+/// The body of [`prior_vote`], inlined into each target's version.
+#[expect(
+    clippy::inline_always,
+    reason = "must inline into prior_vote_avx2 to be compiled for AVX2"
+)]
+#[inline(always)]
+pub(super) fn prior_vote_lanes(
     row: &mut RowSamples,
     prior: &[f32],
     trust: &mut [f32],

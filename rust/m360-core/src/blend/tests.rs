@@ -4,7 +4,7 @@
 use super::multigrid::Multigrid;
 use super::poisson::cg::{solve_fused, solve_multigrid};
 use super::poisson::system::{assemble, LayerSource, System, Target};
-use super::rows::RowSamples;
+use super::rows::{prior_vote, prior_vote_lanes, RowSamples};
 use super::weights::{frustum_weight, inscribed_half_fov, radial_weight, FRUSTUM_RAMP};
 use super::*;
 use crate::layout::Layout;
@@ -960,5 +960,107 @@ fn the_confidence_combines_the_prior_gap_as_defined() {
     assert!(
         unknown > 1,
         "the prior's NaN and the disparity's reached pixels"
+    );
+}
+
+/// The prior's vote on one row, written from its definition (docs/method.md, "Global prior"):
+/// each valid sample's weight times max((1 − t) + t/(1 + e²), 1e-3), e = (v − P)·inv_c and t
+/// the prior's trust times 1/(1 + (e_min/2)²) with e_min the pixel's nearest sample.
+fn prior_vote_by_definition(
+    row: &RowSamples,
+    prior: &[f32],
+    trust: &[f32],
+    inv_c: f32,
+) -> Vec<f32> {
+    let mut nearest = vec![f32::INFINITY; prior.len()];
+    for run in &row.runs {
+        for (j, k) in run.columns().zip(run.taps()) {
+            let e = (row.values[k] - prior[j]) * inv_c;
+            if e.is_finite() {
+                nearest[j] = nearest[j].min((e / 2.0).abs());
+            }
+        }
+    }
+    let mut weights = row.weights.clone();
+    for run in &row.runs {
+        for (j, k) in run.columns().zip(run.taps()) {
+            let e = (row.values[k] - prior[j]) * inv_c;
+            let t = trust[j] / (1.0 + nearest[j] * nearest[j]);
+            if row.values[k].is_finite() {
+                let e2 = if e.is_finite() { e * e } else { 0.0 };
+                weights[k] *= ((1.0 - t) + t / (1.0 + e2)).max(1e-3);
+            }
+        }
+    }
+    weights
+}
+
+#[test]
+fn the_prior_vote_is_the_same_on_every_instruction_set_and_as_defined() {
+    // Rows of a real plan (several runs per row, up to five faces per pixel), values and the
+    // prior random with holes (NaN) in both: the dispatched vote (AVX2 where the CPU has it)
+    // against the baseline build's lanes, bit for bit, and against the definition.
+    let plan = plan(512);
+    let layout = plan.layout();
+    let weights = plan.weight_maps(Weighting::Frustum);
+    let mut next = rng(7);
+    let tangents: Vec<f32> = (0..weights.maps().len())
+        .map(|_| {
+            let u = next();
+            if u < 0.02 {
+                f32::NAN
+            } else {
+                (1.0 + u) as f32
+            }
+        })
+        .collect();
+    let ew = layout.erp_width;
+    let (mut row, mut checked, mut moved) = (RowSamples::default(), 0usize, 0usize);
+    for i in (0..layout.erp_height).step_by(7) {
+        row.fill_from_taps(plan.erp_taps(), &tangents, Some(weights), false, i);
+        let prior: Vec<f32> = (0..ew)
+            .map(|_| {
+                let u = next();
+                if u < 0.05 {
+                    f32::NAN
+                } else {
+                    (1.0 + u) as f32
+                }
+            })
+            .collect();
+        let trust: Vec<f32> = prior
+            .iter()
+            .map(|p| if p.is_finite() { next() as f32 } else { 0.0 })
+            .collect();
+        let inv_c = 8.0;
+        let want = prior_vote_by_definition(&row, &prior, &trust, inv_c);
+        let (mut lanes, mut dispatched) = (row.clone(), row.clone());
+        let mut scratch = (trust.clone(), vec![0.0; ew]);
+        prior_vote_lanes(&mut lanes, &prior, &mut scratch.0, &mut scratch.1, inv_c);
+        let mut scratch = (trust.clone(), vec![0.0; ew]);
+        prior_vote(
+            &mut dispatched,
+            &prior,
+            &mut scratch.0,
+            &mut scratch.1,
+            inv_c,
+        );
+        for (k, (&a, &b)) in lanes.weights.iter().zip(&dispatched.weights).enumerate() {
+            assert_eq!(a.to_bits(), b.to_bits(), "row {i} tap {k}: {a} vs {b}");
+            if row.values[k].is_finite() {
+                let c = want[k];
+                assert!(
+                    (a - c).abs() <= 1e-5 * c.abs(),
+                    "row {i} tap {k}: {a} vs {c}"
+                );
+                checked += 1;
+                moved += usize::from(a < 0.99 * row.weights[k]);
+            }
+        }
+    }
+    assert!(checked > 10_000, "{checked} samples checked");
+    assert!(
+        moved > checked / 10,
+        "the vote moved {moved} of {checked} weights"
     );
 }
