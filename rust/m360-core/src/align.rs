@@ -2220,50 +2220,56 @@ impl TangentSystems {
                 prior_block = *b;
             }
         }
-        let mut tangents = Vec::with_capacity(problem.tangents);
-        for t in 0..problem.tangents {
-            let first = t * nodes;
-            let mut col_ptr = Vec::with_capacity(per + 1);
-            let mut row_idx = Vec::new();
-            let mut constant = Vec::new();
-            let mut scale_diagonal = Vec::with_capacity(nodes);
-            let mut coupling = vec![[0.0; 2]; per];
-            col_ptr.push(0usize);
-            for local in 0..nodes {
-                let p = first + local;
-                for d in 0..2 {
-                    let j = 2 * local + d;
-                    for (&q, b) in row(p) {
-                        let q = q as usize;
-                        if q == prior_node {
-                            coupling[j] = [b[2 * d], b[2 * d + 1]];
-                            continue;
-                        }
-                        if q < first || q >= first + nodes {
-                            return Ok(None); // a term between two tangents
-                        }
-                        for e in 0..2 {
-                            let i = 2 * (q - first) + e;
-                            if i >= j {
-                                if i == j && d == 0 {
-                                    scale_diagonal.push(row_idx.len());
+        // The blocks in parallel (their analyses are kept: a lookup after the first stitch).
+        let tangents: Option<Vec<TangentBlock>> = (0..problem.tangents)
+            .into_par_iter()
+            .map(|t| {
+                let first = t * nodes;
+                let mut col_ptr = Vec::with_capacity(per + 1);
+                let mut row_idx = Vec::new();
+                let mut constant = Vec::new();
+                let mut scale_diagonal = Vec::with_capacity(nodes);
+                let mut coupling = vec![[0.0; 2]; per];
+                col_ptr.push(0usize);
+                for local in 0..nodes {
+                    let p = first + local;
+                    for d in 0..2 {
+                        let j = 2 * local + d;
+                        for (&q, b) in row(p) {
+                            let q = q as usize;
+                            if q == prior_node {
+                                coupling[j] = [b[2 * d], b[2 * d + 1]];
+                                continue;
+                            }
+                            if q < first || q >= first + nodes {
+                                return Ok(None); // a term between two tangents
+                            }
+                            for e in 0..2 {
+                                let i = 2 * (q - first) + e;
+                                if i >= j {
+                                    if i == j && d == 0 {
+                                        scale_diagonal.push(row_idx.len());
+                                    }
+                                    row_idx.push(i);
+                                    constant.push(b[2 * d + e]);
                                 }
-                                row_idx.push(i);
-                                constant.push(b[2 * d + e]);
                             }
                         }
+                        col_ptr.push(row_idx.len());
                     }
-                    col_ptr.push(row_idx.len());
                 }
-            }
-            let pattern = SymbolicSparseColMat::new_checked(per, per, col_ptr, None, row_idx);
-            tangents.push(TangentBlock {
-                analysis: Analysis::of(pattern, Factorization::Supernodal)?,
-                constant,
-                scale_diagonal,
-                coupling,
-            });
-        }
+                let pattern = SymbolicSparseColMat::new_checked(per, per, col_ptr, None, row_idx);
+                Ok(Some(TangentBlock {
+                    analysis: Analysis::of(pattern, Factorization::Supernodal)?,
+                    constant,
+                    scale_diagonal,
+                    coupling,
+                }))
+            })
+            .collect::<Result<Option<Vec<_>>>>()?;
+        let Some(tangents) = tangents else {
+            return Ok(None);
+        };
         Ok(Some(Self {
             tangents,
             per,
