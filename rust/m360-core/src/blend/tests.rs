@@ -1004,33 +1004,26 @@ fn the_prior_vote_is_the_same_on_every_instruction_set_and_as_defined() {
     let layout = plan.layout();
     let weights = plan.weight_maps(Weighting::Frustum);
     let mut next = rng(7);
-    let tangents: Vec<f32> = (0..weights.maps().len())
-        .map(|_| {
-            let u = next();
-            if u < 0.02 {
-                f32::NAN
-            } else {
-                (1.0 + u) as f32
-            }
-        })
-        .collect();
+    // Values in [1, 2), a share `holes` of them NaN.
+    let mut values = |len: usize, holes: f64| -> Vec<f32> {
+        (0..len)
+            .map(|_| match next() {
+                u if u < holes => f32::NAN,
+                u => (1.0 + u) as f32,
+            })
+            .collect()
+    };
+    let tangents = values(weights.maps().len(), 0.02);
     let ew = layout.erp_width;
     let (mut row, mut checked, mut moved) = (RowSamples::default(), 0usize, 0usize);
     for i in (0..layout.erp_height).step_by(7) {
         row.fill_from_taps(plan.erp_taps(), &tangents, Some(weights), false, i);
-        let prior: Vec<f32> = (0..ew)
-            .map(|_| {
-                let u = next();
-                if u < 0.05 {
-                    f32::NAN
-                } else {
-                    (1.0 + u) as f32
-                }
-            })
-            .collect();
+        let prior = values(ew, 0.05);
+        // Trust in [0, 1) where the prior is known, 0 elsewhere (as `PriorVote::row` gives it).
         let trust: Vec<f32> = prior
             .iter()
-            .map(|p| if p.is_finite() { next() as f32 } else { 0.0 })
+            .zip(values(ew, 0.0))
+            .map(|(p, t)| if p.is_finite() { t - 1.0 } else { 0.0 })
             .collect();
         let inv_c = 8.0;
         let want = prior_vote_by_definition(&row, &prior, &trust, inv_c);
