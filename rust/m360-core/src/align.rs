@@ -169,7 +169,7 @@ choice!(
 /// Reweighting rounds of a robust loss per level (each a full solve, warm-started): measured on
 /// synthetic rooms with content errors (benches/bench_align.py), the weights settle by the third.
 pub const ROBUST_ROUNDS: usize = 3;
-/// Robust rounds of a level with the prior where its consensus is deep ([`DEEP_CONSENSUS`]).
+/// Robust rounds of a level with the prior where its consensus is deep (`DEEP_CONSENSUS`).
 /// Its samples carry the robustness there: their consensus weights judge the prior against every
 /// tangent, the schedule's first level (without the prior) has had its [`ROBUST_ROUNDS`], and
 /// the prior-only level judges once more. On the 4 rooms of `benches/bench_prior.py` (default
@@ -753,7 +753,7 @@ impl PriorTerm {
 /// One level's problem: valid samples with their nodes and coefficients, the grid edges, and
 /// the assembled quadratic part of the energy.
 ///
-/// The residual of sample k is r_k = Σ_j coef_s[k][j]·s[node[k][j]] + coef_o[k][j]·o[node[k][j]]
+/// The residual of sample k is `r_k = Σ_j coef_s[k][j]·s[node[k][j]] + coef_o[k][j]·o[node[k][j]]`
 /// over its 8 nodes (4 in a with positive weights, 4 in b with negative ones).
 ///
 /// Every term but Σ 1/s is quadratic in x, so the energy is ½·xᵀHx + scale_weight·Σ 1/s with H
@@ -1339,7 +1339,7 @@ impl Problem {
 
     /// (α, β) fitted to the tangents' values at the prior samples as the fields `x` leave them
     /// (x's own α, β ignored), robustly (Cauchy IRLS with the prior's confidence) and
-    /// symmetrically ([`symmetric_line`]). None without a prior or when the fit is degenerate.
+    /// symmetrically (`symmetric_line`). None without a prior or when the fit is degenerate.
     #[must_use]
     pub fn fit_prior_affine(&self, x: &[f64]) -> Option<(f64, f64)> {
         let prior = self.prior.as_ref()?;
@@ -1353,7 +1353,7 @@ impl Problem {
         symmetric_line(&p, &values, &prior.confidence)
     }
 
-    /// Hold the prior's slope α near `alpha`: adds κ·(α − α₀)² with κ = [`SLOPE_ANCHOR`]·λ (takes
+    /// Hold the prior's slope α near `alpha`: adds κ·(α − α₀)² with κ = `SLOPE_ANCHOR`·λ (takes
     /// effect at the next assembly). For the prior-only level, where nothing determines α: its
     /// fields can follow any α·P + β, and a free α shrank towards the least-squares slope there,
     /// flattening the tangents on real networks (docs/method.md, "On real networks").
@@ -1384,8 +1384,8 @@ impl Problem {
     /// Judge every prior sample at `x` and reassemble: its weight is the Cauchy IRLS weight of
     /// its consensus residual (the smallest over the tangents that see its direction: a prior
     /// region is outvoted only when no tangent agrees with it) at their own scale
-    /// σ = 1.4826·median|r| (at least [`MIN_PRIOR_SCALE`]), at most its neighbourhood's mean
-    /// plus [`NEIGHBOURHOOD_SLACK`], and 0 below [`HARD_TRUST`]: a sample is trusted or not.
+    /// σ = 1.4826·median|r| (at least `MIN_PRIOR_SCALE`), at most its neighbourhood's mean
+    /// plus `NEIGHBOURHOOD_SLACK`, and 0 below `HARD_TRUST`: a sample is trusted or not.
     /// Returns σ (0 without a prior).
     pub fn reweight_prior(&mut self, x: &[f64]) -> f64 {
         let sigma = self.set_prior_weights(x);
@@ -1515,7 +1515,7 @@ impl Problem {
     }
 
     /// Set every sample's weight to `loss`'s IRLS weight of its residual at `x`, with the scale
-    /// σ = 1.4826·median|r| (at least [`MIN_ROBUST_SCALE`]), and reassemble the Hessian.
+    /// σ = 1.4826·median|r| (at least `MIN_ROBUST_SCALE`), and reassemble the Hessian.
     /// Returns σ.
     pub fn reweight(&mut self, x: &[f64], loss: Loss) -> f64 {
         let residuals = self.residuals(x);
@@ -2877,6 +2877,7 @@ fn solve_levels(
 enum FirstLevel {
     /// Not solved yet (no prior, or a schedule of one level, which the prior joins).
     Ahead,
+    /// Solved without the prior.
     Solved(Box<Level>),
     /// Too few samples to support its grid.
     Skipped,

@@ -19,7 +19,7 @@
 //! complete), and a reader never sees a partial file. m360 never modifies a file in place.
 //!
 //! Loading memory-maps the file and, after the checks, reads the maps' large arrays in place
-//! ([`PlanArray`]): the mapping lives as long as the map, nothing is copied, and processes
+//! (`PlanArray`): the mapping lives as long as the map, nothing is copied, and processes
 //! loading the same plan share its pages. That relies on the file never changing while it is
 //! mapped; m360 never writes a plan file in place, so only the file's owner could. A file that
 //! anyone else could write (another owner, or writable by group or others) is therefore copied

@@ -318,7 +318,7 @@ impl Transform {
     }
 }
 
-/// Tangent maps read by flat index: a slice, or maps through a [`Transform`] (computed on
+/// Tangent maps read by flat index: a slice, or maps through a `Transform` (computed on
 /// demand).
 pub trait MapValues: Sync {
     /// The value at flat index `index` (tangent·h·w + y·w + x).

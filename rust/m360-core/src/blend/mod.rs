@@ -5,7 +5,7 @@
 //!   intrinsics (reference pitfall B9, docs/reference-pitfalls.md).
 //! - [`rows`]: the mean, nearest-face and weighted blends, one ERP row at a time.
 //! - [`poisson`]: the gradient-domain blend, assembled from the taps and solved by conjugate
-//!   gradients preconditioned with the [`multigrid`] V-cycle.
+//!   gradients preconditioned with the `multigrid` V-cycle.
 //!
 //! [`Method`] names them all; [`crate::Plan::blend`] dispatches on it.
 

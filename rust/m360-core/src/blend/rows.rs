@@ -343,7 +343,7 @@ pub(crate) fn optional_chunks(
 
 /// Weighted blend of per-tangent maps (N·h·w, NaN = invalid) with per-face `weights` (sampled
 /// at the taps): `disparity` (H·W) gets Σ w·v / Σ w over the valid
-/// samples (see [`RowStats::weighted`] for the fall-back), `spread` (H·W, if given) the
+/// samples (see `RowStats::weighted` for the fall-back), `spread` (H·W, if given) the
 /// population standard deviation of the valid samples.
 ///
 /// # Panics
@@ -784,7 +784,7 @@ fn consensus_distances(
         })
 }
 
-/// [`consensus_blend`] with the global prior's vote, if any ([`prior_vote`]): where the faces
+/// [`consensus_blend`] with the global prior's vote, if any (`prior_vote`): where the faces
 /// disagree, those nearer the prior (where it is trusted) weigh more from the first estimate
 /// on.
 ///
@@ -945,7 +945,7 @@ fn row_weighted_median(
 
 /// Weighted-median blend: per ERP pixel seen by at least [`MEDIAN_MIN_SAMPLES`] valid samples,
 /// the median of the samples weighted by the per-face `weights` (at the taps; see
-/// [`row_weighted_median`]); elsewhere the weighted mean, as [`weighted_blend`]. `spread` (H·W,
+/// `row_weighted_median`); elsewhere the weighted mean, as [`weighted_blend`]. `spread` (H·W,
 /// if given) the population standard deviation of the valid samples.
 ///
 /// # Panics
