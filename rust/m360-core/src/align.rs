@@ -2781,8 +2781,15 @@ fn solve_levels(
     let mut levels: Vec<Level> = Vec::with_capacity(options.levels.len());
     let mut skipped = false;
     let schedule = options.level_params();
-    let (prior_samples, first) =
-        prior_samples_beside_first_level(layout, maps, &mut transform, overlaps, options, prior)?;
+    let (prior_samples, first) = prior_samples_beside_first_level(
+        layout,
+        maps,
+        &mut transform,
+        overlaps,
+        &schedule,
+        options,
+        prior,
+    )?;
     let solved_first = usize::from(!matches!(first, FirstLevel::Ahead));
     match first {
         FirstLevel::Solved(level) => levels.push(*level),
@@ -2892,6 +2899,7 @@ fn prior_samples_beside_first_level(
     maps: &[f32],
     transform: &mut Transform,
     overlaps: &Overlaps,
+    schedule: &[LevelParams],
     options: &Options,
     prior: Option<&Prior>,
 ) -> Result<(Option<PriorSamples>, FirstLevel)> {
@@ -2908,7 +2916,6 @@ fn prior_samples_beside_first_level(
             })
             .transpose()
     };
-    let schedule = options.level_params();
     match schedule.first() {
         Some(params) if prior.is_some() && schedule.len() > 1 => {
             let (samples, first) = rayon::join(build_samples, || {

@@ -395,13 +395,12 @@ impl PriorSamples {
     ///
     /// The tangents' relative spread at a sample is std/|c|, c their mean (in the units
     /// `frame` = (spread, median) restores). The median spread s over the samples seen twice or
-    /// more sets the share
-    /// γ = (UNTRUSTED − s)/(UNTRUSTED − TRUSTED) in [0, 1]. The disagreement c − (α·P + β), with
-    /// (α, β) fitted as the prior joins ([`super::symmetric_line`]), is low-passed over 6° trust
-    /// cells and their 8 neighbours (≈ 18°; weighted by confidence and by the Cauchy weight of
-    /// the gap, only where two tangents or more see the sample), its affine part in P removed
-    /// (the fusion changes the prior's shape, not its units), and γ of it moves each sample's
-    /// value. None when no sample is seen twice, the fit is degenerate or fewer than
+    /// more sets the share γ = (UNTRUSTED − s)/(UNTRUSTED − TRUSTED) in [0, 1]. The disagreement
+    /// c − (α·P + β), with (α, β) fitted as the prior joins ([`super::symmetric_line`]), is
+    /// low-passed over 6° trust cells and their 8 neighbours (≈ 18°; weighted by confidence and
+    /// by the Cauchy weight of the gap, only where two tangents or more see the sample), its
+    /// affine part in P removed (the fusion changes the prior's shape, not its units), and γ of
+    /// it moves each sample's value. None when no sample is seen twice, the fit is degenerate or fewer than
     /// [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
     pub(super) fn fused(
         &self,
