@@ -82,8 +82,15 @@ demo: $(BUILT)  ## the main job: m360.estimate on a synthetic panorama (simulate
 test: $(BUILT)  ## the test suite (pytest); make test PYTEST_ARGS='-m "not wheel"' skips the wheel test
 	$(PY) -m pytest $(PYTEST_ARGS)
 
-rust-test:  ## Rust unit tests of the core
-	cargo test --workspace
+# The release profile, so that the extension's release build (make install) is reused: a debug
+# build of the dependencies (faer above all) takes 5-8 min on 2 cores. Overflow checks and debug
+# assertions stay on in the core itself, as in a debug build. The criterion benchmarks have their
+# own crate (rust/m360-bench), whose dependencies would change shared crates' features.
+RUST_TEST_CONFIG := --config profile.release.package.m360-core.overflow-checks=true \
+  --config profile.release.package.m360-core.debug-assertions=true
+
+rust-test:  ## Rust unit tests of the core (release build, with overflow checks in the core)
+	cargo test --release -p m360-core -p m360-py $(RUST_TEST_CONFIG)
 
 $(VENV)/.wheel-tools: $(BIN)/activate Makefile
 	@echo "==> m360: installing the release tools (maturin, zig: about 50 MB, auditwheel)"

@@ -166,16 +166,18 @@ def sdist_build(
 
     The source build takes most of this module's time: the first test asks for it so that it
     overlaps the wheel installs; test_sdist_builds_from_nothing waits for it. It needs the Rust
-    toolchain. CARGO_TARGET_DIR is target/sdist-check of this checkout, so that a rerun reuses the
-    compiled crates.io dependencies; m360's own crates are always compiled from the sdist's
-    unpacked sources (a missing file fails the build)."""
+    toolchain. CARGO_TARGET_DIR is target/ of this checkout, where `make install` built the
+    extension: the crates.io dependencies compiled there are reused (the same lock file, features
+    and profile), which saves 3-4 min on 2 cores. m360's own crates are always compiled from the
+    sdist's unpacked sources: their path is part of their identity, so a missing file fails the
+    build."""
     env = clean_env(None, rust=True)
     if shutil.which("cargo", path=env["PATH"]) is None:
         yield {"skip": "no cargo on PATH: building the sdist needs the Rust toolchain"}
         return
     folder = tmp_path_factory.mktemp("sdist")
     venv, env = make_venv(sys.executable, folder / "venv", rust=True)
-    env["CARGO_TARGET_DIR"] = str(ROOT / "target" / "sdist-check")
+    env["CARGO_TARGET_DIR"] = str(ROOT / "target")
     pip = [venv / BIN / "python", "-m", "pip", "install", "--prefer-binary"]
     cmd = [*pip, "--cache-dir", pip_cache(), dist["sdist"]]
     log = (folder / "pip.log").open("w")

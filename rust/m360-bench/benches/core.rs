@@ -1,6 +1,6 @@
 //! Criterion benchmarks of the core's hot paths at 2K (the per-image work; plan building once).
 //!
-//! `cargo bench -p m360-core` (add `-- poisson` to run one group). The machine the project is
+//! `cargo bench -p m360-bench` (add `-- poisson` to run one group). The machine the project is
 //! measured on is shared and has 2 cores: compare the solvers within one run, not across runs.
 //! These replace the timing tests that used to sit, ignored, among the unit tests.
 
