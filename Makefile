@@ -85,12 +85,13 @@ test: $(BUILT)  ## the test suite (pytest); make test PYTEST_ARGS='-m "not wheel
 # The release profile, so that the extension's release build (make install) is reused: a debug
 # build of the dependencies (faer above all) takes 5-8 min on 2 cores. Overflow checks and debug
 # assertions stay on in the core itself, as in a debug build. The criterion benchmarks have their
-# own crate (rust/m360-bench), whose dependencies would change shared crates' features.
+# own crate (rust/m360-bench), whose dependencies would change shared crates' features. The
+# bindings crate (m360-py) has no Rust tests: the Python suite tests it.
 RUST_TEST_CONFIG := --config profile.release.package.m360-core.overflow-checks=true \
   --config profile.release.package.m360-core.debug-assertions=true
 
 rust-test:  ## Rust unit tests of the core (release build, with overflow checks in the core)
-	cargo test --release -p m360-core -p m360-py $(RUST_TEST_CONFIG)
+	cargo test --release -p m360-core $(RUST_TEST_CONFIG)
 
 $(VENV)/.wheel-tools: $(BIN)/activate Makefile
 	@echo "==> m360: installing the release tools (maturin, zig: about 50 MB, auditwheel)"
