@@ -3853,7 +3853,7 @@ mod tests {
     }
 
     #[test]
-    fn grid_dissection_orders_each_node_once_and_its_cuts_part_the_grid() {
+    fn grid_dissection_orders_each_node_once_and_fills_about_as_minimum_degree() {
         for (cols, rows) in [(1, 1), (2, 7), (5, 4), (16, 14), (43, 40)] {
             let order = grid_dissection(cols, rows);
             let mut seen = vec![false; cols * rows];
