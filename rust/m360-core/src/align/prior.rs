@@ -400,8 +400,8 @@ impl PriorSamples {
     /// low-passed over 6° trust cells and their 8 neighbours (≈ 18°; weighted by confidence and
     /// by the Cauchy weight of the gap, only where two tangents or more see the sample), its
     /// affine part in P removed (the fusion changes the prior's shape, not its units), and γ of
-    /// it moves each sample's value. None when no sample is seen twice, the fit is degenerate or fewer than
-    /// [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
+    /// it moves each sample's value. None when no sample is seen twice, the fit is degenerate
+    /// or fewer than [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
     pub(super) fn fused(
         &self,
         consensus: &[Option<Consensus>],
