@@ -18,6 +18,7 @@ from conftest import (
     as_perspective,
     erp_depth,
     layout,
+    scene,
     smooth_field,
     tangent_directions,
     tangent_disparity,
@@ -125,7 +126,23 @@ def _in_triangle(p: np.ndarray, tri: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------- clean tangents, seams
 
 
-@pytest.mark.parametrize("blend", ["nn", "mean", "radial", "frustum", "poisson"])
+#: AbsRel of exact tangents stitched without alignment (room 0, 2K, the paper's padding). The
+#: blends that mix several faces sample the tangents without interpolating across depth edges
+#: (docs/method.md, "Sampling across depth edges"); bilinear sampling gave 0.00092 (mean),
+#: 0.00096 (frustum, poisson) and 0.00090 (consensus), so these bounds fail without it. nn keeps
+#: bilinear sampling (0.00092); radial, dominated by one face, went from 0.00094 to 0.00112 here
+#: (on the default padding it gains: 0.00162 to 0.00101).
+RESAMPLING_FLOOR = {
+    "nn": 0.001,
+    "mean": 0.0008,
+    "radial": 0.0012,
+    "frustum": 0.0008,
+    "poisson": 0.0008,
+    "consensus": 0.00085,
+}
+
+
+@pytest.mark.parametrize("blend", list(RESAMPLING_FLOOR))
 def test_clean_tangents_stay_at_the_resampling_floor(blend: str) -> None:
     lay = layout(2048)
     res = m360.stitch(
@@ -135,12 +152,40 @@ def test_clean_tangents_stay_at_the_resampling_floor(blend: str) -> None:
     assert np.isfinite(res.disparity).all() and res.disparity.dtype == np.float32
     metrics = m360.eval.depth_metrics(res.disparity, erp_depth(0, 2048))
     print(f"{blend}: {m360.eval.format_metrics(metrics)}")
-    assert metrics["abs_rel"] <= 0.001
+    assert metrics["abs_rel"] <= RESAMPLING_FLOOR[blend]
     report = res.report["blend"]
     assert report["method"] == blend and report["seconds"] > 0
     if blend == "poisson":
         assert report["converged"] and report["relative_residual"] <= 1e-6
         assert report["iterations"] >= 1 and report["fidelity"] == "frustum"
+
+
+def test_blends_read_disparity_without_mixing_across_depth_edges() -> None:
+    """The blends read each face as ``tangents_to_erp(..., sampling="depth_edges")`` does (the
+    mean blend is the stack's mean); that differs from bilinear only at a few pixels (edges,
+    and slopes steeper than 5 % a pixel), and the mean of such a stack is nearer the ray-cast
+    truth than the mean of the bilinear one (on the default padding; on the paper's, fewer
+    faces see each pixel, and at 512 px this room came out worse: docs/method.md)."""
+    lay = m360.Layout.icosahedron(512)
+    plan = plan_for(lay)
+    exact = m360.synthetic.tangent_perspective_disparity(scene(0), lay.cameras)
+    spherical = plan.spherical_disparity(exact)
+    bilinear = m360.tangents_to_erp(spherical, lay)
+    edges = m360.tangents_to_erp(spherical, lay, sampling="depth_edges")
+    mean = plan.blend(spherical, {"method": "mean"})[0]
+    with np.errstate(invalid="ignore"):
+        np.testing.assert_allclose(mean, np.nanmean(edges, axis=0), rtol=1e-5)
+    seen = np.isfinite(bilinear)
+    np.testing.assert_array_equal(seen, np.isfinite(edges))
+    differ = seen & (bilinear != edges)
+    assert 0 < differ.sum() < 0.15 * seen.sum()  # 11 % at 512 px: edges, and steep slopes
+    with np.errstate(invalid="ignore"):
+        mixed = np.nanmean(bilinear, axis=0)
+    errors = [m360.eval.depth_metrics(d, erp_depth(0, 512))["abs_rel"] for d in (mean, mixed)]
+    print(errors)
+    assert errors[0] < 0.8 * errors[1]
+    with pytest.raises(InputError, match="sampling"):
+        m360.tangents_to_erp(spherical, lay, sampling="nearest")  # type: ignore[arg-type]
 
 
 def test_poisson_with_the_papers_fidelity_on_clean_tangents() -> None:
@@ -152,8 +197,9 @@ def test_poisson_with_the_papers_fidelity_on_clean_tangents() -> None:
         blend="poisson",
         blend_options={"fidelity": "nn"},
     )
-    # Measured 0.00103: the D_NN target adds its triangle steps back through the λ term.
-    assert m360.eval.depth_metrics(disp, erp_depth(0, 2048))["abs_rel"] <= 0.0011
+    # Measured 0.00083 (0.00103 with bilinear sampling across depth edges): the D_NN target
+    # adds its triangle steps back through the λ term.
+    assert m360.eval.depth_metrics(disp, erp_depth(0, 2048))["abs_rel"] <= 0.0009
 
 
 def _distorted(width: int) -> np.ndarray:
@@ -161,6 +207,18 @@ def _distorted(width: int) -> np.ndarray:
     as left after alignment (alignment is not part of this branch)."""
     return m360.synthetic.distort(
         tangent_disparity(0, width), 1, scale=(0.97, 1.03), shift=0.02, field=0.02
+    )
+
+
+def _smooth_distorted(width: int, seed: int, size: float) -> np.ndarray:
+    """A smooth field's tangents with per-tangent affine error and a smooth field of `size`:
+    no depth edge, so the blends' sampling and ``tangents_to_erp``'s (bilinear) agree. The
+    field is lifted by 3 so that even 25-px tangents (ERP width 128) change by less than 5 % a
+    pixel (without it, up to 7 %: a jump the blends would not interpolate across)."""
+    lay = layout(width)
+    tangents = as_perspective(3.0 + smooth_field(tangent_directions(lay)), lay)
+    return m360.synthetic.distort(
+        tangents, seed, scale=(1 - size, 1 + size), shift=size, field=size
     )
 
 
@@ -173,10 +231,13 @@ def test_seam_scores_on_aligned_tangents_with_residual_distortion() -> None:
         for blend in ("nn", "mean", "frustum", "poisson")
     }
     print(scores)
+    # The scores are relative to the gradient error away from the seams, which sampling the
+    # tangents without interpolating across depth edges lowered (frustum: triangles 1.15 ×
+    # 0.00075 now); nn keeps bilinear sampling.
     for blend in ("frustum", "poisson"):
         assert scores[blend]["borders"] < scores["mean"]["borders"] - 0.3
         assert scores[blend]["triangles"] < scores["nn"]["triangles"] - 1.0
-        assert scores[blend]["borders"] < 1.5 and scores[blend]["triangles"] < 1.1
+        assert scores[blend]["borders"] < 1.5 and scores[blend]["triangles"] < 1.2
 
 
 def test_seam_score_sees_a_step_on_a_border() -> None:
@@ -201,9 +262,7 @@ def test_seam_score_sees_a_step_on_a_border() -> None:
 def _small_problem() -> tuple[m360.Layout, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     lay = layout(128)
     plan = plan_for(lay)
-    tangents = m360.synthetic.distort(
-        tangent_disparity(0, 128), 2, scale=(0.9, 1.1), shift=0.05, field=0.05
-    )
+    tangents = _smooth_distorted(128, 2, 0.05)
     spherical = plan.spherical_disparity(tangents)
     values = plan.tangents_to_erp(spherical)
     weights = plan.tangents_to_erp(plan.blend_weights("frustum"))
@@ -324,7 +383,7 @@ def test_confidence_is_the_samples_spread_and_is_skipped_unless_asked(blend: str
     stack; ``confidence=False`` gives the same disparity and no confidence."""
     lay = layout(512)
     plan = plan_for(lay)
-    spherical = plan.spherical_disparity(_distorted(512))
+    spherical = plan.spherical_disparity(_smooth_distorted(512, 1, 0.03))
     stack = plan.tangents_to_erp(spherical).astype(np.float64)
     want = np.nanstd(stack, axis=0)
     assert np.isfinite(want).all() and want.max() > 1e-3

@@ -182,7 +182,7 @@ def test_median_blend_matches_a_numpy_weighted_median() -> None:
     tiles = syn.content_errors(exact, 3, amplitude=(0.3, 0.6))
     tiles = syn.distort(tiles, 4, scale=(0.8, 1.25), shift=0.1, noise=0.02)
     spherical = plan.spherical_disparity(tiles)
-    values = plan.tangents_to_erp(spherical)
+    values = plan.tangents_to_erp(spherical, "depth_edges")  # as the blends read disparity
     weights = plan.tangents_to_erp(plan.blend_weights("frustum"))
     expected = weighted_median_oracle(values, weights)
     got = plan.blend(spherical, {"method": "median"})[0]
@@ -202,7 +202,7 @@ def test_median_blend_ignores_one_wild_tangent_where_three_see_a_pixel() -> None
     out = m360.stitch(wild, lay, align="none", blend="median")
     frustum = m360.stitch(wild, lay, align="none", blend="frustum")
     plan = plan_for(lay)
-    others = plan.tangents_to_erp(plan.spherical_disparity(exact))
+    others = plan.tangents_to_erp(plan.spherical_disparity(exact), "depth_edges")
     seen = np.isfinite(others)
     others[3] = np.nan
     # Where tangent 3 and two or more others see a pixel (and its weight is not the majority),

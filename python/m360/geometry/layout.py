@@ -14,6 +14,7 @@ import threading
 from collections import OrderedDict
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Literal
 
 import numpy as np
 
@@ -394,7 +395,12 @@ def erp_to_tangents(erp: np.ndarray, layout: Layout | None = None) -> np.ndarray
 
 
 @renamed(tiles="tangents")
-def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
+def tangents_to_erp(
+    tangents: np.ndarray,
+    layout: Layout,
+    *,
+    sampling: Literal["bilinear", "depth_edges"] = "bilinear",
+) -> np.ndarray:
     """Map each tangent image onto the ERP grid.
 
     Every ERP pixel whose ray lands on a tangent image (in front of it) gets that image's value,
@@ -406,6 +412,12 @@ def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
         One image per camera of ``layout``; NaN marks invalid pixels.
     layout : Layout
         The layout the tangents belong to.
+    sampling : {"bilinear", "depth_edges"}
+        ``"bilinear"`` (default) for any quantity. ``"depth_edges"`` reads disparity as the
+        blends of :func:`m360.stitch` do (all but ``nn``): bilinear, but where the four
+        neighbours span a jump of more than 5 % only the side with most of the weight, so no
+        value lies between the two sides of a depth edge (docs/method.md, "Sampling across
+        depth edges").
 
     Returns
     -------
@@ -414,7 +426,9 @@ def tangents_to_erp(tangents: np.ndarray, layout: Layout) -> np.ndarray:
         NaN.
     """
     data = check_tangents(tangents, layout, "tangents")
-    return plan_for(layout).tangents_to_erp(data)
+    if sampling not in ("bilinear", "depth_edges"):
+        raise InputError(f"sampling must be 'bilinear' or 'depth_edges', got {sampling!r}")
+    return plan_for(layout).tangents_to_erp(data, sampling)
 
 
 def check_tangents(tangents: np.ndarray, layout: Layout, name: str) -> np.ndarray:

@@ -167,8 +167,9 @@ def stitch(
     Each tangent value is first converted from perspective disparity (1/z, what a monocular
     network predicts up to scale and shift) to spherical disparity (1/distance) with its own
     pixel's ray length; the tangents are then aligned (paper §3.3, :mod:`m360.align`), mapped to
-    the ERP grid (bilinear at the exact projected position) and blended (paper §3.4,
-    :mod:`m360.blend`).
+    the ERP grid (bilinear at the exact projected position, but not across a depth edge: where
+    the four neighbours span a jump of more than 5 %, the side with most of the weight; ``nn``
+    is plain bilinear) and blended (paper §3.4, :mod:`m360.blend`).
 
     Parameters
     ----------

@@ -1,6 +1,6 @@
 //! Times the resampling kernels without Python in the way: `cargo run --release --example profile_resample`.
 use m360_core::blend::Method;
-use m360_core::resample::{erp_to_tangents, tangents_to_erp};
+use m360_core::resample::{erp_to_tangents, tangents_to_erp, Sampling};
 use m360_core::{Layout, Plan};
 use std::time::Instant;
 
@@ -60,7 +60,13 @@ fn main() {
     let tiles = vec![1.0f32; 20 * h * w];
     time("tangents->erp", || {
         let mut out = vec![0f32; 20 * layout.erp_height * layout.erp_width];
-        tangents_to_erp(plan.erp_taps(), layout, &tiles, &mut out);
+        tangents_to_erp(
+            plan.erp_taps(),
+            layout,
+            &tiles,
+            Sampling::Bilinear,
+            &mut out,
+        );
         std::hint::black_box(out);
     });
     time("blend mean", || {

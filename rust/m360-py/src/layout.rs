@@ -190,12 +190,24 @@ impl Plan {
         }
     }
 
-    /// Tangents (N,h,w) float32 → per-face ERP maps (N,H,W) float32, NaN where a face is blind.
+    /// Tangents (N,h,w) float32 → per-face ERP maps (N,H,W) float32, NaN where a face is blind;
+    /// `sampling` "bilinear" or "depth_edges" (as the blends read disparity).
+    #[pyo3(signature = (tangents, sampling="bilinear"))]
     fn tangents_to_erp<'py>(
         &self,
         py: Python<'py>,
         tangents: PyReadonlyArray3<'py, f32>,
+        sampling: &str,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
+        let sampling = match sampling {
+            "bilinear" => resample::Sampling::Bilinear,
+            "depth_edges" => resample::Sampling::DepthEdges,
+            other => {
+                return Err(input_error(format!(
+                    "sampling must be 'bilinear' or 'depth_edges', got {other:?}"
+                )))
+            }
+        };
         let plan = &self.inner;
         let layout = plan.layout();
         self.check_tangents("tangents", tangents.shape())?;
@@ -208,7 +220,7 @@ impl Plan {
             let mut rw = out.readwrite();
             let dst = writable(&mut rw)?;
             on_pool(py, Some((plan, &[Need::ErpTaps])), || {
-                resample::tangents_to_erp(plan.erp_taps(), layout, data, dst);
+                resample::tangents_to_erp(plan.erp_taps(), layout, data, sampling, dst);
             })?;
         }
         Ok(out)

@@ -9,7 +9,7 @@ use super::weights::{frustum_weight, inscribed_half_fov, radial_weight, FRUSTUM_
 use super::*;
 use crate::layout::Layout;
 use crate::plan::Plan;
-use crate::resample::{erp_to_tangents, tangents_to_erp};
+use crate::resample::{erp_to_tangents, tangents_to_erp, Sampling};
 use crate::sphere::ErpGrid;
 
 /// The blend of `tangents` with `method` through a plan, and its spread.
@@ -537,7 +537,13 @@ fn a_nan_neighbour_invalidates_a_sample_and_per_face_maps_agree() {
     tangents[..h * w].fill(f32::NAN); // face 0 has no estimate at all
     let plane = layout.erp_height * layout.erp_width;
     let mut per_face = vec![0.0f32; 20 * plane];
-    tangents_to_erp(plan.erp_taps(), layout, &tangents, &mut per_face);
+    tangents_to_erp(
+        plan.erp_taps(),
+        layout,
+        &tangents,
+        Sampling::Bilinear,
+        &mut per_face,
+    );
     assert!(per_face[..plane].iter().all(|v| v.is_nan()));
     assert!(per_face[plane..].iter().any(|v| v.is_finite()));
     let (disparity, _) = blend_to_vec(&plan, &tangents, Method::Nearest);
@@ -612,7 +618,7 @@ fn consensus_matches_a_direct_evaluation_and_votes_down_a_wrong_face() {
     let (mut checked, mut voted) = (0, 0);
     let mut errors = Vec::new();
     for i in (0..l.erp_height).step_by(7) {
-        taps.sample(&tangents, i, &mut values);
+        taps.sample(&tangents, Sampling::DepthEdges, i, &mut values);
         weights.row_into(taps, i, &mut row_weights);
         for j in (0..l.erp_width).step_by(5) {
             let samples: Vec<(f32, f32)> = taps
@@ -699,7 +705,7 @@ fn median_matches_a_direct_evaluation_and_ignores_a_wrong_face() {
     let (mut values, mut row_weights) = (Vec::new(), Vec::new());
     let (mut medians, mut ignored) = (0, 0);
     for i in (0..l.erp_height).step_by(5) {
-        taps.sample(&tangents, i, &mut values);
+        taps.sample(&tangents, Sampling::DepthEdges, i, &mut values);
         weights.row_into(taps, i, &mut row_weights);
         for j in (0..l.erp_width).step_by(3) {
             let samples: Vec<(usize, f32, f32)> = taps

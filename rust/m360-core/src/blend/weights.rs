@@ -4,7 +4,7 @@
 use crate::camera::TangentCamera;
 use crate::layout::Layout;
 use crate::options::choice;
-use crate::resample::ErpTaps;
+use crate::resample::{ErpTaps, Sampling};
 use rayon::prelude::*;
 
 /// Radial weights are 1 up to this angle from the optical axis (degrees).
@@ -144,7 +144,7 @@ impl WeightMaps {
     /// # Panics
     /// If `taps` were built for another layout size.
     pub fn row_into(&self, taps: &ErpTaps, i: usize, out: &mut Vec<f32>) {
-        taps.sample(&self.maps, i, out);
+        taps.sample(&self.maps, Sampling::Bilinear, i, out);
     }
 
     /// Bytes held.

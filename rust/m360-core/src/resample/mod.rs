@@ -23,7 +23,7 @@ mod to_tangents;
 #[cfg(target_arch = "x86_64")]
 mod simd;
 
-pub use taps::{Tap, Texel};
+pub use taps::{Sampling, Tap, Texel};
 pub(crate) use taps::{OFFSET_MASK, RANK_SHIFT, WRAPPED};
 pub(crate) use to_erp::MAX_FACES_PER_PIXEL;
 pub use to_erp::{tangents_to_erp, ErpTaps, Ranks, Run};

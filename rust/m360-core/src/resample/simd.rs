@@ -6,16 +6,19 @@
 //! final rounding.
 
 use super::taps::{
-    lerp_f32, prefetch, Tap, Texel, FRAC_SCALE, OFFSET_MASK, PREFETCH_DISTANCE, WRAPPED,
+    lerp_f32, lerp_f32_edges, prefetch, Sampling, Tap, Texel, EDGE_JUMP, FRAC_SCALE, OFFSET_MASK,
+    PREFETCH_DISTANCE, WRAPPED,
 };
 use super::to_tangents::{prefetch_tap, ErpSource};
 use std::arch::x86_64::{
     __m128, __m128i, _mm256_add_epi16, _mm256_broadcastsi128_si256, _mm256_extract_epi32,
     _mm256_mulhrs_epi16, _mm256_packus_epi16, _mm256_set1_epi16, _mm256_set_m128i,
     _mm256_shuffle_epi8, _mm256_slli_epi16, _mm256_srli_epi16, _mm256_sub_epi16, _mm_add_epi16,
-    _mm_add_ps, _mm_and_si128, _mm_castpd_ps, _mm_castps_si128, _mm_castsi128_ps, _mm_cvtepi32_ps,
-    _mm_cvtsi128_si32, _mm_load_sd, _mm_loadl_epi64, _mm_loadu_si128, _mm_movehl_ps, _mm_movelh_ps,
-    _mm_mul_ps, _mm_mulhrs_epi16, _mm_packus_epi16, _mm_set1_epi16, _mm_set1_epi32, _mm_set1_ps,
+    _mm_add_ps, _mm_and_ps, _mm_and_si128, _mm_andnot_ps, _mm_castpd_ps, _mm_castps_si128,
+    _mm_castsi128_ps, _mm_cmpge_ps, _mm_cmpgt_ps, _mm_cmpord_ps, _mm_cvtepi32_ps,
+    _mm_cvtsi128_si32, _mm_div_ps, _mm_load_sd, _mm_loadl_epi64, _mm_loadu_si128, _mm_max_ps,
+    _mm_min_ps, _mm_movehl_ps, _mm_movelh_ps, _mm_movemask_ps, _mm_mul_ps, _mm_mulhrs_epi16,
+    _mm_or_ps, _mm_packus_epi16, _mm_set1_epi16, _mm_set1_epi32, _mm_set1_ps, _mm_setzero_ps,
     _mm_shuffle_epi8, _mm_shuffle_ps, _mm_slli_epi16, _mm_srli_epi16, _mm_srli_epi32,
     _mm_storeu_ps, _mm_sub_epi16, _mm_sub_ps, _mm_unpacklo_epi64, _mm_unpacklo_ps,
 };
@@ -191,11 +194,74 @@ pub(super) unsafe fn sample_run_u8_avx2<const C: usize>(
     }
 }
 
+/// [`lerp_f32_edges`] on four lanes, branch-free: the lanes of `bilinear` whose neighbours
+/// `[tl, tr, bl, br]` span a depth edge (none NaN) are replaced by the heavier side's
+/// interpolation. The same operations in the same order as the scalar kernel, so the same bits
+/// (a corner on the other side adds an exact +0).
+#[target_feature(enable = "sse2")]
+#[inline]
+fn across_edges(
+    bilinear: __m128,
+    corners: [__m128; 4],
+    fx: __m128,
+    fy: __m128,
+    jump: __m128,
+    magnitude: __m128,
+) -> __m128 {
+    let [tl, tr, bl, br] = corners;
+    let lo = _mm_min_ps(_mm_min_ps(tl, tr), _mm_min_ps(bl, br));
+    let hi = _mm_max_ps(_mm_max_ps(tl, tr), _mm_max_ps(bl, br));
+    let size = _mm_max_ps(_mm_and_ps(hi, magnitude), _mm_and_ps(lo, magnitude));
+    let finite = _mm_and_ps(_mm_cmpord_ps(tl, tr), _mm_cmpord_ps(bl, br));
+    let across = _mm_and_ps(
+        finite,
+        _mm_cmpgt_ps(_mm_sub_ps(hi, lo), _mm_mul_ps(jump, size)),
+    );
+    if _mm_movemask_ps(across) == 0 {
+        return bilinear;
+    }
+    let middle = _mm_mul_ps(_mm_set1_ps(0.5), _mm_add_ps(lo, hi));
+    let one = _mm_set1_ps(1.0);
+    let (gx, gy) = (_mm_sub_ps(one, fx), _mm_sub_ps(one, fy));
+    let weights = [
+        _mm_mul_ps(gx, gy),
+        _mm_mul_ps(fx, gy),
+        _mm_mul_ps(gx, fy),
+        _mm_mul_ps(fx, fy),
+    ];
+    let zero = _mm_setzero_ps();
+    let (mut near, mut near_weight, mut far, mut far_weight) = (zero, zero, zero, zero);
+    for (v, weight) in corners.into_iter().zip(weights) {
+        let is_near = _mm_cmpge_ps(v, middle);
+        let product = _mm_mul_ps(weight, v);
+        near = _mm_add_ps(near, _mm_and_ps(is_near, product));
+        near_weight = _mm_add_ps(near_weight, _mm_and_ps(is_near, weight));
+        far = _mm_add_ps(far, _mm_andnot_ps(is_near, product));
+        far_weight = _mm_add_ps(far_weight, _mm_andnot_ps(is_near, weight));
+    }
+    let take_near = _mm_cmpge_ps(near_weight, far_weight);
+    let side = select(
+        take_near,
+        _mm_div_ps(near, near_weight),
+        _mm_div_ps(far, far_weight),
+    );
+    select(across, side, bilinear)
+}
+
+/// Lanes of `a` where `mask` is set, of `b` elsewhere (SSE2 has no blendv).
+#[target_feature(enable = "sse2")]
+#[inline]
+fn select(mask: __m128, a: __m128, b: __m128) -> __m128 {
+    _mm_or_ps(_mm_and_ps(mask, a), _mm_andnot_ps(mask, b))
+}
+
 /// [`lerp_f32`] of ERP taps in each of `M` stacks of the same size (a map and
 /// its blending weights), four taps at a time with SSE2 (baseline x86-64): the same
-/// operations in the same order, so the same bits. Each tap's two rows are read as 64-bit
-/// pairs (top-left and top-right, bottom-left and bottom-right), and the fractions and
-/// offsets of four taps are decoded once for all stacks. Prefetches once per four taps.
+/// operations in the same order, so the same bits. With `first` = [`Sampling::DepthEdges`]
+/// the first stack's taps at a depth edge take [`lerp_f32_edges`]. Each tap's two rows are
+/// read as 64-bit pairs (top-left and top-right, bottom-left and bottom-right), and the
+/// fractions and offsets of four taps are decoded once for all stacks. Prefetches once per four
+/// taps.
 ///
 /// # Safety
 /// Every tap, its offset in the low [`RANK_SHIFT`](super::taps::RANK_SHIFT) bits plus `base`,
@@ -203,11 +269,15 @@ pub(super) unsafe fn sample_run_u8_avx2<const C: usize>(
 #[target_feature(enable = "sse2")]
 pub(super) unsafe fn lerp_run_f32<const M: usize>(
     stacks: [&[f32]; M],
+    first: Sampling,
     base: usize,
     w: usize,
     taps: &[Tap],
     mut outs: [&mut [f32]; M],
 ) {
+    let edges = first == Sampling::DepthEdges;
+    let jump = _mm_set1_ps(EDGE_JUMP);
+    let magnitude = _mm_castsi128_ps(_mm_set1_epi32(0x7fff_ffff));
     debug_assert!(outs.iter().all(|o| o.len() == taps.len()));
     let scale = _mm_set1_ps(1.0 / FRAC_SCALE);
     let low16 = _mm_set1_epi32(0xffff);
@@ -245,7 +315,7 @@ pub(super) unsafe fn lerp_run_f32<const M: usize>(
             (_mm_movelh_ps(lo, hi), _mm_movehl_ps(hi, lo))
         };
         let lerp = |p: __m128, q: __m128, f: __m128| _mm_add_ps(p, _mm_mul_ps(f, _mm_sub_ps(q, p)));
-        for (stack, out) in stacks.iter().zip(outs.iter_mut()) {
+        for (m, (stack, out)) in stacks.iter().zip(outs.iter_mut()).enumerate() {
             let src = stack.as_ptr();
             // SAFETY (both loads): `offset(tap) + w + 1 < stack.len()` (contract), so both
             // 8-byte pairs of a tap are inside `stack`.
@@ -256,15 +326,24 @@ pub(super) unsafe fn lerp_run_f32<const M: usize>(
             let pair = |k: usize| unsafe { _mm_castpd_ps(_mm_load_sd(src.add(k).cast::<f64>())) };
             let (tl, tr) = split(k.map(pair));
             let (bl, br) = split(k.map(|k| pair(k + w)));
-            let value = lerp(lerp(tl, tr, fx), lerp(bl, br, fx), fy);
+            let mut value = lerp(lerp(tl, tr, fx), lerp(bl, br, fx), fy);
+            if edges && m == 0 {
+                value = across_edges(value, [tl, tr, bl, br], fx, fy, jump, magnitude);
+            }
             // SAFETY: `at + 4 ≤ out.len()`.
             unsafe { _mm_storeu_ps(out.as_mut_ptr().add(at), value) };
         }
     }
     for (t, tap) in taps.iter().enumerate().skip(full) {
-        for (stack, out) in stacks.iter().zip(outs.iter_mut()) {
+        for (m, (stack, out)) in stacks.iter().zip(outs.iter_mut()).enumerate() {
             // SAFETY: the tap satisfies `lerp_f32`'s contract.
-            out[t] = unsafe { lerp_f32(stack, offset(tap), w, *tap) };
+            out[t] = unsafe {
+                if edges && m == 0 {
+                    lerp_f32_edges(stack, offset(tap), w, *tap)
+                } else {
+                    lerp_f32(stack, offset(tap), w, *tap)
+                }
+            };
         }
     }
 }

@@ -159,6 +159,79 @@ pub(super) unsafe fn lerp_f32(stack: &[f32], k: usize, w: usize, tap: Tap) -> f3
     top + fy * (bottom - top)
 }
 
+/// How a stack of tangent values is interpolated at an ERP tap.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub enum Sampling {
+    /// Bilinear: for smooth quantities (blending weights, masks, anything a caller maps).
+    Bilinear,
+    /// Bilinear, but not across a depth edge: where the four neighbours span a jump of more
+    /// than [`EDGE_JUMP`], only the side holding most of the bilinear weight is interpolated
+    /// ([`lerp_f32_edges`]). For disparity: a value between the two sides is a point in
+    /// mid-air (a "flying pixel"), on neither surface.
+    DepthEdges,
+}
+
+/// Smallest relative jump between the four neighbours of a tap, (hi − lo)/max(|hi|, |lo|), that
+/// [`Sampling::DepthEdges`] treats as a depth edge: 5 %, the jump `m360.eval.edge_band` and the
+/// benches call an edge. Within one pixel a smooth surface changes this much only at grazing
+/// angles (on a plane, within about 3.5° of its horizon at 2K; docs/method.md, "Sampling
+/// across depth edges").
+pub(crate) const EDGE_JUMP: f32 = 0.05;
+
+/// Whether neighbours from `lo` to `hi` span a depth edge (false when either is NaN).
+#[expect(
+    clippy::inline_always,
+    reason = "per-pixel kernel; inlined it measured faster"
+)]
+#[inline(always)]
+fn spans_edge(lo: f32, hi: f32) -> bool {
+    hi - lo > EDGE_JUMP * hi.abs().max(lo.abs())
+}
+
+/// [`lerp_f32`] that does not interpolate across a depth edge ([`Sampling::DepthEdges`]): when
+/// the neighbours span one, they are split at the middle of their range and the side with the
+/// larger sum of bilinear weights is interpolated alone (the nearer side on a tie). Otherwise,
+/// and whenever a neighbour is NaN, `lerp_f32`'s value and bits.
+///
+/// # Safety
+/// As [`lerp_f32`].
+#[inline]
+pub(super) unsafe fn lerp_f32_edges(stack: &[f32], k: usize, w: usize, tap: Tap) -> f32 {
+    debug_assert!(k + w + 1 < stack.len());
+    // SAFETY: see the function's contract.
+    let corners = unsafe {
+        [
+            *stack.get_unchecked(k),
+            *stack.get_unchecked(k + 1),
+            *stack.get_unchecked(k + w),
+            *stack.get_unchecked(k + w + 1),
+        ]
+    };
+    let lo = corners.iter().copied().fold(f32::INFINITY, f32::min);
+    let hi = corners.iter().copied().fold(f32::NEG_INFINITY, f32::max);
+    if corners.iter().any(|v| v.is_nan()) || !spans_edge(lo, hi) {
+        // SAFETY: the same contract.
+        return unsafe { lerp_f32(stack, k, w, tap) };
+    }
+    let middle = 0.5 * (lo + hi);
+    let (mut near, mut near_weight, mut far, mut far_weight) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
+    for (&v, weight) in corners.iter().zip(tap.weights()) {
+        if v >= middle {
+            near += weight * v;
+            near_weight += weight;
+        } else {
+            far += weight * v;
+            far_weight += weight;
+        }
+    }
+    // The weights sum to one, so the heavier side weighs at least ½.
+    if near_weight >= far_weight {
+        near / near_weight
+    } else {
+        far / far_weight
+    }
+}
+
 /// How many pixels ahead the ERP rows of a tap are prefetched: the taps say exactly which cache
 /// lines the next pixels need, which the hardware prefetcher cannot guess along a curved path.
 pub(super) const PREFETCH_DISTANCE: usize = 32;
@@ -194,5 +267,73 @@ mod tests {
             assert!((w.iter().sum::<f32>() - 1.0).abs() < 1e-6);
             assert_eq!(u8::bilinear([200, 200, 200, 200], tap), 200);
         }
+    }
+
+    /// Edge-aware sampling of one 2 × 2 cell `[tl, tr, bl, br]` at fractions (fx, fy).
+    fn across(cell: [f32; 4], fx: f64, fy: f64) -> (f32, f32) {
+        // Rows of width 2 with a padding row, so the cell is the top-left 2 × 2 of a 2 × 3 stack.
+        let stack = [cell[0], cell[1], cell[2], cell[3], 0.0, 0.0];
+        let tap = Tap::new(0, fx, fy);
+        // SAFETY: k + w + 1 = 3 < 6.
+        unsafe {
+            (
+                lerp_f32_edges(&stack, 0, 2, tap),
+                lerp_f32(&stack, 0, 2, tap),
+            )
+        }
+    }
+
+    /// At a step between the columns, a tap takes the side it is nearer to, interpolated along
+    /// that side alone (checked against the side's own linear interpolation), never a value in
+    /// between; the nearer (larger) side on a tie.
+    #[test]
+    fn depth_edge_sampling_takes_one_side_of_a_step() {
+        // Far side on the left (disparity 1.0 → 1.1 down), near side on the right (3.0 → 3.3).
+        let cell = [1.0, 3.0, 1.1, 3.3];
+        for (fx, fy) in [
+            (0.1, 0.0),
+            (0.3, 0.5),
+            (0.49, 0.9),
+            (0.51, 0.2),
+            (0.8, 0.7),
+            (1.0, 1.0),
+        ] {
+            let (got, bilinear) = across(cell, fx, fy);
+            let q = |f: f64| (f * 32768.0).round() / 32768.0;
+            let side = if fx < 0.5 { (1.0, 1.1) } else { (3.0, 3.3) };
+            let want = side.0 + q(fy) * (side.1 - side.0);
+            assert!(
+                (f64::from(got) - want).abs() < 1e-6,
+                "({fx}, {fy}): {got} vs {want}"
+            );
+            assert!((got - bilinear).abs() > 0.1 || fx <= 0.1 || fx >= 0.9);
+        }
+        assert_eq!(
+            across(cell, 0.5, 0.0).0.to_bits(),
+            3.0f32.to_bits(),
+            "a tie goes to the nearer side"
+        );
+        // A corner alone across the edge (a diagonal edge): it wins only where it weighs most.
+        let corner = [2.0, 1.0, 1.0, 1.0];
+        assert_eq!(across(corner, 0.0, 0.0).0.to_bits(), 2.0f32.to_bits());
+        assert_eq!(across(corner, 0.4, 0.4).0.to_bits(), 1.0f32.to_bits());
+    }
+
+    /// Below a 5 % jump, and wherever a neighbour is NaN, the bilinear value's exact bits; the
+    /// jump is relative, so it does not depend on the units.
+    #[test]
+    fn depth_edge_sampling_is_bilinear_off_edges() {
+        for scale in [1e-3, 1.0, 250.0] {
+            let smooth = [1.0, 1.04, 0.99, 1.02].map(|v| v * scale);
+            let step = [1.0, 1.06, 1.0, 1.06].map(|v| v * scale);
+            for (fx, fy) in [(0.2, 0.3), (0.5, 0.5), (0.7, 0.1)] {
+                let (got, bilinear) = across(smooth, fx, fy);
+                assert_eq!(got.to_bits(), bilinear.to_bits());
+                let (got, bilinear) = across(step, fx, fy);
+                assert_ne!(got.to_bits(), bilinear.to_bits());
+            }
+        }
+        let (got, _) = across([1.0, f32::NAN, 3.0, 3.0], 0.9, 0.9);
+        assert!(got.is_nan());
     }
 }

@@ -5,8 +5,8 @@
 #[cfg(target_arch = "x86_64")]
 use super::simd;
 #[cfg(not(target_arch = "x86_64"))]
-use super::taps::{lerp_f32, prefetch, PREFETCH_DISTANCE};
-use super::taps::{Tap, OFFSET_MASK, RANK_SHIFT};
+use super::taps::{lerp_f32, lerp_f32_edges, prefetch, PREFETCH_DISTANCE};
+use super::taps::{Sampling, Tap, OFFSET_MASK, RANK_SHIFT};
 use crate::camera::TangentCamera;
 use crate::layout::Layout;
 use crate::plan_array::PlanArray;
@@ -278,23 +278,25 @@ impl ErpTaps {
         out.extend(Ranks(self.row_parts(i).1.iter()));
     }
 
-    /// The bilinear value of a tangent stack (N·h·w) at every tap of ERP row `i`, in tap order,
-    /// into `out`: NaN when any of the four neighbours is NaN.
+    /// The value of a tangent stack (N·h·w) at every tap of ERP row `i`, in tap order, into
+    /// `out`, interpolated as `sampling` says: NaN when any of the four neighbours is NaN.
     ///
     /// # Panics
     /// If `stack` is not the size the taps were built for (the bindings check shapes first).
-    pub fn sample(&self, stack: &[f32], i: usize, out: &mut Vec<f32>) {
-        self.sample_many([stack], i, [out]);
+    pub fn sample(&self, stack: &[f32], sampling: Sampling, i: usize, out: &mut Vec<f32>) {
+        self.sample_many([stack], sampling, i, [out]);
     }
 
     /// [`ErpTaps::sample`] of several stacks of the same size (a map and its blending weights)
-    /// at once: each tap is decoded once for all of them.
+    /// at once: each tap is decoded once for all of them. `first` is how the first stack is
+    /// interpolated; the others are bilinear.
     ///
     /// # Panics
     /// If a stack is not the size the taps were built for.
     pub fn sample_many<const M: usize>(
         &self,
         stacks: [&[f32]; M],
+        first: Sampling,
         i: usize,
         mut outs: [&mut Vec<f32>; M],
     ) {
@@ -309,7 +311,7 @@ impl ErpTaps {
         for run in runs {
             let parts = outs.each_mut().map(|o| &mut o[run.taps()]);
             // SAFETY: the stacks have the size the taps were built for (asserted above).
-            unsafe { self.sample_run(stacks, &taps[run.taps()], run, parts) };
+            unsafe { self.sample_run(stacks, first, &taps[run.taps()], run, parts) };
         }
     }
 
@@ -323,11 +325,12 @@ impl ErpTaps {
     pub fn sample_runs(
         &self,
         stack: &[f32],
+        sampling: Sampling,
         i: usize,
         buffer: &mut Vec<f32>,
         mut visit: impl FnMut(&Run, &[f32], Ranks<'_>),
     ) {
-        self.sample_runs_many([stack], i, [buffer], |run, [values], ranks| {
+        self.sample_runs_many([stack], sampling, i, [buffer], |run, [values], ranks| {
             visit(run, values, ranks);
         });
     }
@@ -341,6 +344,7 @@ impl ErpTaps {
     pub fn sample_runs_many<const M: usize>(
         &self,
         stacks: [&[f32]; M],
+        first: Sampling,
         i: usize,
         mut buffers: [&mut Vec<f32>; M],
         mut visit: impl FnMut(&Run, [&[f32]; M], Ranks<'_>),
@@ -357,7 +361,7 @@ impl ErpTaps {
             }
             let parts = buffers.each_mut().map(|b| &mut b[..]);
             // SAFETY: the stacks have the size the taps were built for (asserted above).
-            unsafe { self.sample_run(stacks, taps, run, parts) };
+            unsafe { self.sample_run(stacks, first, taps, run, parts) };
             visit(run, buffers.each_ref().map(|b| &b[..]), Ranks(taps.iter()));
         }
     }
@@ -370,8 +374,8 @@ impl ErpTaps {
         );
     }
 
-    /// Bilinear values of each of `stacks` at the taps of `run` into `outs` (each as long as
-    /// `taps`).
+    /// Values of each of `stacks` at the taps of `run` into `outs` (each as long as `taps`):
+    /// the first as `first` says, the others bilinear.
     ///
     /// # Safety
     /// Each stack must have the size the taps were built for.
@@ -383,6 +387,7 @@ impl ErpTaps {
     unsafe fn sample_run<const M: usize>(
         &self,
         stacks: [&[f32]; M],
+        first: Sampling,
         taps: &[Tap],
         run: &Run,
         outs: [&mut [f32]; M],
@@ -391,10 +396,11 @@ impl ErpTaps {
         #[cfg(target_arch = "x86_64")]
         {
             // SAFETY: the caller's contract is the kernel's.
-            unsafe { simd::lerp_run_f32(stacks, base, w, taps, outs) };
+            unsafe { simd::lerp_run_f32(stacks, first, base, w, taps, outs) };
         }
         #[cfg(not(target_arch = "x86_64"))]
-        for (stack, out) in stacks.iter().zip(outs) {
+        for (m, (stack, out)) in stacks.iter().zip(outs).enumerate() {
+            let edges = m == 0 && first == Sampling::DepthEdges;
             for (t, (&tap, v)) in taps.iter().zip(out.iter_mut()).enumerate() {
                 if let Some(ahead) = taps.get(t + PREFETCH_DISTANCE) {
                     let k = base + (ahead.index & OFFSET_MASK) as usize;
@@ -403,7 +409,14 @@ impl ErpTaps {
                 }
                 // SAFETY: taps of this map satisfy `lerp_f32`'s contract for a stack of the
                 // size they were built for (the caller's contract).
-                *v = unsafe { lerp_f32(stack, base + (tap.index & OFFSET_MASK) as usize, w, tap) };
+                let k = base + (tap.index & OFFSET_MASK) as usize;
+                *v = unsafe {
+                    if edges {
+                        lerp_f32_edges(stack, k, w, tap)
+                    } else {
+                        lerp_f32(stack, k, w, tap)
+                    }
+                };
             }
         }
     }
@@ -544,15 +557,21 @@ fn tap_at(cam: &TangentCamera, x: f64, y: f64, base: usize) -> Option<Tap> {
     ))
 }
 
-/// Each tangent image mapped onto the ERP grid: `out` (N, H, W) is overwritten, NaN where a face
-/// does not see the pixel (or a bilinear neighbour is NaN).
+/// Each tangent image mapped onto the ERP grid, read as `sampling` says: `out` (N, H, W) is
+/// overwritten, NaN where a face does not see the pixel (or a bilinear neighbour is NaN).
 ///
 /// One pass over the output: each row of each face plane is written once, runs and NaN gaps in
 /// column order, while the row's samples are still in cache.
 ///
 /// # Panics
 /// If `out` is not N·H·W long or `tangents` not N·h·w.
-pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32], out: &mut [f32]) {
+pub fn tangents_to_erp(
+    taps: &ErpTaps,
+    layout: &Layout,
+    tangents: &[f32],
+    sampling: Sampling,
+    out: &mut [f32],
+) {
     let (eh, ew) = (layout.erp_height, layout.erp_width);
     let (faces, plane) = (layout.cameras.len(), eh * ew);
     assert_eq!(
@@ -565,7 +584,7 @@ pub fn tangents_to_erp(taps: &ErpTaps, layout: &Layout, tangents: &[f32], out: &
         .into_par_iter()
         .for_each_init(Vec::new, |values, i| {
             let ptr = &ptr;
-            taps.sample(tangents, i, values);
+            taps.sample(tangents, sampling, i, values);
             let mut runs = taps.runs(i).iter().peekable();
             for face in 0..faces {
                 // SAFETY: face < N and i < H, so the row lies inside `out` (length asserted
@@ -592,7 +611,7 @@ unsafe impl<T> Sync for SharedMut<T> {}
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::resample::taps::lerp_f32;
+    use crate::resample::taps::{lerp_f32, lerp_f32_edges};
 
     /// The runs hold exactly the taps a brute-force search over every camera finds, each
     /// pixel's taps ranked by angle to the axis, and runs are sorted, disjoint and unwrapped.
@@ -670,9 +689,10 @@ mod tests {
         }
     }
 
-    /// The vectorised run sampling gives the scalar bilinear value's exact bits (NaN where a
-    /// neighbour is NaN), on noise with scattered NaNs: a swapped lane or pair would differ.
-    /// Sampling two stacks at once (`sample_many`) gives each one's bits too.
+    /// The vectorised run sampling gives the scalar value's exact bits (NaN where a
+    /// neighbour is NaN), bilinear and across depth edges, on noise with scattered NaNs (its
+    /// neighbours nearly always span an edge): a swapped lane or pair would differ. Sampling
+    /// two stacks at once (`sample_many`) gives each one's bits too, the second bilinear.
     #[test]
     fn run_sampling_matches_the_scalar_lerp_bit_for_bit() {
         let layout = Layout::icosahedron(256, 0.3, None).expect("layout");
@@ -693,28 +713,41 @@ mod tests {
             .collect();
         let other: Vec<f32> = stack.iter().rev().map(|v| 2.0 * v).collect();
         let same = |a: f32, b: f32| a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan());
-        let (mut got, mut nan) = (Vec::new(), 0);
+        let (mut got, mut nan, mut edges) = (Vec::new(), 0, 0);
         let (mut first, mut second) = (Vec::new(), Vec::new());
-        for i in 0..layout.erp_height {
-            taps.sample(&stack, i, &mut got);
-            taps.sample_many([&stack, &other], i, [&mut first, &mut second]);
-            let (runs, row_taps) = taps.row_parts(i);
-            for run in runs {
-                for t in run.taps() {
-                    let tap = row_taps[t];
-                    let k = run.face as usize * h * w + (tap.index & OFFSET_MASK) as usize;
-                    // SAFETY: a tap of these taps, on stacks of their size.
-                    let (want, want_other) =
-                        unsafe { (lerp_f32(&stack, k, w, tap), lerp_f32(&other, k, w, tap)) };
-                    nan += usize::from(want.is_nan());
-                    assert!(same(got[t], want), "row {i}, tap {t}: {} vs {want}", got[t]);
-                    assert!(
-                        same(first[t], want) && same(second[t], want_other),
-                        "row {i}"
-                    );
+        for sampling in [Sampling::Bilinear, Sampling::DepthEdges] {
+            for i in 0..layout.erp_height {
+                taps.sample(&stack, sampling, i, &mut got);
+                taps.sample_many([&stack, &other], sampling, i, [&mut first, &mut second]);
+                let (runs, row_taps) = taps.row_parts(i);
+                for run in runs {
+                    for t in run.taps() {
+                        let tap = row_taps[t];
+                        let k = run.face as usize * h * w + (tap.index & OFFSET_MASK) as usize;
+                        // SAFETY: a tap of these taps, on stacks of their size.
+                        let (want, want_other, bilinear) = unsafe {
+                            let want = match sampling {
+                                Sampling::Bilinear => lerp_f32(&stack, k, w, tap),
+                                Sampling::DepthEdges => lerp_f32_edges(&stack, k, w, tap),
+                            };
+                            (
+                                want,
+                                lerp_f32(&other, k, w, tap),
+                                lerp_f32(&stack, k, w, tap),
+                            )
+                        };
+                        nan += usize::from(want.is_nan());
+                        edges += usize::from(!same(want, bilinear));
+                        assert!(same(got[t], want), "row {i}, tap {t}: {} vs {want}", got[t]);
+                        assert!(
+                            same(first[t], want) && same(second[t], want_other),
+                            "row {i}"
+                        );
+                    }
                 }
             }
         }
         assert!(nan > 0, "the NaN path was not exercised");
+        assert!(edges > 0, "the depth-edge path was not exercised");
     }
 }
