@@ -20,6 +20,7 @@ from m360.align import AlignSolver, Energy, Loss, Offsets, PriorFusion
 from m360.blend import BLEND_METHODS, BlendMethod, Fidelity, PoissonSolver
 from m360.errors import InputError
 from m360.estimators import SimulatedEstimator
+from m360.geometry.layout import TangentSampling
 
 # ----------------------------------------------------------------- names and defaults
 
@@ -35,6 +36,7 @@ from m360.estimators import SimulatedEstimator
         (Offsets, "offsets"),
         (Loss, "loss"),
         (PriorFusion, "prior_fusion"),
+        (TangentSampling, "sampling"),
     ],
 )
 def test_literal_types_spell_the_cores_choices(literal: object, kind: str) -> None:

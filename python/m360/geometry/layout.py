@@ -36,11 +36,15 @@ __all__ = [
     "PAPER_PADDING",
     "Layout",
     "TangentCamera",
+    "TangentSampling",
     "clear_plan_cache",
     "default_layout",
     "erp_to_tangents",
     "tangents_to_erp",
 ]
+
+#: How :func:`tangents_to_erp` reads the faces (the core's ``CHOICES["sampling"]``).
+TangentSampling = Literal["bilinear", "depth_edges"]
 
 #: Padding of the icosahedron layout when none is given, in gnomonic units: the layout
 #: :func:`m360.estimate` runs on. Wider than the paper's 0.3, so that most pixels are seen by three
@@ -399,7 +403,7 @@ def tangents_to_erp(
     tangents: np.ndarray,
     layout: Layout,
     *,
-    sampling: Literal["bilinear", "depth_edges"] = "bilinear",
+    sampling: TangentSampling = "bilinear",
 ) -> np.ndarray:
     """Map each tangent image onto the ERP grid.
 
@@ -426,8 +430,6 @@ def tangents_to_erp(
         NaN.
     """
     data = check_tangents(tangents, layout, "tangents")
-    if sampling not in ("bilinear", "depth_edges"):
-        raise InputError(f"sampling must be 'bilinear' or 'depth_edges', got {sampling!r}")
     return plan_for(layout).tangents_to_erp(data, sampling)
 
 

@@ -6,6 +6,7 @@ use crate::errors::{core, input_error};
 use crate::threads::on_pool;
 use crate::{align, blend};
 use m360_core::layout::Layout;
+use m360_core::options::Choice;
 use m360_core::plan::Need;
 use m360_core::{resample, stitch, TangentCamera};
 use numpy::{
@@ -199,15 +200,7 @@ impl Plan {
         tangents: PyReadonlyArray3<'py, f32>,
         sampling: &str,
     ) -> PyResult<Bound<'py, PyArrayDyn<f32>>> {
-        let sampling = match sampling {
-            "bilinear" => resample::Sampling::Bilinear,
-            "depth_edges" => resample::Sampling::DepthEdges,
-            other => {
-                return Err(input_error(format!(
-                    "sampling must be 'bilinear' or 'depth_edges', got {other:?}"
-                )))
-            }
-        };
+        let sampling = core(resample::Sampling::parse(sampling))?;
         let plan = &self.inner;
         let layout = plan.layout();
         self.check_tangents("tangents", tangents.shape())?;

@@ -8,6 +8,7 @@ use m360_core::layout;
 use m360_core::options::{
     Choice, MAX_ITERATIONS, MAX_POLE_CAP_DEG, MAX_THREADS, MIN_POISSON_TOLERANCE,
 };
+use m360_core::resample::Sampling;
 use pyo3::prelude::*;
 use pyo3::types::{PyDict, PyList, PyTuple};
 
@@ -256,6 +257,7 @@ pub(crate) fn choices(py: Python<'_>) -> PyResult<Bound<'_, PyDict>> {
     d.set_item("loss", names::<Loss>(py)?)?;
     d.set_item("prior_fusion", names::<PriorFusion>(py)?)?;
     d.set_item("weights", names::<Weighting>(py)?)?;
+    d.set_item("sampling", names::<Sampling>(py)?)?;
     Ok(d)
 }
 

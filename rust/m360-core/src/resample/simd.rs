@@ -258,7 +258,8 @@ fn select(mask: __m128, a: __m128, b: __m128) -> __m128 {
 /// [`lerp_f32`] of ERP taps in each of `M` stacks of the same size (a map and
 /// its blending weights), four taps at a time with SSE2 (baseline x86-64): the same
 /// operations in the same order, so the same bits. With `first` = [`Sampling::DepthEdges`]
-/// the first stack's taps at a depth edge take [`lerp_f32_edges`]. Each tap's two rows are
+/// the first stack is read as [`lerp_f32_edges`] reads it, four lanes at a time
+/// ([`across_edges`]), with its bits. Each tap's two rows are
 /// read as 64-bit pairs (top-left and top-right, bottom-left and bottom-right), and the
 /// fractions and offsets of four taps are decoded once for all stacks. Prefetches once per four
 /// taps.

@@ -5,6 +5,7 @@
 #[cfg(target_arch = "x86_64")]
 use super::simd;
 use super::to_tangents::{sample_run_scalar, ErpSource};
+use crate::options::choice;
 
 /// Fixed-point scale of bilinear fractions: 2⁻¹⁵ pixel resolution.
 pub(super) const FRAC_SCALE: f32 = 32768.0;
@@ -170,6 +171,15 @@ pub enum Sampling {
     /// mid-air (a "flying pixel"), on neither surface.
     DepthEdges,
 }
+
+choice!(
+    Sampling,
+    "sampling",
+    [
+        (Sampling::Bilinear, "bilinear"),
+        (Sampling::DepthEdges, "depth_edges")
+    ]
+);
 
 /// Smallest relative jump between the four neighbours of a tap, (hi − lo)/max(|hi|, |lo|), that
 /// [`Sampling::DepthEdges`] treats as a depth edge: 5 %, the jump `m360.eval.edge_band` and the
