@@ -8,7 +8,8 @@ per 2048 of ERP width) and then the same affine errors. The prior is
 ``m360.synthetic.panoramic_prior`` of the same room (512 x 1024, blur 1.5 px, ±3 % smooth error,
 0-2 regional errors of 1-5 % of the sphere at ±10-30 %, its own affine ambiguity), given as
 ``prior_kind="affine_disparity"``; "wrong prior" is the same with one regional error of 30 % on a
-cap of 20 % of the sphere (and no others).
+cap of 20 % of the sphere (and no others). Two references bound the affine-error case: the same
+prior without its smooth error (``field=0``) and with a ±5 % one.
 
 Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
 
@@ -25,7 +26,9 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    are scale/shift-fitted to the truth by ``depth_metrics``.
 3. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
    of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
-   each pair of neighbouring runs (less moved by a shared machine's slow drifts).
+   each pair of neighbouring runs (less moved by a shared machine's slow drifts). At 8K the
+   ratio also depends on how glibc reuses large blocks between calls (docs/method.md, "Global
+   prior": 1.18x by default, 1.09x with ``MALLOC_MMAP_THRESHOLD_=4294967296``).
 
 Run: ``.venv/bin/python benches/bench_prior.py [--sizes 2048 4096] [--scenes 4]``.
 Options of the prior term can be tried with ``--prior-weight`` / ``--prior-scale-deg``.
@@ -55,6 +58,10 @@ GOALS = {
     "content errors, wrong prior": "<= no prior + 0.002",
     "milder affine errors (±3 % field), no prior": "-",
     "milder affine errors (±3 % field), with prior": "(below both)",
+    # What bounds "affine errors, with prior": the prior's own smooth error, which tangents that
+    # disagree by ±10 % cannot correct (docs/method.md, "What bounds the affine-error case").
+    "affine errors, prior without its smooth error": "(reference)",
+    "affine errors, prior with a ±5 % smooth error": "(reference)",
 }
 #: The content-error case with the prior, then ``refine_edges`` (``edges="photo"``).
 SHARP = "content errors, with prior, edges='photo'"
@@ -84,6 +91,8 @@ def priors(scene: syn.Scene, seed: int) -> dict[str, np.ndarray]:
                 region_amplitude=(0.3, 0.3),
             )
         ),
+        "no field": np.asarray(syn.panoramic_prior(scene, seed + 300, field=0.0)),
+        "field5": np.asarray(syn.panoramic_prior(scene, seed + 300, field=0.05)),
     }
 
 
@@ -106,6 +115,11 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
                 "affine errors, no prior": (tiles["affine"], None),
                 "affine errors, with prior": (tiles["affine"], prior["good"]),
                 "content errors, wrong prior": (tiles["content"], prior["wrong"]),
+                "affine errors, prior without its smooth error": (
+                    tiles["affine"],
+                    prior["no field"],
+                ),
+                "affine errors, prior with a ±5 % smooth error": (tiles["affine"], prior["field5"]),
                 "milder affine errors (±3 % field), no prior": (tiles["milder"], None),
                 "milder affine errors (±3 % field), with prior": (tiles["milder"], prior["good"]),
             }
