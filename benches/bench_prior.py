@@ -79,21 +79,18 @@ def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> di
     }
 
 
-def priors(scene: syn.Scene, seed: int) -> dict[str, np.ndarray]:
-    return {
-        "good": np.asarray(syn.panoramic_prior(scene, seed + 300)),
-        "wrong": np.asarray(
-            syn.panoramic_prior(
-                scene,
-                seed + 300,
-                regions=(1, 1),
-                region_share=(0.2, 0.2),
-                region_amplitude=(0.3, 0.3),
-            )
-        ),
-        "no field": np.asarray(syn.panoramic_prior(scene, seed + 300, field=0.0)),
-        "field5": np.asarray(syn.panoramic_prior(scene, seed + 300, field=0.05)),
-    }
+#: The simulated priors by name: keyword arguments of ``syn.panoramic_prior`` beyond its defaults.
+PRIORS: dict[str, dict[str, Any]] = {
+    "good": {},
+    "wrong": {"regions": (1, 1), "region_share": (0.2, 0.2), "region_amplitude": (0.3, 0.3)},
+    "no field": {"field": 0.0},
+    "field5": {"field": 0.05},
+}
+
+
+def prior_of(scene: syn.Scene, seed: int, name: str = "good") -> np.ndarray:
+    """The simulated prior ``name`` (:data:`PRIORS`) of room ``seed``."""
+    return np.asarray(syn.panoramic_prior(scene, seed + 300, **PRIORS[name]))
 
 
 def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
@@ -108,7 +105,7 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
             depth = scene.distance(sph.erp_directions(width // 2, width))
             rgb = syn.render(scene, width)[0]  # for refine_edges
             tiles = tangents(scene, layout, width, seed)
-            prior = priors(scene, seed)
+            prior = {name: prior_of(scene, seed, name) for name in PRIORS}
             cases = {
                 "content errors, no prior": (tiles["content"], None),
                 "content errors, with prior": (tiles["content"], prior["good"]),
@@ -163,7 +160,7 @@ def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
         rgb, depth = syn.render(scene, width)
         band = m360.eval.edge_band(depth)
         tiles = tangents(scene, layout, width, seed)["content"]
-        prior = priors(scene, seed)["good"]
+        prior = prior_of(scene, seed)
         res = m360.stitch(tiles, layout, prior=prior, **tuning)
         timed = h.measure(lambda r=res, p=rgb: m360.stitching.refine_edges(r, p), repeats=3)
         seconds.append(timed.median)
@@ -189,7 +186,7 @@ def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
 def timing(sizes: list[int], repeats: int, tuning: dict[str, Any]) -> list[list]:
     rows = []
     scene = syn.room(0)
-    prior = priors(scene, 0)["good"]
+    prior = prior_of(scene, 0)
     for width in sizes:
         layout = m360.Layout.icosahedron(width)
         tiles = tangents(scene, layout, width, 0)["content"]
