@@ -83,8 +83,8 @@ def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> di
 PRIORS: dict[str, dict[str, Any]] = {
     "good": {},
     "wrong": {"regions": (1, 1), "region_share": (0.2, 0.2), "region_amplitude": (0.3, 0.3)},
-    "no field": {"field": 0.0},
-    "field5": {"field": 0.05},
+    "no smooth error": {"field": 0.0},
+    "±5 % smooth error": {"field": 0.05},
 }
 
 
@@ -114,9 +114,12 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
                 "content errors, wrong prior": (tiles["content"], prior["wrong"]),
                 "affine errors, prior without its smooth error": (
                     tiles["affine"],
-                    prior["no field"],
+                    prior["no smooth error"],
                 ),
-                "affine errors, prior with a ±5 % smooth error": (tiles["affine"], prior["field5"]),
+                "affine errors, prior with a ±5 % smooth error": (
+                    tiles["affine"],
+                    prior["±5 % smooth error"],
+                ),
                 "milder affine errors (±3 % field), no prior": (tiles["milder"], None),
                 "milder affine errors (±3 % field), with prior": (tiles["milder"], prior["good"]),
             }
