@@ -129,7 +129,7 @@ def child(data: Path, width: int, blend: str, working: str, repeats: int) -> dic
     try:
         memory = importlib.import_module("m360.memory")
         work = memory.working_width_for(ww, width)
-        predicted: float = memory.estimate_memory(width, work, blend, **padding_kwarg(memory))
+        predicted: float = memory.estimate_memory(width, work, blend, **layout_kwarg(memory, work))
     except ImportError:
         work, predicted = width, float("nan")
     with open("/proc/self/clear_refs", "w") as fh:
@@ -230,13 +230,13 @@ def inputs(data: Path) -> None:
     np.save(data / "tangents.npy", syn.distort(exact, 100, field=0.1, noise=0.01))
 
 
-def padding_kwarg(memory: Any) -> dict[str, Any]:
-    """``padding=`` for ``estimate_memory`` when asked for and understood (older m360: not)."""
+def layout_kwarg(memory: Any, work: int) -> dict[str, Any]:
+    """``layout=`` for ``estimate_memory`` with ``--padding`` when understood (older m360: not)."""
     import inspect
 
-    if _padding() is None or "padding" not in inspect.signature(memory.estimate_memory).parameters:
+    if _padding() is None or "layout" not in inspect.signature(memory.estimate_memory).parameters:
         return {}
-    return {"padding": _padding()}
+    return {"layout": _default_layout(work)}
 
 
 def fmt_gb(v: float | None) -> str:

@@ -7,8 +7,9 @@ maps, alignment, blend) plus, with a working width below the input's, per full-r
 (the upsampled disparity, depth and confidence, the grey guide). The plan's ERP taps grow with
 the number of tangents that see a pixel (3.8 on average with the paper's padding 0.3, 5.2 with
 the default 0.7), so the per-pixel part is a fixed part plus a part per tap. The coefficients
-were fitted to the peaks measured by ``benches/bench_bigpano.py`` at 2K, 4K and 8K, paddings 0.3
-and 0.7 (within 20 % there; see docs/architecture.md, memory).
+were fitted (least squares of the relative error) to the peaks measured by
+``benches/bench_bigpano.py`` at 2K, 4K and 8K, paddings 0.3 and 0.7, the consensus, frustum and
+Poisson blends: from 1 % below to 7 % above each (docs/architecture.md, memory).
 
 With the outputs (``formats``, ``preview``, ``confidence``) or the input's header given,
 :func:`estimate_memory` estimates a whole image's run instead: decoding (the file's bytes, the
@@ -64,16 +65,16 @@ DEFAULT_WORKING_WIDTH = 4096
 #: Peak bytes per working-resolution ERP pixel besides the plan's taps, per blend (the Poisson
 #: blend's system and multigrid hierarchy dominate; the row blends need the rest of the plan
 #: and the tangent stacks only).
-_BYTES_PER_PIXEL = {"poisson": 145.0, "other": 72.0}
+_BYTES_PER_PIXEL = {"poisson": 152.0, "other": 78.0}
 #: Peak bytes per ERP tap (one tangent seeing one working-resolution pixel): the tap itself;
-#: measured 7.2-8.4 at 8K between paddings 0.3 and 0.7.
-_BYTES_PER_TAP = 8.0
+#: fitted 8.4 over 2K-8K and paddings 0.3 and 0.7.
+_BYTES_PER_TAP = 8.4
 #: Taps per pixel the coefficients above were measured at (the paper's layout).
 _REFERENCE_TAPS = 3.76
 #: Peak bytes per full-resolution pixel when upsampling (outputs, grey guide).
 _BYTES_PER_FULL_PIXEL = 14.0
-#: Fixed part (interpreter-independent buffers, thread stacks, small maps).
-_FIXED_BYTES = 16 * 2**20
+#: Fixed part (interpreter-independent buffers, thread stacks, small maps): fitted 30 MiB.
+_FIXED_BYTES = 32 * 2**20
 
 #: The decoded panorama, (H, W, 3) uint8.
 _RGB_BYTES_PER_PIXEL = 3.0
