@@ -58,8 +58,10 @@ prior_weight, prior_scale_deg, prior_fusion
     averaged over half this radius; finer detail stays the tangents'. Measured in
     benches/bench_prior.py (docs/method.md, "Global prior"). ``prior_fusion``: ``"auto"``
     (default) moves the prior's low frequencies towards the tangents' own consensus where the
-    tangents agree with each other to better than 1.2 % (in full at 0.4 %; the stitch report's
-    ``tangent_share`` says how far); ``"off"`` never does, for a prior known to be more
+    tangents agree with each other to better than 1.2 % (in full at 0.4 %), and further where
+    the prior strays from that consensus by more than the consensus's own uncertainty explains
+    (a prior worse than the tangents; with the default layout's deep overlaps); the stitch
+    report's ``tangent_share`` says how far; ``"off"`` never does, for a prior known to be more
     accurate than any tangent (a LiDAR scan).
 
 When the tangents leave too few valid overlap samples for a level's grid (fewer than one per

@@ -169,8 +169,9 @@ class StitchTuning(TypedDict, total=False):
         PriorFusion | None,
         Option(
             "whether the prior's low frequencies move towards the tangents' own where they "
-            "agree with each other (auto: by their measured spread; off: never, for a prior more "
-            f"accurate than any network; default {_ALIGN['prior_fusion']})",
+            "agree with each other (auto: by their measured spread and the prior's measured "
+            "disagreement with them; off: never, for a prior more accurate than any network; "
+            f"default {_ALIGN['prior_fusion']})",
             choices=_CHOICES["prior_fusion"],
         ),
     ]

@@ -11,7 +11,9 @@ weight, capped by its neighbourhood's and 0 below 0.8: trusted or not) and weigh
 lose their pull, and ``prior_weight`` sets the term's weight against the overlaps'. Where the
 tangents agree closely with each other (a relative spread under 1.2 %), the prior's low
 frequencies are first moved towards theirs, since a smooth error of the prior is invisible to
-their overlaps (``prior_fusion="auto"``, the default; ``"off"`` keeps the prior's as they are).
+their overlaps; the more so where the prior strays from their consensus by more than its
+uncertainty explains (``prior_fusion="auto"``, the default; ``"off"`` keeps the prior's as they
+are).
 
 Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estimators.kinds`):
 

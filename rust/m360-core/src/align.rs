@@ -1317,6 +1317,53 @@ impl Problem {
         Some(consensus)
     }
 
+    /// Per prior sample the problem was built from (by its index there; None where fewer than
+    /// two tangents see its trust cell's neighbourhood), the variance of the tangents' consensus
+    /// at low frequency: each tangent's deviation from the samples' consensus, averaged over the
+    /// trust cell and its 8 neighbours (the fusion's low-pass, [`prior::PriorSamples::fused`]), so
+    /// that pixel noise averages out and a smooth error of its own does not; then
+    /// Σ D_t²/(n(n − 1)) over the n tangents there, the variance of a mean of n independent
+    /// errors estimated from their spread. In standardised units.
+    fn consensus_variance(&self, len: usize) -> Option<Vec<Option<f64>>> {
+        let prior = self.prior.as_ref()?;
+        let per = (self.params.cols * self.params.rows) as u32;
+        // Per tangent, the cells of the samples it sees and its deviation there.
+        let (mut cells, mut deviations) =
+            (vec![vec![]; self.tangents], vec![vec![]; self.tangents]);
+        for (k, sample) in prior.samples.iter().enumerate() {
+            let range = prior.view_start[k] as usize..prior.view_start[k + 1] as usize;
+            let views = &prior.views[range];
+            if views.is_empty() {
+                continue;
+            }
+            let values =
+                std::iter::once((sample.node, sample.d)).chain(views.iter().map(|v| (v.node, v.d)));
+            let mean = values.clone().map(|(_, d)| d).sum::<f64>() / (views.len() + 1) as f64;
+            for (node, d) in values {
+                let t = (node / per) as usize;
+                cells[t].push(prior.cell[k]);
+                deviations[t].push(d - mean);
+            }
+        }
+        let means: Vec<CellMeans> = cells
+            .iter()
+            .zip(&deviations)
+            .map(|(c, d)| CellMeans::weighted(c, d, &vec![1.0; d.len()]))
+            .collect();
+        let variance: Vec<Option<f64>> = (0..prior::TRUST_ROWS * 2 * prior::TRUST_ROWS)
+            .map(|cell| {
+                let devs: Vec<f64> = means.iter().filter_map(|m| m.around(cell)).collect();
+                let n = devs.len() as f64;
+                (n >= 2.0).then(|| devs.iter().map(|d| d * d).sum::<f64>() / (n * (n - 1.0)))
+            })
+            .collect();
+        let mut out = vec![None; len];
+        for (k, &i) in prior.source.iter().enumerate() {
+            out[i as usize] = variance[prior.cell[k] as usize];
+        }
+        Some(out)
+    }
+
     /// The prior samples' values replaced by `values`, indexed as the samples the problem was
     /// built from (the fused prior's, [`PriorSamples::fused`]).
     fn set_prior_values(&mut self, values: &[f64]) {
@@ -3034,7 +3081,8 @@ fn fuse_as_prior_joins(
     frame: (f64, f64),
 ) -> Option<Fusion> {
     let samples = samples.filter(|_| matches!(levels, [first] if first.prior.is_none()))?;
-    let fusion = samples.fused(&problem.prior_consensus(samples.len())?, frame)?;
+    let variance = problem.consensus_variance(samples.len())?;
+    let fusion = samples.fused(&problem.prior_consensus(samples.len())?, &variance, frame)?;
     if let Some(fused) = &fusion.samples {
         problem.set_prior_values(&fused.value);
     }

@@ -405,6 +405,7 @@ impl PriorSamples {
     pub(super) fn fused(
         &self,
         consensus: &[Option<Consensus>],
+        variance: &[Option<f64>],
         frame: (f64, f64),
     ) -> Option<Fusion> {
         debug_assert_eq!(consensus.len(), self.len());
@@ -487,9 +488,29 @@ impl PriorSamples {
         let smooth = super::CellMeans::weighted(&cells, &gap, &weights);
         let mut shift: Vec<f64> = cells
             .iter()
-            .map(|&cell| share * smooth.around(cell as usize).unwrap_or(0.0))
+            .map(|&cell| smooth.around(cell as usize).unwrap_or(0.0))
             .collect();
         remove_line(&p, &mut shift, &conf);
+        // Where the prior's low frequencies stray from the tangents' consensus by more than the
+        // consensus's own uncertainty explains, the prior is the worse of the two: the share
+        // rises towards the inverse-variance weight var_p/(var_p + var_c). A prior with a
+        // smooth error as large as the tangents' then no longer makes the result much worse
+        // than no prior (docs/method.md, "The prior's own quality"). Only with deep overlaps:
+        // where most samples are seen by 2-4 tangents, as on the paper's layout, the first
+        // level has made those few agree and their spread says too little of their error.
+        let mut views: Vec<usize> = consensus.iter().flatten().map(|c| c.2).collect();
+        let mid = views.len() / 2;
+        let deep = *views.select_nth_unstable(mid).1 >= EVIDENCE_MIN_VIEWS;
+        let share = if deep {
+            share.max(evidence_share(&shift, |j| {
+                variance[seen[j]].filter(|_| shared(j))
+            }))
+        } else {
+            share
+        };
+        for s in &mut shift {
+            *s *= share;
+        }
         let mut samples = self.clone();
         for (&k, s) in seen.iter().zip(&shift) {
             samples.value[k] += s / alpha;
@@ -501,6 +522,52 @@ impl PriorSamples {
         })
     }
 }
+
+/// The share of the tangents' low-frequency disagreement with the prior that the data support:
+/// var_p/(var_p + var_c) = 1 − var_c/var_gap, var_c counted [`CONSENSUS_VARIANCE_BIAS`] times,
+/// with var_gap the robust variance
+/// ((1.4826·median |g|)²) of the low-passed disagreement `gap` at the samples with a consensus
+/// variance (`variance(j)`, [`super::Problem::consensus_variance`]), and var_c the mean of those
+/// variances over the samples whose gap lies within [`EVIDENCE_INLIER`] robust scales (a
+/// regional error of the prior, which the judgement outvotes, must not count as the consensus's
+/// uncertainty, nor, by the median, as the prior's smooth error). 0 without such samples.
+fn evidence_share(gap: &[f64], variance: impl Fn(usize) -> Option<f64>) -> f64 {
+    let measured: Vec<(f64, f64)> = (0..gap.len())
+        .filter_map(|j| variance(j).map(|v| (gap[j], v)))
+        .collect();
+    if measured.is_empty() {
+        return 0.0;
+    }
+    let gaps: Vec<f64> = measured.iter().map(|m| m.0).collect();
+    let sigma = super::robust_scale(&gaps);
+    let inliers: Vec<f64> = measured
+        .iter()
+        .filter(|m| m.0.abs() <= EVIDENCE_INLIER * sigma)
+        .map(|m| m.1)
+        .collect();
+    if inliers.is_empty() {
+        return 0.0;
+    }
+    let var_c = CONSENSUS_VARIANCE_BIAS * inliers.iter().sum::<f64>() / inliers.len() as f64;
+    (1.0 - var_c / (sigma * sigma)).clamp(0.0, 1.0)
+}
+
+/// How many times the consensus variance measured after the schedule's first level counts in
+/// [`evidence_share`]. That level has already pulled the tangents towards each other, so their
+/// spread understates their consensus's error. Measured on 4 synthetic rooms at 2K and 4K with
+/// priors of ±3, ±6 and ±10 % smooth error (docs/method.md, "The prior's own quality"): 1 made
+/// the bench's ±3 % prior 0.0086 → 0.0091 at 4K (the share 0.18 → 0.44); 2 keeps it within
+/// 0.0002 at both sizes and still takes the ±10 % prior from 0.0209 / 0.0216 to 0.0144 / 0.0149.
+const CONSENSUS_VARIANCE_BIAS: f64 = 2.0;
+
+/// The median number of tangents seeing a prior sample (its own and its views) from which the
+/// fusion weighs the prior's quality by [`evidence_share`]: 6 on the default layout (padding
+/// 0.7), 4 on the paper's (0.3), where at 1K it raised the share on a good prior (0.16 → 0.55
+/// in one room of four, 0.0090 → 0.0134).
+const EVIDENCE_MIN_VIEWS: usize = 5;
+
+/// Gaps within this many robust scales count in [`evidence_share`]'s consensus variance.
+const EVIDENCE_INLIER: f64 = 2.5;
 
 /// y ← y − (a·x + b), the weighted least-squares line of y on x (weights `w`).
 fn remove_line(x: &[f64], y: &mut [f64], w: &[f64]) {
@@ -1100,7 +1167,11 @@ mod tests {
         let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y + 0.05 * d.z);
         let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
         let fusion = samples
-            .fused(&consensus_of(&samples, maps.as_slice(), h, w), (1.0, 0.0))
+            .fused(
+                &consensus_of(&samples, maps.as_slice(), h, w),
+                &vec![None; samples.len()],
+                (1.0, 0.0),
+            )
             .expect("a fusion");
         assert!(fusion.spread < TRUSTED_SPREAD, "{}", fusion.spread);
         assert!((fusion.share - 1.0).abs() < 1e-12, "{}", fusion.share);
@@ -1152,11 +1223,156 @@ mod tests {
         let prior = prior_map(64, false, |d| 1.0 + 0.08 * d.x * d.y);
         let samples = PriorSamples::build(&layout, &maps, &prior, 0.05, 1.5).expect("samples");
         let fusion = samples
-            .fused(&consensus_of(&samples, maps.as_slice(), h, w), (1.0, 0.0))
+            .fused(
+                &consensus_of(&samples, maps.as_slice(), h, w),
+                &vec![None; samples.len()],
+                (1.0, 0.0),
+            )
             .expect("a fusion");
         assert!(fusion.spread > UNTRUSTED_SPREAD, "{}", fusion.spread);
         assert!(fusion.share <= 0.0, "{}", fusion.share);
         assert!(fusion.samples.is_none());
+    }
+
+    /// The consensus variance the fusion weighs the prior against, read off a level's problem:
+    /// 0 where the tangents agree; with an offset c_t per tangent, Σ D_t²/(n(n − 1)) with D_t
+    /// the mean over the trust cell and its neighbours of c_t minus the mean offset of the
+    /// tangents that see each sample, which the oracle takes from the offsets and the samples'
+    /// views alone (no map read).
+    #[test]
+    fn the_consensus_variance_is_that_of_the_tangents_offsets() {
+        let layout = Layout::icosahedron(256, 0.3, None).expect("layout");
+        let offset = |t: usize| 0.02 * (t % 5) as f64 - 0.04;
+        let prior = prior_map(64, false, |_| 1.0);
+        let overlaps = Overlaps::build(&layout, 0.05, 0.0);
+        let (_, _, options) = setup(Energy::Normalized);
+        let params = options.level_params()[1];
+        let variance = |maps: &[f32]| {
+            let samples = PriorSamples::build(&layout, maps, &prior, 0.05, 1.5).expect("samples");
+            let problem =
+                Problem::with_prior(&layout, maps, &overlaps, params, Some((&samples, 1.0)));
+            let got = problem
+                .consensus_variance(samples.len())
+                .expect("a prior term");
+            (samples, got)
+        };
+        // A flat scene: the samples' own window means and their views' bilinear values then
+        // differ by the offsets alone.
+        let maps = maps_of(&layout, |t, _, _, _| 0.5 + offset(t));
+        let (samples, got) = variance(&maps);
+        let tangents = layout.cameras.len();
+        let cells = TRUST_ROWS * 2 * TRUST_ROWS;
+        let (mut sum, mut count) = (vec![0.0; cells * tangents], vec![0.0; cells * tangents]);
+        for k in 0..samples.len() {
+            let range = samples.view_start[k] as usize..samples.view_start[k + 1] as usize;
+            let seen: Vec<usize> = std::iter::once(samples.tangent[k])
+                .chain(samples.view_tangent[range].iter().copied())
+                .map(usize::from)
+                .collect();
+            if seen.len() < 2 {
+                continue;
+            }
+            let mean = seen.iter().map(|&t| offset(t)).sum::<f64>() / seen.len() as f64;
+            for &t in &seen {
+                sum[samples.cell[k] as usize * tangents + t] += offset(t) - mean;
+                count[samples.cell[k] as usize * tangents + t] += 1.0;
+            }
+        }
+        let (rows, cols) = (TRUST_ROWS as isize, 2 * TRUST_ROWS as isize);
+        let mut checked = 0;
+        for (k, v) in got.iter().enumerate() {
+            let (r, c) = (
+                samples.cell[k] as isize / cols,
+                samples.cell[k] as isize % cols,
+            );
+            let mut d = vec![(0.0, 0.0); tangents];
+            for rr in (r - 1).max(0)..=(r + 1).min(rows - 1) {
+                for dc in -1..=1 {
+                    let cell = (rr * cols + (c + dc).rem_euclid(cols)) as usize;
+                    for (t, d) in d.iter_mut().enumerate() {
+                        d.0 += sum[cell * tangents + t];
+                        d.1 += count[cell * tangents + t];
+                    }
+                }
+            }
+            let devs: Vec<f64> = d.iter().filter(|d| d.1 > 0.0).map(|d| d.0 / d.1).collect();
+            let n = devs.len() as f64;
+            let want =
+                (n >= 2.0).then(|| devs.iter().map(|d| d * d).sum::<f64>() / (n * (n - 1.0)));
+            match (v, want) {
+                (Some(v), Some(want)) => {
+                    assert!((v - want).abs() <= 1e-4 * want + 1e-12, "{v} vs {want}");
+                    checked += 1;
+                }
+                (v, want) => assert_eq!(v.is_some(), want.is_some(), "sample {k}"),
+            }
+        }
+        assert!(
+            checked > samples.len() / 2,
+            "{checked} of {}",
+            samples.len()
+        );
+        // Consistent tangents: what is left is the window mean against the bilinear read of
+        // a smooth truth, a hundredth of the offsets' variance.
+        let mut offsets: Vec<f64> = got.iter().flatten().copied().collect();
+        let mid = offsets.len() / 2;
+        let typical = *offsets.select_nth_unstable_by(mid, f64::total_cmp).1;
+        let exact = maps_of(&layout, |_, cam, x, y| truth(&cam.pixel_direction(x, y)));
+        let (_, agreed) = variance(&exact);
+        let worst = agreed.iter().flatten().fold(0.0_f64, |a, &v| a.max(v));
+        assert!(
+            worst < 0.02 * typical,
+            "consistent tangents: {worst} vs {typical}"
+        );
+    }
+
+    /// The evidence share is 1 − var_c/var_gap (var_c counted [`CONSENSUS_VARIANCE_BIAS`]
+    /// times), with the gap's variance taken robustly: a
+    /// regional error of the prior (a fifth of the samples far off) moves it little, while a
+    /// consensus as uncertain as the gap leaves nothing to the tangents.
+    #[test]
+    fn the_evidence_share_weighs_the_prior_against_the_consensus() {
+        // A gap whose robust scale is known: |g| spread evenly in (0, 2σ·0.6745·2), so the
+        // median |g| is 0.6745·σ and 1.4826·median = σ.
+        let sigma: f64 = 0.01;
+        let n: u32 = 1000;
+        let gap: Vec<f64> = (0..n)
+            .map(|j| {
+                let magnitude = 2.0 * 0.674_49 * sigma * (f64::from(j) + 0.5) / f64::from(n);
+                if j.is_multiple_of(2) {
+                    magnitude
+                } else {
+                    -magnitude
+                }
+            })
+            .collect();
+        // A measured consensus variance counts CONSENSUS_VARIANCE_BIAS times: 0.3 σ² in all.
+        let var_c = 0.3 * sigma * sigma / CONSENSUS_VARIANCE_BIAS;
+        let share = evidence_share(&gap, |_| Some(var_c));
+        assert!((share - 0.7).abs() < 0.01, "{share}");
+        let raw = evidence_share(&gap, |_| Some(0.3 * sigma * sigma));
+        let want = 1.0 - CONSENSUS_VARIANCE_BIAS * 0.3;
+        assert!((raw - want).abs() < 0.01, "{raw} vs {want}");
+        // A regional error: a fifth of the samples 30 σ off, with a larger consensus variance
+        // there (content the tangents disagree on), counted neither in var_gap's median much
+        // nor in var_c.
+        let mut wrong = gap.clone();
+        for g in wrong.iter_mut().step_by(5) {
+            *g += 30.0 * sigma;
+        }
+        let region = |j: usize| {
+            Some(if j.is_multiple_of(5) {
+                100.0 * var_c
+            } else {
+                var_c
+            })
+        };
+        let outvoted = evidence_share(&wrong, region);
+        assert!((0.6..0.85).contains(&outvoted), "{outvoted}");
+        let as_uncertain = sigma * sigma / CONSENSUS_VARIANCE_BIAS;
+        assert!(evidence_share(&gap, |_| Some(as_uncertain)).abs() < 0.02);
+        assert!(evidence_share(&gap, |_| None).abs() < f64::EPSILON);
+        assert!((evidence_share(&gap, |_| Some(0.0)) - 1.0).abs() < 1e-12);
     }
 
     #[test]
