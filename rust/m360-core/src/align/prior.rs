@@ -524,13 +524,14 @@ impl PriorSamples {
 }
 
 /// The share of the tangents' low-frequency disagreement with the prior that the data support:
-/// var_p/(var_p + var_c) = 1 − var_c/var_gap, var_c counted [`CONSENSUS_VARIANCE_BIAS`] times,
-/// with var_gap the robust variance
-/// ((1.4826·median |g|)²) of the low-passed disagreement `gap` at the samples with a consensus
-/// variance (`variance(j)`, [`super::Problem::consensus_variance`]), and var_c the mean of those
+/// var_p/(var_p + var_c) = 1 − var_c/var_gap. var_gap is the robust variance ((1.4826·median
+/// |g|)²) of the low-passed disagreement `gap` at the samples with a consensus variance
+/// (`variance(j)`, [`super::Problem::consensus_variance`]); var_c is the mean of those
 /// variances over the samples whose gap lies within [`EVIDENCE_INLIER`] robust scales (a
 /// regional error of the prior, which the judgement outvotes, must not count as the consensus's
-/// uncertainty, nor, by the median, as the prior's smooth error). 0 without such samples.
+/// uncertainty, nor, by the median, as the prior's smooth error), counted
+/// [`CONSENSUS_VARIANCE_BIAS`] times (`robust_scale` keeps var_gap above 0). 0 without such
+/// samples.
 fn evidence_share(gap: &[f64], variance: impl Fn(usize) -> Option<f64>) -> f64 {
     let measured: Vec<(f64, f64)> = (0..gap.len())
         .filter_map(|j| variance(j).map(|v| (gap[j], v)))
