@@ -11,8 +11,9 @@ per 2048 of ERP width) and then the same affine errors. The prior is
 cap of 20 % of the sphere (and no others). Two references bound the affine-error case: the same
 prior without its smooth error (``field=0``) and with a ±5 % one. A prior as poor as the
 tangents (a ±10 % smooth error) checks that a worse panoramic network than the simulated one
-does little harm: the fusion weighs the prior's quality (docs/method.md, "The prior's own
-quality").
+does little harm, and the wrong prior with the affine-error tangents that a regional error does
+not pass for a poor prior: the fusion weighs the prior's quality (docs/method.md, "The prior's
+own quality").
 
 Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
 
@@ -65,8 +66,10 @@ GOALS = {
     # disagree by ±10 % cannot correct (docs/method.md, "What bounds the affine-error case").
     "affine errors, prior without its smooth error": "(reference)",
     "affine errors, prior with a ±5 % smooth error": "(reference)",
-    # A prior as poor as the tangents (docs/method.md, "The prior's own quality").
+    # A prior as poor as the tangents, and one with a regional error where the tangents agree
+    # well enough to be fused with it (docs/method.md, "The prior's own quality").
     "affine errors, prior with a ±10 % smooth error": "(about no prior)",
+    "affine errors, wrong prior": "(reference)",
 }
 #: The content-error case with the prior, then ``refine_edges`` (``edges="photo"``).
 SHARP = "content errors, with prior, edges='photo'"
@@ -130,6 +133,7 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
                     tiles["affine"],
                     prior["±10 % smooth error"],
                 ),
+                "affine errors, wrong prior": (tiles["affine"], prior["wrong"]),
                 "milder affine errors (±3 % field), no prior": (tiles["milder"], None),
                 "milder affine errors (±3 % field), with prior": (tiles["milder"], prior["good"]),
             }

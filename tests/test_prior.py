@@ -120,9 +120,11 @@ def test_a_prior_worse_than_the_tangents_hands_them_its_low_frequencies() -> Non
     +-10 % field each, spread about 0.011, so the spread's rule alone gives a share near 0.1)
     hand a +-15 % prior most of their low frequencies (the gap to their consensus is far larger
     than its own uncertainty) and a +-3 % prior little. The bad prior then does less harm than
-    unfused and than no prior at all. On the paper's layout (samples seen by 4 tangents or
-    fewer) only the rule decides: the shares are the same (docs/method.md, "The prior's own
-    quality")."""
+    unfused and than no prior at all. A regional error (30 % on a fifth of the sphere) is not
+    such evidence: the judgement outvotes it, and it must not hand the tangents the whole
+    prior's shape (it did, 0.96, before the evidence and the fusion's line skipped it). On the
+    paper's layout (samples seen by 4 tangents or fewer) only the rule decides: the shares are
+    the same (docs/method.md, "The prior's own quality")."""
     scene = syn.room(1)
 
     def shares_and_errors(layout: m360.Layout) -> tuple[list[float], list[float], float, float]:
@@ -130,8 +132,9 @@ def test_a_prior_worse_than_the_tangents_hands_them_its_low_frequencies() -> Non
         tiles = syn.distort(exact, 7, scale=(0.5, 2.0), shift=0.3, field=0.1, noise=0.01)
         depth = scene.distance(sph.erp_directions(WIDTH // 2, WIDTH))
         shares, errors = [], []
-        for field in (0.03, 0.15):
-            prior = np.asarray(syn.panoramic_prior(scene, 5, regions=(0, 0), field=field))
+        wrong = {"regions": (1, 1), "region_share": (0.2, 0.2), "region_amplitude": (0.3, 0.3)}
+        for kw in ({"field": 0.03}, {"field": 0.03, **wrong}, {"field": 0.15}):
+            prior = np.asarray(syn.panoramic_prior(scene, 5, **{"regions": (0, 0), **kw}))
             res = m360.stitch(tiles, layout, prior=prior, return_details=True)
             assert res.report["prior"] is not None
             shares.append(res.report["prior"]["tangent_share"])
@@ -145,13 +148,15 @@ def test_a_prior_worse_than_the_tangents_hands_them_its_low_frequencies() -> Non
             m360.eval.depth_metrics(plain, depth)["abs_rel"],
         )
 
-    (good, bad), (_, err_bad), err_off, err_plain = shares_and_errors(
+    shares, (_, err_wrong, err_bad), err_off, err_plain = shares_and_errors(
         m360.Layout.icosahedron(WIDTH)
     )
-    assert good < 0.3 and bad > good + 0.4, (good, bad)
+    good, wrong_share, bad = shares
+    assert good < 0.3 and bad > good + 0.4, shares
     assert err_bad < 0.95 * err_off and err_bad < err_plain, (err_bad, err_off, err_plain)
+    assert wrong_share < bad - 0.3 and err_wrong < 0.9 * err_plain, (shares, err_wrong, err_plain)
 
-    (good, bad), *_ = shares_and_errors(m360.Layout.icosahedron(WIDTH, padding=0.3))
+    (good, _, bad), *_ = shares_and_errors(m360.Layout.icosahedron(WIDTH, padding=0.3))
     assert good == bad, (good, bad)
 
 

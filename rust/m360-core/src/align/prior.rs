@@ -490,7 +490,10 @@ impl PriorSamples {
             .iter()
             .map(|&cell| smooth.around(cell as usize).unwrap_or(0.0))
             .collect();
-        remove_line(&p, &mut shift, &conf);
+        // The line is fitted with the low-pass's weights: a regional error of the prior must not
+        // tilt it (with confidence weights alone, a cap 30 % wrong on a fifth of the sphere
+        // moved the whole fused prior).
+        remove_line(&p, &mut shift, &weights);
         // Where the prior's low frequencies stray from the tangents' consensus by more than the
         // consensus's own uncertainty explains, the prior is the worse of the two: the share
         // rises towards the inverse-variance weight var_p/(var_p + var_c). A prior with a
@@ -503,7 +506,10 @@ impl PriorSamples {
         let deep = *views.select_nth_unstable(mid).1 >= EVIDENCE_MIN_VIEWS;
         let share = if deep {
             share.max(evidence_share(&shift, |j| {
-                variance[seen[j]].filter(|_| shared(j))
+                // Only where the sample's own gap is an inlier: inside a regional error the
+                // low-passed gap is the region's, which the judgement outvotes anyway.
+                variance[seen[j]]
+                    .filter(|_| shared(j) && (gap[j] - centre).abs() <= EVIDENCE_INLIER * sigma)
             }))
         } else {
             share
@@ -558,7 +564,7 @@ fn evidence_share(gap: &[f64], variance: impl Fn(usize) -> Option<f64>) -> f64 {
 /// spread understates their consensus's error. Measured on 4 synthetic rooms at 2K and 4K with
 /// priors of ±3, ±6 and ±10 % smooth error (docs/method.md, "The prior's own quality"): 1 made
 /// the bench's ±3 % prior 0.0086 → 0.0091 at 4K (the share 0.18 → 0.44); 2 keeps it within
-/// 0.0002 at both sizes and still takes the ±10 % prior from 0.0209 / 0.0216 to 0.0144 / 0.0149.
+/// 0.0002 at both sizes and still takes the ±10 % prior from 0.0209 / 0.0216 to 0.0147 / 0.0150.
 const CONSENSUS_VARIANCE_BIAS: f64 = 2.0;
 
 /// The median number of tangents seeing a prior sample (its own and its views) from which the
