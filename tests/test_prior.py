@@ -122,9 +122,9 @@ def test_a_prior_worse_than_the_tangents_hands_them_its_low_frequencies() -> Non
     than its own uncertainty) and a +-3 % prior little. The bad prior then does less harm than
     unfused and than no prior at all. A regional error (30 % on a fifth of the sphere) is not
     such evidence: the judgement outvotes it, and it must not hand the tangents the whole
-    prior's shape (it did, 0.96, before the evidence and the fusion's line skipped it). On the
-    paper's layout (samples seen by 4 tangents or fewer) only the rule decides: the shares are
-    the same (docs/method.md, "The prior's own quality")."""
+    prior's shape (a share of 0.96 here before the evidence skipped the region's samples and the
+    fusion's line its weight). On the paper's layout (samples seen by 4 tangents or fewer) only
+    the rule decides: the shares are the same (docs/method.md, "The prior's own quality")."""
     scene = syn.room(1)
 
     def shares_and_errors(layout: m360.Layout) -> tuple[list[float], list[float], float, float]:

@@ -399,9 +399,12 @@ impl PriorSamples {
     /// c − (α·P + β), with (α, β) fitted as the prior joins ([`super::symmetric_line`]), is
     /// low-passed over 6° trust cells and their 8 neighbours (≈ 18°; weighted by confidence and
     /// by the Cauchy weight of the gap, only where two tangents or more see the sample), its
-    /// affine part in P removed (the fusion changes the prior's shape, not its units), and γ of
-    /// it moves each sample's value. None when no sample is seen twice, the fit is degenerate
-    /// or fewer than [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
+    /// affine part in P removed with the same weights (the fusion changes the prior's shape, not
+    /// its units), and γ of it moves each sample's value. With deep overlaps γ rises to what the
+    /// evidence supports when that is more ([`evidence_share`], from `variance`: per sample, the
+    /// consensus's low-frequency variance, [`super::Problem::consensus_variance`]). None when no
+    /// sample is seen twice, the fit is degenerate or fewer than [`FUSION_MIN_COVERAGE`] of the
+    /// drawn pixels are samples.
     pub(super) fn fused(
         &self,
         consensus: &[Option<Consensus>],
