@@ -3081,8 +3081,12 @@ fn fuse_as_prior_joins(
     frame: (f64, f64),
 ) -> Option<Fusion> {
     let samples = samples.filter(|_| matches!(levels, [first] if first.prior.is_none()))?;
-    let variance = problem.consensus_variance(samples.len())?;
-    let fusion = samples.fused(&problem.prior_consensus(samples.len())?, &variance, frame)?;
+    let consensus = problem.prior_consensus(samples.len())?;
+    let fusion = samples.fused(
+        &consensus,
+        || problem.consensus_variance(samples.len()),
+        frame,
+    )?;
     if let Some(fused) = &fusion.samples {
         problem.set_prior_values(&fused.value);
     }

@@ -401,14 +401,14 @@ impl PriorSamples {
     /// by the Cauchy weight of the gap, only where two tangents or more see the sample), its
     /// affine part in P removed with the same weights (the fusion changes the prior's shape, not
     /// its units), and γ of it moves each sample's value. With deep overlaps γ rises to what the
-    /// evidence supports when that is more ([`evidence_share`], from `variance`: per sample, the
-    /// consensus's low-frequency variance, [`super::Problem::consensus_variance`]). None when no
-    /// sample is seen twice, the fit is degenerate or fewer than [`FUSION_MIN_COVERAGE`] of the
-    /// drawn pixels are samples.
+    /// evidence supports when that is more ([`evidence_share`], from `variance`, called only
+    /// then: per sample, the consensus's low-frequency variance,
+    /// [`super::Problem::consensus_variance`]). None when no sample is seen twice, the fit is
+    /// degenerate or fewer than [`FUSION_MIN_COVERAGE`] of the drawn pixels are samples.
     pub(super) fn fused(
         &self,
         consensus: &[Option<Consensus>],
-        variance: &[Option<f64>],
+        variance: impl FnOnce() -> Option<Vec<Option<f64>>>,
         frame: (f64, f64),
     ) -> Option<Fusion> {
         debug_assert_eq!(consensus.len(), self.len());
@@ -507,15 +507,16 @@ impl PriorSamples {
         let mut views: Vec<usize> = consensus.iter().flatten().map(|c| c.2).collect();
         let mid = views.len() / 2;
         let deep = *views.select_nth_unstable(mid).1 >= EVIDENCE_MIN_VIEWS;
-        let share = if deep {
-            share.max(evidence_share(&shift, |j| {
+        // The consensus variance is read only here: content errors (no share to give) and the
+        // paper's layout never pay for it.
+        let share = match deep.then(variance).flatten() {
+            Some(variance) => share.max(evidence_share(&shift, |j| {
                 // Only where the sample's own gap is an inlier: inside a regional error the
                 // low-passed gap is the region's, which the judgement outvotes anyway.
                 variance[seen[j]]
                     .filter(|_| shared(j) && (gap[j] - centre).abs() <= EVIDENCE_INLIER * sigma)
-            }))
-        } else {
-            share
+            })),
+            None => share,
         };
         for s in &mut shift {
             *s *= share;
@@ -1179,7 +1180,7 @@ mod tests {
         let fusion = samples
             .fused(
                 &consensus_of(&samples, maps.as_slice(), h, w),
-                &vec![None; samples.len()],
+                || None,
                 (1.0, 0.0),
             )
             .expect("a fusion");
@@ -1235,7 +1236,7 @@ mod tests {
         let fusion = samples
             .fused(
                 &consensus_of(&samples, maps.as_slice(), h, w),
-                &vec![None; samples.len()],
+                || None,
                 (1.0, 0.0),
             )
             .expect("a fusion");
