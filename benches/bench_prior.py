@@ -27,7 +27,11 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    prior and for the prior alone brought to that size by ``m360.stitching.guided_upsample``
    (guided by the rendered photo), and for the stitch made sharp along the photo's edges by
    ``m360.stitching.refine_edges`` (``edges="photo"`` of ``m360.estimate``) with its time. All
-   are scale/shift-fitted to the truth by ``depth_metrics``.
+   are scale/shift-fitted to the truth by ``depth_metrics``. Then the stitch with the prior of
+   the same content errors from a simulated network that sees each tile at 256 or 518 px
+   (MiDaS small's input, Depth Anything's), blurred by half the tile's shrink factor, on the
+   default layout and on the 80 tangents of ``subdivisions=1``: the detail is the network's
+   angular resolution (docs/method.md, "Where the detail comes from").
 3. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
    of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
    each pair of neighbouring runs (less moved by a shared machine's slow drifts). At 8K the
@@ -76,10 +80,14 @@ SHARP = "content errors, with prior, edges='photo'"
 GOALS[SHARP] = "(<= 0.012)"
 
 
+#: The tangents' affine errors (``syn.distort``), after any content errors.
+AFFINE: dict[str, Any] = {"scale": (0.5, 2.0), "shift": 0.3, "field": 0.1, "noise": 0.01}
+
+
 def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> dict[str, Any]:
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
     wrong = syn.content_errors(exact, seed + 200, blur=width / 2048)
-    affine: dict[str, Any] = {"scale": (0.5, 2.0), "shift": 0.3, "field": 0.1, "noise": 0.01}
+    affine = AFFINE
     return {
         "affine": syn.distort(exact, seed + 100, **affine),
         "content": syn.distort(wrong, seed + 100, **affine),
@@ -169,9 +177,38 @@ def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list
     return rows
 
 
+#: Simulated tangent networks by the input width they see a tile at, and the layouts they run
+#: on (``subdivisions``): where the stitch's detail comes from (docs/method.md, "Where the
+#: detail comes from").
+NETWORK_INPUTS = (256, 518)
+NETWORK_LAYOUTS = {"the default layout": 0, "subdivisions=1 (80 tangents)": 1}
+
+
+def network_tangents(
+    scene: syn.Scene, layout: m360.Layout, seed: int, network_input: int
+) -> np.ndarray:
+    """The content-error tangents of a network that sees each tile at ``network_input`` px.
+
+    The tile shrunk to the network's input and its output brought back smear an edge by a
+    gaussian of about half the shrink factor (area down, bilinear up), so the blur is
+    ``tile width / (2 network_input)`` tangent pixels: the same network is sharper in angle on
+    smaller tiles. Errors have the default layout's angular size and density on every layout.
+    """
+    base = m360.Layout.icosahedron(layout.erp_shape[1])
+    ratio = layout.cameras[0].fx / base.cameras[0].fx
+    reference = (
+        None if layout.key == base.key else base.tangent_shape[0] * base.tangent_shape[1] * ratio**2
+    )
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    blur = layout.tangent_shape[1] / (2 * network_input)
+    wrong = syn.content_errors(exact, seed + 200, blur=blur, reference_area=reference)
+    return np.asarray(syn.distort(wrong, seed + 100, **AFFINE))
+
+
 def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
     layout = m360.Layout.icosahedron(width)
     stitched, sharpened, alone, seconds = [], [], [], []
+    networks: dict[tuple[str, int], list[float]] = {}
     for seed in range(scenes):
         scene = syn.room(seed)
         rgb, depth = syn.render(scene, width)
@@ -185,8 +222,15 @@ def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
         up = m360.stitching.guided_upsample(prior, rgb)
         for values, d in ((stitched, res), (sharpened, sharp), (alone, up)):
             values.append(m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"])
+        for name, subdivisions in NETWORK_LAYOUTS.items():
+            lay = m360.Layout.icosahedron(width, subdivisions=subdivisions)
+            for n in NETWORK_INPUTS:
+                d = m360.stitch(network_tangents(scene, lay, seed, n), lay, prior=prior, **tuning)
+                networks.setdefault((name, n), []).append(
+                    m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"]
+                )
     s, e, a = (statistics.median(v) for v in (stitched, sharpened, alone))
-    return [
+    rows = [
         [width, "stitch (edges as the tangents give them)", s, a, a / s, "", ">= 2x"],
         [
             width,
@@ -198,6 +242,10 @@ def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
             ">= 2x",
         ],
     ]
+    for (name, n), values in networks.items():
+        m = statistics.median(values)
+        rows.append([width, f"stitch, a {n} px network, {name}", m, a, a / m, "", "(>= 2x)"])
+    return rows
 
 
 def timing(sizes: list[int], repeats: int, tuning: dict[str, Any]) -> list[list]:

@@ -610,6 +610,40 @@ def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -
     assert main([*args, "--padding", "5"]) == 2  # beyond the core's limit: a usage error
 
 
+def test_subdivisions_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
+    """--subdivisions 1 gives every image the 80-tangent layout (padding 0.3 unless given) that
+    m360.estimate(subdivisions=1) and Layout.icosahedron(W, subdivisions=1) make; it is another
+    result than the default (redone both ways) and the same given again (kept). A padding too
+    wide for the smaller tangents is refused before any image, naming both options."""
+    path, out, args = _one_image_run(model, tmp_path, base_rgb)
+    assert main([*args, "--subdivisions", "1"]) == 0
+    saved = m360.load(out / path.stem)
+    assert "80 cameras" in saved.metadata["options"]["layout"]
+    assert "padding=0.3" in saved.metadata["options"]["layout"]
+    rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    kwargs: dict[str, Any] = {"align": "none", "blend": "mean", "input_size": (32, 48)}
+    finer = m360.estimate(rgb, str(model), subdivisions=1, **kwargs)
+    assert len(finer.layout) == 80 and finer.layout.padding == 0.3
+    np.testing.assert_array_equal(saved.disparity, finer.disparity)
+    given = m360.Layout.icosahedron(512, subdivisions=1)
+    np.testing.assert_array_equal(
+        m360.estimate(rgb, str(model), layout=given, **kwargs).disparity, finer.disparity
+    )
+    with pytest.raises(m360.InputError, match="layout or padding and subdivisions"):
+        m360.estimate(rgb, str(model), layout=given, subdivisions=1, **kwargs)
+    with pytest.raises(m360.InputError, match=r"padding=0\.7 with subdivisions=1"):
+        m360.estimate(rgb, str(model), subdivisions=1, padding=0.7, **kwargs)
+    again = {"model": str(model), "formats": ("npy",), "progress": False, **kwargs}
+    assert len(m360.batch.run(path, out, subdivisions=1, **again).skipped) == 1
+    assert len(m360.batch.run(path, out, **again).done) == 1  # the 20 default tangents
+    assert len(m360.batch.run(path, out, subdivisions=1, padding=0.2, **again).done) == 1
+    assert "padding=0.2" in m360.load(out / path.stem).metadata["options"]["layout"]
+    with pytest.raises(m360.InputError, match=r"padding=0\.7 with subdivisions=1"):
+        m360.batch.run(path, out, subdivisions=1, padding=0.7, **again)
+    assert main([*args, "--subdivisions", "1", "--padding", "0.7"]) == 2
+    assert main([*args, "--subdivisions", "3"]) == 2  # beyond the core's limit
+
+
 def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
     """--working-width runs the method at that width and writes the image's resolution; the
     result is m360.estimate's, and another working width is another result (redone)."""

@@ -149,6 +149,35 @@ def test_exact_tangents_through_the_subdivided_layout_stay_at_the_resampling_flo
     assert m360.eval.depth_metrics(out, erp_depth(0, width))["abs_rel"] <= 0.003
 
 
+def test_multiscale_alignment_scales_its_grids_to_the_subdivided_tiles() -> None:
+    """align="multiscale" on a subdivided layout: the energy's grids with 2^n times fewer nodes
+    per side (at least 2), so the nodes are as far apart in angle as on the 20 faces; the same
+    bytes as the grids given explicitly. Grids given, or options built without the layout, are
+    kept as they are."""
+    assert m360.stitching.options.multiscale_levels("normalized", 0) == [(4, 3), (8, 7)]
+    assert m360.stitching.options.multiscale_levels("normalized", 1) == [(2, 2), (4, 4)]
+    assert m360.stitching.options.multiscale_levels("paper", 1) == [(2, 2), (4, 4), (8, 7)]
+    assert m360.stitching.options.multiscale_levels("normalized", 2) == [(2, 2), (2, 2)]
+    lay = m360.Layout.icosahedron(512, subdivisions=1)
+    tiles = syn.distort(
+        syn.tangent_perspective_disparity(scene(0), lay.cameras), 1, scale=(0.5, 2.0), shift=0.3
+    )
+    default = m360.stitch(tiles, lay, return_details=True)
+    assert default.options is not None
+    assert default.options.align is not None
+    assert default.options.align["levels"] == [(2, 2), (4, 4)]
+    explicit = m360.stitch(tiles, lay, align=[(2, 2), (4, 4)])
+    np.testing.assert_array_equal(default.disparity, explicit)
+    given = m360.stitch(tiles, lay, align=[(4, 3), (8, 7)], return_details=True)
+    assert given.options is not None and given.options.align is not None
+    assert given.options.align["levels"] == [(4, 3), (8, 7)]
+    paper = m360.stitch(tiles, lay, energy="paper", return_details=True)
+    assert paper.options is not None and paper.options.align is not None
+    assert paper.options.align["levels"] == [(2, 2), (4, 4), (8, 7)]
+    built = m360.StitchOptions()  # no layout in sight: the energy's own schedule
+    assert built.align is not None and built.align["levels"] == [(4, 3), (8, 7)]
+
+
 # ------------------------------------------------------------------ weighted median blend
 
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import m360
 import numpy as np
 import onnx_graphs as g
@@ -407,8 +408,13 @@ def test_estimate_panoramic_masks_sky_scale_and_refusals(
     half = m360.estimate(photo, model, scale=m360.scale.metric_map(distance / 2.0))
     ok = np.isfinite(half.depth) & np.isfinite(res.depth)
     np.testing.assert_allclose(np.median(half.depth[ok] / distance[ok]), 0.5, rtol=0.02)
-    with pytest.raises(InputError, match="layout and padding"):
+    with pytest.raises(InputError, match="layout, padding and subdivisions do not apply"):
         m360.estimate(photo, model, layout=m360.geometry.default_layout(512))
+    with pytest.raises(InputError, match="layout, padding and subdivisions do not apply"):
+        m360.estimate(photo, model, subdivisions=1)
+    cv2.imwrite(str(tmp_path / "pano.png"), np.ascontiguousarray(photo[:, :, ::-1]))
+    with pytest.raises(InputError, match="padding and subdivisions do not apply"):
+        m360.batch.run(tmp_path / "pano.png", tmp_path / "out", model=model, subdivisions=1)
     with pytest.raises(InputError, match="tangent mask"):
         m360.estimate(photo, model, mask=np.ones((20, 8, 8), bool))
     with pytest.raises(InputError, match="prior goes with a tangent model"):

@@ -812,6 +812,18 @@ def test_frame_batch_is_capped_by_memory(tmp_path: Path, monkeypatch: pytest.Mon
 
 def test_frame_batch_options(tmp_path: Path) -> None:
     folder, inner = _walk_run(tmp_path, count=2)
+
+    class Panoramic:  # only its role matters: refused before any frame
+        kind = "panoramic"
+        output_kind = "distance"
+
+        def predict(self, image: np.ndarray) -> np.ndarray:
+            raise AssertionError("no frame should run")
+
+    for layout_option in ({"padding": 0.3}, {"subdivisions": 1}):
+        with pytest.raises(m360.InputError, match="padding and subdivisions do not apply"):
+            m360.video.run(folder, tmp_path / "pano", model=Panoramic(), **layout_option)
+    assert not (tmp_path / "pano").exists()
     for bad in (0, 1.5, "2"):
         with pytest.raises(m360.InputError, match="frame_batch"):
             m360.video.run(folder, tmp_path / "out", model=inner, frame_batch=bad)

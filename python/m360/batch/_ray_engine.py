@@ -73,18 +73,19 @@ class RayResources:
 # --------------------------------------------------------------------------------------------
 # The stages (run in Ray workers).
 
-_LAYOUTS: dict[tuple[int, float | None], Any] = {}
+_LAYOUTS: dict[tuple[int, float | None, int], Any] = {}
 
 
-def _layout(width: int, padding: float | None) -> Any:
-    """The default layout of a width (and padding), kept per worker process (its plan is cached
-    in the core): the one :func:`m360.estimate` makes.
+def _layout(width: int, job: dict[str, Any]) -> Any:
+    """The default layout of a width (and the job's padding and subdivisions), kept per worker
+    process (its plan is cached in the core): the one :func:`m360.estimate` makes.
     """
-    from ..geometry.layout import default_layout
+    from ..pipeline.options import job_layout
 
-    if (width, padding) not in _LAYOUTS:
-        _LAYOUTS[width, padding] = default_layout(width, padding)
-    return _LAYOUTS[width, padding]
+    key = (width, job["padding"], job["subdivisions"])
+    if key not in _LAYOUTS:
+        _LAYOUTS[key] = job_layout(width, job)
+    return _LAYOUTS[key]
 
 
 def _use_threads(threads: int) -> None:
@@ -130,7 +131,7 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
             size = (work_width, work_width // 2)
             working = cv2.resize(rgb, size, interpolation=cv2.INTER_AREA)
         t_read = time.perf_counter()
-        tangents = erp_to_tangents(working, _layout(work_width, settings.job["padding"]))
+        tangents = erp_to_tangents(working, _layout(work_width, settings.job))
         t_project = time.perf_counter()
     except Exception as exc:
         return _image.error_outcome(job, exc), None
@@ -151,7 +152,7 @@ class _Network:
         # The actor's threads (its reserved CPUs unless the run names them) win.
         given = {**settings.model_options.keywords(), "threads": threads}
         self.estimator = load_estimator(settings.model, model_options=ModelOptions(**given))
-        self.padding = settings.job["padding"]
+        self.job = settings.job
         self.prior = settings.load_prior(threads) if is_model(settings.prior) else None
 
     def ready(self) -> bool:
@@ -176,7 +177,7 @@ class _Network:
                 info = _model_info(self.estimator, None, network_input.shape[:2])
                 seconds = time.perf_counter() - t0
             else:
-                layout = _layout(width, self.padding)
+                layout = _layout(width, self.job)
                 raw = _predict(self.estimator, tangents, layout)
                 seconds = time.perf_counter() - t0
                 info = _model_info(self.estimator, layout)
@@ -232,7 +233,7 @@ def _stitch_write(
                 edges=settings.job["edges"],
             )
         else:
-            layout = _layout(work_width, settings.job["padding"])
+            layout = _layout(work_width, settings.job)
             mask, erp_valid = _split_mask(_image._image_mask(read, settings), layout, erp_shape)
             prior = None
             if "prior" in extra:  # the model actor ran the prior model

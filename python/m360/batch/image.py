@@ -311,13 +311,13 @@ def _check_run_memory(
     ``width`` x ``height`` is the file's image; the panorama is its canvas (a partial
     panorama's full width) or its aspect-fixed size.
     """
-    from ..geometry.layout import default_layout
     from ..pipeline.memory import check_memory, estimate_memory, working_width_for
+    from ..pipeline.options import job_layout
 
     pano = int(getattr(crop, "full_width", 0) or 0) or width + width % 2
     work = working_width_for(s.job["working_width"], pano)
     try:
-        layout = default_layout(work, s.job["padding"])
+        layout = job_layout(work, s.job)
     except M360Error:  # a width no layout takes: the estimate says why, after decoding
         layout = None
     needed = estimate_memory(

@@ -59,13 +59,12 @@ from dataclasses import dataclass, field
 from pathlib import Path, PurePath
 from typing import TYPE_CHECKING, Any
 
-from .._keywords import checked, definition, resolved, split
+from .._keywords import checked, resolved, split
 from .._validate import MAX_THREADS, flag, integer
 from ..errors import InputError, ReadError
 from ..estimators import OnnxEstimator, estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
-from ..geometry.layout import DEFAULT_PADDING
 from ..io import (
     GEOMETRY_FORMATS,
     STEREO_FORMATS,
@@ -74,7 +73,14 @@ from ..io import (
 from ..io.decode import IMAGE_SUFFIXES
 from ..io.mesh import DEFAULT_MAX_VERTICES, check_max_vertices
 from ..io.stereo import StereoKeywords
-from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
+from ..pipeline.options import (
+    EstimateKeywords,
+    JobKeywords,
+    PriorKeywords,
+    job_fingerprint,
+    refuse_layout_options,
+    resolve_job,
+)
 from ..pipeline.prior import describe as describe_prior
 from ..pipeline.prior import load_prior
 from ..stitching.options import StitchKeywords, StitchOptions, build
@@ -459,15 +465,15 @@ def run(
     **keywords
         Every option of :func:`m360.estimate` beyond its named ones, for every image: one list,
         :class:`m360.pipeline.options.EstimateKeywords` (the stitching options, the model
-        options, ``working_width``, ``upsample``, ``padding``, ``sky``, and the global prior
-        ``prior``, ``prior_kind``, ``prior_confidence``, ``prior_options``). ``threads`` is also
-        the core's threads per worker with ``workers > 1`` (default: the CPU count divided among
-        the workers). A prior model (a path or registry name, loaded with ``kind="panoramic"``
-        and ``prior_options``) is loaded once before any image (a :class:`m360.ModelError` if it
-        cannot be) and runs on each photo; a prior map applies to every image. The resume
-        fingerprint holds the prior (a model's name, sha256, output kind and preprocessing; a
-        map's sha256), so a rerun with another prior redoes the images. Also the stereo
-        formats' ``ipd``, ``pole_fade`` and ``median_distance``
+        options, ``working_width``, ``upsample``, ``padding``, ``subdivisions``, ``sky``, and
+        the global prior ``prior``, ``prior_kind``, ``prior_confidence``, ``prior_options``).
+        ``threads`` is also the core's threads per worker with ``workers > 1`` (default: the CPU
+        count divided among the workers). A prior model (a path or registry name, loaded with
+        ``kind="panoramic"`` and ``prior_options``) is loaded once before any image (a
+        :class:`m360.ModelError` if it cannot be) and runs on each photo; a prior map applies
+        to every image. The resume fingerprint holds the prior (a model's name, sha256, output
+        kind and preprocessing; a map's sha256), so a rerun with another prior redoes the
+        images. Also the stereo formats' ``ipd``, ``pole_fade`` and ``median_distance``
         (:class:`m360.io.stereo.StereoKeywords`; see :func:`m360.save`).
 
     Returns
@@ -495,7 +501,7 @@ def run(
         where="run",
     )
     model_opts = ModelOptions.build(model_options, **model_keywords)
-    job_options = resolved(job_keywords, JobKeywords)
+    job_options = resolve_job(job_keywords)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
     resources = ray_resources(
         engine, workers, gpus_per_model, cpus_per_stitch, model_opts.providers
@@ -504,7 +510,7 @@ def run(
     masks = _check_masks(mask)
     confidence = flag(confidence, "confidence")
     max_vertices = check_max_vertices(max_vertices)
-    opts = build(options, **stitch_keywords)
+    opts = build(options, job_options["subdivisions"], **stitch_keywords)
     if on_outcome is not None and not callable(on_outcome):
         raise InputError(f"on_outcome must be callable, got {type(on_outcome).__name__}")
     jobs, problems = collect(inputs, out, recursive=recursive)
@@ -525,8 +531,8 @@ def run(
         raise InputError("a prior goes with a tangent model; a panoramic model is used alone")
     if prior_given.get("prior") is not None and opts.align is None:
         raise InputError("a prior acts through the alignment: give align other than 'none'")
-    if panoramic and job_options["padding"] is not None:
-        raise InputError("a panoramic model runs once on the whole ERP: padding does not apply")
+    if panoramic:
+        refuse_layout_options(job_options)
     # The prior too: a prior model that cannot be loaded is one ModelError before any image.
     prior = load_prior(
         prior_given.get("prior"),
@@ -593,12 +599,7 @@ def run(
     if masks:
         settings.fingerprint["mask"] = _describe_masks(masks)
     # The job's options that differ from their defaults (absent otherwise, as above).
-    defaults = {name: o.default for name, o in definition(JobKeywords).items()}
-    settings.fingerprint.update({k: v for k, v in job_options.items() if v != defaults[k]})
-    # Always: the default padding changed (0.3 → 0.7), so an image written before under the
-    # default (no key) is redone, and one written with --padding 0.7 is kept.
-    padding = job_options["padding"]
-    settings.fingerprint["padding"] = DEFAULT_PADDING if padding is None else padding
+    settings.fingerprint.update(job_fingerprint(job_options))
     if workers > 1 or resources is not None:
         _check_picklable(settings)
     make_output_folder(out)

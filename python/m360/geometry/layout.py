@@ -145,11 +145,11 @@ class Layout:
         largest padded bounding box; by default the pixels keep the angular size of the paper's
         layout at the same ``erp_width`` (209x189 at W = 2048, padding 0.15, n = 1). Sub-faces
         are about half as wide, so ``padding`` 0.15 at n = 1 overlaps them about as much, in
-        relative terms, as 0.3 does the 20 faces. Pass ``align=[(2, 2), (4, 4)]`` to
-        :func:`m360.stitch` / :func:`m360.estimate` with them: the default 4x3 → 8x7 grids
-        per (smaller) tile are twice as fine in angle and measured 4-5x slower for the same
-        accuracy. Layouts that would let more than 16 tangents see one direction (n = 1 with
-        padding above about 0.3) are refused.
+        relative terms, as 0.3 does the 20 faces. :func:`m360.stitch` and :func:`m360.estimate`
+        align them with grids of half the nodes per side by default (2x2 → 4x4 at n = 1; the
+        4x3 → 8x7 grids per smaller tile are twice as fine in angle and measured 2-5x slower
+        for the same accuracy). Layouts that would let more than 16 tangents see one direction
+        (n = 1 with padding above about 0.3) are refused.
 
         Parameters
         ----------
@@ -282,14 +282,17 @@ class Layout:
         )
 
 
-def default_layout(erp_width: int, padding: float | str | None = None) -> Layout:
+def default_layout(
+    erp_width: int, padding: float | str | None = None, subdivisions: int | None = None
+) -> Layout:
     """Return the layout :func:`m360.estimate` and the batch engines use when none is given.
 
-    ``Layout.icosahedron(erp_width, padding)``: :data:`DEFAULT_PADDING` (0.7) unless ``padding``
-    is given (the ``padding=`` option of :func:`m360.estimate` and :func:`m360.batch.run`);
-    ``padding="paper"`` is the paper's layout.
+    ``Layout.icosahedron(erp_width, padding, subdivisions=subdivisions)``: 20 tangents at
+    :data:`DEFAULT_PADDING` (0.7) unless ``padding`` or ``subdivisions`` is given (the options
+    of :func:`m360.estimate` and :func:`m360.batch.run`); ``padding="paper"`` is the paper's
+    layout, ``subdivisions=1`` its 80 smaller tangents (padding 0.3 by default).
     """
-    return Layout.icosahedron(erp_width, padding)
+    return Layout.icosahedron(erp_width, padding, subdivisions=subdivisions or 0)
 
 
 def _padding(padding: float | str | None, subdivisions: int) -> float:

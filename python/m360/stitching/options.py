@@ -44,6 +44,7 @@ __all__ = [
     "StitchKeywords",
     "StitchOptions",
     "StitchTuning",
+    "multiscale_levels",
     "parse_align",
 ]
 
@@ -219,8 +220,9 @@ class StitchKeywords(StitchTuning, total=False):
     align: Annotated[
         AlignSpec | None,
         Option(
-            f"alignment: multiscale (default; the energy's schedule, {_SCHEDULES}), none, or "
-            "grids COLSxROWS[,COLSxROWS...]",
+            f"alignment: multiscale (default; the energy's schedule, {_SCHEDULES}, with half "
+            "the nodes per side on a subdivided layout's tiles), none, or grids "
+            "COLSxROWS[,COLSxROWS...]",
             parse=parse_align,
         ),
     ]
@@ -458,14 +460,37 @@ class StitchOptions:
         return f"StitchOptions(align={self._align!r}, blend={self._blend!r})"
 
 
-def build(options: StitchOptions | None, **keywords: Unpack[StitchKeywords]) -> StitchOptions:
+def multiscale_levels(energy: str, subdivisions: int) -> list[tuple[int, int]]:
+    """Give ``align="multiscale"``'s grids for tangents of a layout split ``subdivisions`` times.
+
+    The energy's schedule (``_core.DEFAULTS["schedules"]``) is for the 20 faces; a subdivided
+    layout's tiles are 2^n times narrower in angle, so its grids have 2^n times fewer nodes per
+    side (at least 2), about as far apart on the sphere: 4x3 → 8x7 becomes 2x2 → 4x4 at n = 1,
+    which measured the same AbsRel as 4x3 → 8x7 on those tiles in less than half the time
+    (docs/method.md, "Where the detail comes from").
+    """
+    schedule = _core.DEFAULTS["schedules"][energy]
+    step = 2**subdivisions
+    return [(max(2, -(-c // step)), max(2, -(-r // step))) for c, r in schedule]
+
+
+def build(
+    options: StitchOptions | None, subdivisions: int = 0, **keywords: Unpack[StitchKeywords]
+) -> StitchOptions:
     """``options``, or the options the stitching keywords describe (not both).
 
     The one place the callers of :class:`StitchOptions` (``stitch``, ``estimate``,
     ``batch.run``) turn their keywords into options; keywords given as None count as absent.
+    ``subdivisions``: the layout's, whose tiles ``align="multiscale"`` (the default) is scaled
+    to (:func:`multiscale_levels`).
     """
     given = {k: v for k, v in keywords.items() if v is not None}
     if options is None:
+        if subdivisions and given.get("align", "multiscale") == "multiscale":
+            energy = given.get("energy", _ALIGN["energy"])
+            if isinstance(energy, str) and energy in _core.DEFAULTS["schedules"]:
+                # (another energy: StitchOptions names the problem)
+                given["align"] = multiscale_levels(energy, subdivisions)
         return StitchOptions(**given)  # type: ignore[arg-type]  # mypy: one TypedDict into another
     if not isinstance(options, StitchOptions):
         raise InputError(f"options must be an m360.StitchOptions, got {type(options).__name__}")

@@ -231,7 +231,9 @@ def stitch(
     t0 = time.perf_counter()
     data = check_tangents(tangents, layout, "tangents")
     (tuning,) = split(keywords, StitchTuning, where="stitch")
-    opts = build(options, align=align, blend=blend, **tuning).checked_for(layout.tangent_shape)
+    opts = build(options, layout.subdivisions or 0, align=align, blend=blend, **tuning).checked_for(
+        layout.tangent_shape
+    )
     valid = None if mask is None else _check_mask(mask, layout)
     flag(return_details, "return_details")
     prior_map: np.ndarray | None = None

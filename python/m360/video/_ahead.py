@@ -47,10 +47,11 @@ from typing import Any
 import numpy as np
 
 from ..batch import Job
-from ..geometry.layout import Layout, default_layout
+from ..geometry.layout import Layout
 from ..pipeline import estimate as _pipeline
 from ..pipeline import memory as _memory
 from ..pipeline.estimate import EstimateResult, Prepared, _predict, prepare
+from ..pipeline.options import job_layout
 from ._frame import _Plan
 from .reader import Frame
 
@@ -72,7 +73,7 @@ def _sizes(plan: _Plan, frame: Frame) -> tuple[int, int, Layout] | None:
     if width != 2 * height:
         return None
     work = _memory.working_width_for(plan.job["working_width"], width)
-    return width, work, default_layout(work, plan.job["padding"])
+    return width, work, job_layout(work, plan.job)
 
 
 class NetworkTurns:

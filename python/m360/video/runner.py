@@ -50,7 +50,7 @@ from typing import TYPE_CHECKING, Any
 import cv2
 import numpy as np
 
-from .._keywords import definition, resolved, split
+from .._keywords import split
 from .._validate import MAX_THREADS, integer
 from ..batch import (
     FAILURES_FILE,
@@ -72,10 +72,16 @@ from ..errors import InputError, M360Error, ModelError, ReadError
 from ..estimators import estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
-from ..geometry.layout import DEFAULT_PADDING
 from ..io import check_formats
 from ..io.files import atomic_path, save_json
-from ..pipeline.options import EstimateKeywords, JobKeywords, PriorKeywords
+from ..pipeline.options import (
+    EstimateKeywords,
+    JobKeywords,
+    PriorKeywords,
+    job_fingerprint,
+    refuse_layout_options,
+    resolve_job,
+)
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ._ahead import MAX_FRAME_BATCH, Ahead, Estimates, FrameBatcher
 from ._frame import (
@@ -269,8 +275,8 @@ def run(
             'temporal term uses the previous frame (temporal=Temporal("smooth", prior=True))'
         )
     model_opts = ModelOptions.build(model_options, **model_keywords)
-    job_options = resolved(job_keywords, JobKeywords)
-    opts = build(options, **stitch_keywords)
+    job_options = resolve_job(job_keywords)
+    opts = build(options, job_options["subdivisions"], **stitch_keywords)
     chosen = check_formats(formats)
     workers = integer(workers, "workers", low=1, high=MAX_THREADS)
     resources = ray_resources(
@@ -301,13 +307,12 @@ def run(
 
         _av()  # the preview video is encoded with PyAV: say so before any frame
     estimator = load_estimator(model, model_options=model_opts)
+    if estimator_kind(estimator) == "panoramic":
+        refuse_layout_options(job_options)
     fp = fingerprint(
         estimator, opts, chosen, preview=bool(preview), fix_aspect=False, confidence=confidence
     )
-    defaults = {name: o.default for name, o in definition(JobKeywords).items()}
-    fp.update({k: v for k, v in job_options.items() if v != defaults[k]})
-    padding = job_options["padding"]
-    fp["padding"] = DEFAULT_PADDING if padding is None else padding
+    fp.update(job_fingerprint(job_options))
     # With the temporal term a frame depends on the frames before it: the selection counts.
     fp["video"] = {"temporal": temporal.describe(), "every": every, "start": start, "end": end}
     plan = _Plan(
