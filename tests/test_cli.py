@@ -67,6 +67,9 @@ def test_run_writes_arrays_preview_and_sidecar(
     assert meta["model"]["output_kind"] == "affine_disparity"
     # 43x50 tangents fit inside 64x96 keeping their aspect: scale 64/43 -> 64 x 74.4 -> 64 x 74.
     assert meta["model"]["threads"] == 1 and meta["model"]["network_size"] == [64, 74]
+    # The angle of one network pixel at a tile's centre (its oracle: tests/test_layouts.py).
+    layout = m360.geometry.default_layout(256)
+    assert meta["model"]["degrees_per_pixel"] == round(layout.network_pixel_degrees(74), 4)
     assert meta["options"]["align"] is None and meta["options"]["blend"] == {"method": "mean"}
     assert meta["quantities"]["depth"]["units"] == "relative"
     assert meta["quantities"]["disparity"]["invalid"].startswith("NaN")

@@ -178,6 +178,30 @@ def test_multiscale_alignment_scales_its_grids_to_the_subdivided_tiles() -> None
     assert built.align is not None and built.align["levels"] == [(4, 3), (8, 7)]
 
 
+@pytest.mark.parametrize(("padding", "n"), [(None, 0), ("paper", 0), (0.3, 1), (0.2, 1)])
+def test_network_pixel_degrees_is_the_angle_rays_through_the_tile_centre_span(
+    padding: float | str | None, n: int
+) -> None:
+    """The angle between the rays that land half a network pixel either side of a tile's
+    centre, found by bisection through TangentCamera.project, on every camera of the layout;
+    and the same network sees finer on the smaller tiles."""
+    lay = m360.Layout.icosahedron(1024, padding=padding, subdivisions=n)
+    for network_width in (64, 256, 518):
+        half = 0.5 * lay.tangent_shape[1] / network_width  # tile pixels
+        for cam in lay.cameras[:: max(1, len(lay.cameras) // 5)]:
+            lo, hi = 0.0, 1.0
+            for _ in range(60):  # the angle off the axis that lands `half` px right of it
+                mid = 0.5 * (lo + hi)
+                x, _, _ = cam.project(cam.rotation.T @ np.array([np.sin(mid), 0.0, np.cos(mid)]))
+                lo, hi = (mid, hi) if float(x) - cam.cx < half else (lo, mid)
+            expected = np.degrees(2 * lo)
+            assert lay.network_pixel_degrees(network_width) == pytest.approx(expected, abs=1e-9)
+    default = m360.Layout.icosahedron(1024).network_pixel_degrees(384)
+    assert lay.network_pixel_degrees(384) <= default
+    with pytest.raises(InputError, match="network_width"):
+        lay.network_pixel_degrees(0)
+
+
 # ------------------------------------------------------------------ weighted median blend
 
 

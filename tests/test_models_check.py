@@ -55,6 +55,10 @@ def test_static_normalising_registered_model(
     assert field(out, "registry") == "tiny-metric (matched by sha256)"
     assert field(out, "input") == "'x' (1, 3, 8, 8), NCHW, static size 8x8"
     assert field(out, "network size").startswith("8x8 for the default layout")
+    # What the stitch can resolve (the angle's own oracle is tests/test_cli.py's).
+    degrees = m360.Layout.icosahedron(WIDTH).network_pixel_degrees(8)
+    where = "at a tile's centre, whatever the ERP width"
+    assert field(out, "detail") == f"{degrees:.2f}° per network pixel {where}"
     norm = field(out, "normalisation")
     assert norm.startswith("graph (m360 feeds RGB in [0, 1]): mean (0.485, 0.456, 0.406)")
     assert "std (0.229, 0.224, 0.225)" in norm

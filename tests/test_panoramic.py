@@ -268,6 +268,7 @@ def test_models_check_guesses_each_panoramic_kind(
     assert info["kind"] == "panoramic" and info["usable"]
     assert info["tangent_shape"] == [1024, 2048]  # the whole ERP is the network's image
     assert info["network_size"] == [32, 64]  # the file's fixed size
+    assert info["degrees_per_pixel"] == 5.625  # 360° over 64 pixels
     assert info["kind_guess"]["kind"] == kind
     assert info["flags"] == {"output_kind": kind}
     assert info["options"] == {"kind": "panoramic", "output_kind": kind}
@@ -405,6 +406,7 @@ def test_estimate_panoramic_masks_sky_scale_and_refusals(
     lat = 90.0 - (np.arange(256) + 0.5) * 180.0 / 256  # row centres' latitude
     np.testing.assert_array_equal(np.isnan(res.disparity).all(axis=1), lat < -60.0)
     assert res.options["masked_fraction"] > 0
+    assert res.model["network_size"] == [64, 128] and res.model["degrees_per_pixel"] == 2.8125
     half = m360.estimate(photo, model, scale=m360.scale.metric_map(distance / 2.0))
     ok = np.isfinite(half.depth) & np.isfinite(res.depth)
     np.testing.assert_allclose(np.median(half.depth[ok] / distance[ok]), 0.5, rtol=0.02)

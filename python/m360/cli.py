@@ -561,6 +561,9 @@ def _check_report(info: dict[str, Any]) -> list[str]:
         f"input:         {inp['name']!r} ({shape}), {inp['layout']}, {size}",
         f"network size:  {nh}x{nw} for {seen}" + ("" if runs is None else f": FAILS ({runs})"),
     ]
+    if runs is None:  # what the stitch can resolve (docs/your-own-model.md)
+        where = "on the equator" if panoramic else "at a tile's centre, whatever the ERP width"
+        lines.append(f"detail:        {info['degrees_per_pixel']:.2f}° per network pixel {where}")
     target = "the photo (upsampled along its edges)" if panoramic else "the tangent"
     rule = info["size_rule"]
     if inp["static"]:

@@ -636,9 +636,13 @@ def check(
     first = est.session.get_inputs()[0]
     if role == "panoramic":
         tangent = (erp_width // 2, erp_width)  # the whole ERP is the network's image
+        size = est.network_size(tangent)
+        degrees = 360.0 / size[1]
     else:
-        tangent = Layout.icosahedron(erp_width).tangent_shape
-    size = est.network_size(tangent)
+        layout = Layout.icosahedron(erp_width)
+        tangent = layout.tangent_shape
+        size = est.network_size(tangent)
+        degrees = layout.network_pixel_degrees(size[1])
     info: dict[str, Any] = {
         "path": str(p),
         "size_bytes": p.stat().st_size,
@@ -655,6 +659,7 @@ def check(
         "erp_width": erp_width,
         "tangent_shape": list(tangent),
         "network_size": list(size),
+        "degrees_per_pixel": round(degrees, 4),
         "network_size_runs": est.runs_at(size),
         "size_rule": est.size_rule(size),
         "normalization": est.normalization.as_dict(),

@@ -244,6 +244,18 @@ class Layout:
         """(h, w) of every tangent image."""
         return self.cameras[0].height, self.cameras[0].width
 
+    def network_pixel_degrees(self, network_width: int) -> float:
+        """Give the angle, in degrees, one pixel of a network spans at a tile's centre.
+
+        A network that sees each ``width``-pixel tile at ``network_width`` pixels resolves no
+        finer than this, whatever the ERP width (docs/method.md, "Where the detail comes
+        from"). The first camera's: the icosahedron's tiles share their pixel size.
+        """
+        network_width = integer(network_width, "network_width", low=1, high=sys.maxsize)
+        camera = self.cameras[0]
+        step = camera.width / network_width  # tile pixels per network pixel
+        return float(np.degrees(2.0 * np.arctan(step / (2.0 * camera.fx))))
+
     def prepare(self) -> Layout:
         """Build the plan of this layout now, instead of in the first call that needs it.
 

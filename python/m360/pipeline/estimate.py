@@ -950,6 +950,13 @@ def _from_network(
     )
 
 
+def _degrees_per_pixel(layout: Layout | None, network_width: int) -> float:
+    """Give the angle one network input pixel spans: at a tile's centre, or on the ERP equator."""
+    if layout is None:  # a panoramic model: the whole ERP width is 360°
+        return round(360.0 / network_width, 4)
+    return round(layout.network_pixel_degrees(network_width), 4)
+
+
 def _model_info(
     estimator: Any, layout: Layout | None, image_shape: tuple[int, int] | None = None
 ) -> dict[str, Any]:
@@ -960,12 +967,16 @@ def _model_info(
     }
     if isinstance(estimator, _estimators.OnnxEstimator):
         shape = layout.tangent_shape if layout is not None else image_shape
+        network_size = None if shape is None else estimator.network_size(shape)
         info.update(
             sha256=estimator.sha256,
             path=str(estimator.path),
             providers=list(estimator.providers),
             threads=estimator.threads,
-            network_size=None if shape is None else list(estimator.network_size(shape)),
+            network_size=None if network_size is None else list(network_size),
+            degrees_per_pixel=None
+            if network_size is None
+            else _degrees_per_pixel(layout, network_size[1]),
             input_size=None if estimator.input_size is None else list(estimator.input_size),
             resize=estimator.resize_policy,
             multiple_of=estimator.multiple_of,

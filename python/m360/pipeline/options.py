@@ -59,7 +59,7 @@ def _parse_working_width(text: str) -> int | str:
 
 def _padding(value: Any, name: str) -> float:
     # The core judges the value (the layout it allows), once here rather than per image; with
-    # subdivisions the pair is judged again (job_options).
+    # subdivisions the pair is judged again (resolve_job).
     padding = default_layout(2048, value).padding
     assert padding is not None  # an icosahedron layout has one
     return padding
