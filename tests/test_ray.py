@@ -109,8 +109,10 @@ def test_cli_engine_ray(
 ) -> None:
     out = tmp_path / "out"
     args = ["run", str(ten), "-o", str(out), "--model", model, "--input-size", "64", "96"]
-    # --edges photo: the Ray engine passes the photo and the option as the local one does.
+    # --edges photo and --subdivisions 1: the Ray engine passes the photo, the option and the
+    # layout as the local one does.
     fast = ["--align", "none", "--blend", "frustum", "--edges", "photo", "--no-progress"]
+    fast += ["--subdivisions", "1"]
     # Two model actors of 1 CPU would leave the 2-CPU cluster no CPU for the other stages.
     code = main([*args, *fast, "-o", str(tmp_path / "none"), "--engine", "ray", "--workers", "2"])
     assert code == 2
@@ -123,6 +125,9 @@ def test_cli_engine_ray(
     assert main([*args, *fast, "-o", str(local), "--threads", "1"]) == 0
     for file in local.glob("*.npy"):
         assert file.read_bytes() == (out / file.name).read_bytes()
+    disparity = sorted(out.glob("*.disparity.npy"))[0]
+    sidecar = json.loads(disparity.with_name(disparity.name.split(".")[0] + ".json").read_text())
+    assert "80 cameras" in sidecar["options"]["layout"]
     assert main([*args, *fast, "--engine", "ray"]) == 0
     assert "0 done, 10 already done" in capsys.readouterr().err
     # Bad Ray options are usage errors, before any image runs.

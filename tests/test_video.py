@@ -466,6 +466,34 @@ def test_cli_video(tmp_path: Path) -> None:
     assert main([*argv[:3], "--start", "0.1s", *argv[3:5], "--end", "x"]) == 2
 
 
+def test_video_on_the_subdivided_layout(tmp_path: Path) -> None:
+    """subdivisions=1: every frame on the 80-tangent layout (its scaled grids), each frame's
+    bytes those of m360.estimate with the same options (no temporal term), in batches of 2
+    too; the resume fingerprint holds it (the default layout redoes the frames)."""
+    import onnx_graphs as g
+
+    folder = tmp_path / "frames"
+    _walk_frames(folder, 4, 3)
+    model = str(g.affine_of_mean(tmp_path / "tiny.onnx", 1.0, 3.0))
+    kw = {"model": model, "input_size": (32, 48), "threads": 1, "temporal": "none"}
+    first = m360.video.run(folder, tmp_path / "one", subdivisions=1, progress=False, **kw)
+    two = m360.video.run(
+        folder, tmp_path / "two", subdivisions=1, frame_batch=2, progress=False, **kw
+    )
+    assert len(first.done) == len(two.done) == 3
+    assert _arrays(tmp_path / "one") == _arrays(tmp_path / "two")
+    meta = _sidecar(tmp_path / "one", 1)
+    assert "80 cameras" in meta["options"]["layout"]
+    assert meta["options"]["align"]["levels"] == [[2, 2], [4, 4]]
+    rgb = cv2.imread(str(sorted(folder.iterdir())[1]))[:, :, ::-1]
+    alone = m360.estimate(rgb, model, subdivisions=1, input_size=(32, 48), threads=1)
+    np.testing.assert_array_equal(
+        np.load(tmp_path / "one" / "000001.disparity.npy"), alone.disparity
+    )
+    again = m360.video.run(folder, tmp_path / "one", progress=False, **kw)
+    assert len(again.done) == 3  # the 20 default tangents: another result
+
+
 # --------------------------------------------------------------------------------------------
 # The synthetic walk and the temporal term.
 
