@@ -644,6 +644,32 @@ def test_subdivisions_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarr
     assert main([*args, "--subdivisions", "3"]) == 2  # beyond the core's limit
 
 
+def test_a_prior_finer_than_the_tangent_network_gets_a_note(
+    model: Path, tmp_path: Path, base_rgb: np.ndarray
+) -> None:
+    """A tangent network that sees each default tile at 36 px (6° per pixel) with a prior map
+    of 80 columns (4.5° per pixel): the run says its edges will be no sharper than the prior's
+    and what would be. It says nothing with 16 columns (22.5°), nor on the 80 smaller tiles,
+    which the same network sees at 3°."""
+    path, out, _ = _one_image_run(model, tmp_path, base_rgb)
+    kw: dict[str, Any] = {"model": str(model), "input_size": (32, 48), "progress": False}
+    layout = m360.geometry.default_layout(2048)
+    net = m360.estimators.load_estimator(str(model), input_size=(32, 48))
+    degrees = layout.network_pixel_degrees(net.network_size(layout.tangent_shape)[1])
+    assert 5 < degrees < 7
+    prior: dict[str, Any] = {"prior": np.ones((40, 80)), "prior_kind": "distance"}
+    coarse = m360.batch.run(path, out, **prior, **kw)
+    assert coarse.exit_code == 0
+    (note,) = coarse.notes
+    assert note.startswith(f"detail: the tangent network sees {degrees:.2f}° per pixel")
+    assert "no finer than the prior's 4.50°" in note and "subdivisions=1" in note
+    assert note in coarse.summary()
+    smaller = m360.batch.run(path, out / "sub", subdivisions=1, **prior, **kw)
+    assert smaller.exit_code == 0 and not smaller.notes
+    blurry = {"prior": np.ones((8, 16)), "prior_kind": "distance"}
+    assert not m360.batch.run(path, out / "blurry", **blurry, **kw).notes
+
+
 def test_working_width_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
     """--working-width runs the method at that width and writes the image's resolution; the
     result is m360.estimate's, and another working width is another result (redone)."""

@@ -78,6 +78,7 @@ from ..pipeline.options import (
     JobKeywords,
     PriorKeywords,
     job_fingerprint,
+    job_layout,
     refuse_layout_options,
     resolve_job,
 )
@@ -609,15 +610,18 @@ def run(
     bar = _progress_bar(len(jobs) + len(problems), progress)
     counts = {"done": 0, "skipped": 0, "failed": 0}
 
-    notes: list[str] = []
+    detail = _detail_note(estimator, prior, job_options)
+    notes: list[str] = [] if detail is None else [detail]
+    unwritten: list[str] = []  # the first failure that could not be appended, said once
 
     def record(outcome: ImageOutcome, index: int | None) -> None:
         if outcome.status == "failed":
             try:
                 append_failure(failures, outcome, settings.run_id)
             except OSError as exc:  # a full disk: the failure is still reported here
-                if not notes:
-                    notes.append(f"{failures} could not be written: {exc.strerror or exc}")
+                if not unwritten:
+                    unwritten.append(f"{failures} could not be written: {exc.strerror or exc}")
+                    notes.append(unwritten[0])
         if index is not None:
             outcomes[index] = outcome
         if outcome.status in counts:
@@ -685,6 +689,34 @@ def _prior_pixels(prior: Any) -> int:
         h, w = prior.estimator.network_size((1024, 2048))
         return h * w
     return 0
+
+
+def _detail_note(estimator: Any, prior: Any, job: dict[str, Any]) -> str | None:
+    """Say so when the tangent network sees no finer in angle than the prior.
+
+    Its depth edges are then about as sharp as the prior's brought up along the photo
+    (docs/method.md, "Where the detail comes from"). Only for ONNX models (and maps), whose
+    input size is known; both angles hold for any ERP width (the network's input is fixed).
+    """
+    if prior is None or not isinstance(estimator, OnnxEstimator):
+        return None
+    if prior.array is not None:
+        prior_degrees = 360.0 / prior.array.shape[1]
+    elif isinstance(prior.estimator, OnnxEstimator):
+        prior_degrees = 360.0 / prior.estimator.network_size((1024, 2048))[1]
+    else:
+        return None
+    layout = job_layout(2048, job)
+    network_width = estimator.network_size(layout.tangent_shape)[1]
+    degrees = layout.network_pixel_degrees(network_width)
+    if degrees < prior_degrees:
+        return None
+    return (
+        f"detail: the tangent network sees {degrees:.2f}° per pixel at a tile's centre, no "
+        f"finer than the prior's {prior_degrees:.2f}°, so depth edges come out about as sharp "
+        "as the prior's; smaller tiles (subdivisions=1, 4x the network calls) or a larger "
+        "input_size see finer (docs/your-own-model.md)"
+    )
 
 
 class _ModelUnusable(Exception):
