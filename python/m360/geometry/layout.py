@@ -247,9 +247,10 @@ class Layout:
     def network_pixel_degrees(self, network_width: int) -> float:
         """Give the angle, in degrees, one pixel of a network spans at a tile's centre.
 
-        A network that sees each ``width``-pixel tile at ``network_width`` pixels resolves no
-        finer than this, whatever the ERP width (docs/method.md, "Where the detail comes
-        from"). The first camera's: the icosahedron's tiles share their pixel size.
+        A network that sees each tile (``tangent_shape[1]`` pixels wide) at ``network_width``
+        pixels resolves no finer than this, whatever the ERP width (docs/method.md, "Where the
+        detail comes from"). The first camera's: the icosahedron's tiles share their pixel
+        size.
         """
         network_width = integer(network_width, "network_width", low=1, high=sys.maxsize)
         camera = self.cameras[0]
