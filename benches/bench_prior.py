@@ -87,11 +87,10 @@ AFFINE: dict[str, Any] = {"scale": (0.5, 2.0), "shift": 0.3, "field": 0.1, "nois
 def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> dict[str, Any]:
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
     wrong = syn.content_errors(exact, seed + 200, blur=width / 2048)
-    affine = AFFINE
     return {
-        "affine": syn.distort(exact, seed + 100, **affine),
-        "content": syn.distort(wrong, seed + 100, **affine),
-        "milder": syn.distort(exact, seed + 100, **{**affine, "field": 0.03}),
+        "affine": syn.distort(exact, seed + 100, **AFFINE),
+        "content": syn.distort(wrong, seed + 100, **AFFINE),
+        "milder": syn.distort(exact, seed + 100, **{**AFFINE, "field": 0.03}),
     }
 
 

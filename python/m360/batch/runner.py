@@ -65,6 +65,7 @@ from ..errors import InputError, ReadError
 from ..estimators import OnnxEstimator, estimator_kind
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
+from ..geometry.layout import pixel_degrees
 from ..io import (
     GEOMETRY_FORMATS,
     STEREO_FORMATS,
@@ -701,14 +702,13 @@ def _detail_note(estimator: Any, prior: Any, job: dict[str, Any]) -> str | None:
     if prior is None or not isinstance(estimator, OnnxEstimator):
         return None
     if prior.array is not None:
-        prior_degrees = 360.0 / prior.array.shape[1]
+        prior_degrees = pixel_degrees(None, prior.array.shape[1])
     elif isinstance(prior.estimator, OnnxEstimator):
-        prior_degrees = 360.0 / prior.estimator.network_size((1024, 2048))[1]
+        prior_degrees = pixel_degrees(None, prior.estimator.network_size((1024, 2048))[1])
     else:
         return None
     layout = job_layout(2048, job)
-    network_width = estimator.network_size(layout.tangent_shape)[1]
-    degrees = layout.network_pixel_degrees(network_width)
+    degrees = pixel_degrees(layout, estimator.network_size(layout.tangent_shape)[1])
     if degrees < prior_degrees:
         return None
     return (

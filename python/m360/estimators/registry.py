@@ -42,7 +42,7 @@ import numpy as np
 
 from .._home import home_dir
 from ..errors import InputError, ModelError
-from ..geometry.layout import Layout
+from ..geometry.layout import Layout, pixel_degrees
 from .onnx import OnnxEstimator, PanoramicOnnxEstimator, is_file
 from .onnx_file import (
     IMAGENET_MEAN,
@@ -634,15 +634,10 @@ def check(
         # not a request that a fixed-size file would have to refuse.
         est.input_size = entry.input_size
     first = est.session.get_inputs()[0]
-    if role == "panoramic":
-        tangent = (erp_width // 2, erp_width)  # the whole ERP is the network's image
-        size = est.network_size(tangent)
-        degrees = 360.0 / size[1]
-    else:
-        layout = Layout.icosahedron(erp_width)
-        tangent = layout.tangent_shape
-        size = est.network_size(tangent)
-        degrees = layout.network_pixel_degrees(size[1])
+    layout = None if role == "panoramic" else Layout.icosahedron(erp_width)
+    # A panoramic network's image is the whole ERP.
+    tangent = (erp_width // 2, erp_width) if layout is None else layout.tangent_shape
+    size = est.network_size(tangent)
     info: dict[str, Any] = {
         "path": str(p),
         "size_bytes": p.stat().st_size,
@@ -659,7 +654,7 @@ def check(
         "erp_width": erp_width,
         "tangent_shape": list(tangent),
         "network_size": list(size),
-        "degrees_per_pixel": round(degrees, 4),
+        "degrees_per_pixel": round(pixel_degrees(layout, size[1]), 4),
         "network_size_runs": est.runs_at(size),
         "size_rule": est.size_rule(size),
         "normalization": est.normalization.as_dict(),

@@ -17,6 +17,7 @@ from .layout import (
     clear_plan_cache,
     default_layout,
     erp_to_tangents,
+    pixel_degrees,
     plan_for,
     tangents_to_erp,
 )
@@ -31,6 +32,7 @@ __all__ = [
     "default_layout",
     "erp_to_tangents",
     "plan_cache",
+    "pixel_degrees",
     "plan_for",
     "tangents_to_erp",
 ]

@@ -40,6 +40,7 @@ __all__ = [
     "clear_plan_cache",
     "default_layout",
     "erp_to_tangents",
+    "pixel_degrees",
     "tangents_to_erp",
 ]
 
@@ -306,6 +307,18 @@ def default_layout(
     layout, ``subdivisions=1`` its 80 smaller tangents (padding 0.3 by default).
     """
     return Layout.icosahedron(erp_width, padding, subdivisions=subdivisions or 0)
+
+
+def pixel_degrees(layout: Layout | None, width: int) -> float:
+    """Give the angle, in degrees, one pixel of an image ``width`` pixels wide spans.
+
+    A tangent network's input on ``layout``'s tiles (at a tile's centre,
+    :meth:`Layout.network_pixel_degrees`), or with ``layout=None`` an ERP image (a panoramic
+    network's input, a prior map) on its equator: 360° over its width.
+    """
+    if layout is not None:
+        return layout.network_pixel_degrees(width)
+    return 360.0 / integer(width, "width", low=1, high=sys.maxsize)
 
 
 def _padding(padding: float | str | None, subdivisions: int) -> float:

@@ -30,7 +30,7 @@ from ..errors import InputError, M360Error, ModelError
 from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
-from ..geometry.layout import Layout, erp_to_tangents
+from ..geometry.layout import Layout, erp_to_tangents, pixel_degrees
 from ..stitching.edges import refine_edges
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ..stitching.stitch import StitchResult
@@ -950,13 +950,6 @@ def _from_network(
     )
 
 
-def _degrees_per_pixel(layout: Layout | None, network_width: int) -> float:
-    """Give the angle one network input pixel spans: at a tile's centre, or on the ERP equator."""
-    if layout is None:  # a panoramic model: the whole ERP width is 360°
-        return round(360.0 / network_width, 4)
-    return round(layout.network_pixel_degrees(network_width), 4)
-
-
 def _model_info(
     estimator: Any, layout: Layout | None, image_shape: tuple[int, int] | None = None
 ) -> dict[str, Any]:
@@ -976,7 +969,7 @@ def _model_info(
             network_size=None if network_size is None else list(network_size),
             degrees_per_pixel=None
             if network_size is None
-            else _degrees_per_pixel(layout, network_size[1]),
+            else round(pixel_degrees(layout, network_size[1]), 4),
             input_size=None if estimator.input_size is None else list(estimator.input_size),
             resize=estimator.resize_policy,
             multiple_of=estimator.multiple_of,
