@@ -31,8 +31,8 @@ __all__ = [
     "clear_plan_cache",
     "default_layout",
     "erp_to_tangents",
-    "plan_cache",
     "pixel_degrees",
+    "plan_cache",
     "plan_for",
     "tangents_to_erp",
 ]
