@@ -58,6 +58,9 @@ def test_spherical_disparity_of_each_kind() -> None:
     np.testing.assert_array_equal(np.isnan(disp), ~(np.nan_to_num(d, nan=-1) > 0))
     affine = to_spherical_disparity(d, "affine_disparity")  # passes through, sign and all
     np.testing.assert_array_equal(affine[np.isfinite(d)], d[np.isfinite(d)])
+    negated = to_spherical_disparity(d, "negated_affine_disparity")  # sign flipped, no more
+    np.testing.assert_array_equal(negated[np.isfinite(d)], -d[np.isfinite(d)])
+    assert np.isnan(negated[~np.isfinite(d)]).all()
     # affine_depth: robust minimum (1st percentile) to 0.1 x the robust range, then 1/x.
     finite = d[np.isfinite(d)].astype(np.float64)
     lo, hi = np.percentile(finite, [1.0, 99.0])
@@ -81,6 +84,7 @@ def test_metric_depth_is_refused_for_erp_outputs(graphs: dict[str, Path]) -> Non
         "disparity",
         "affine_depth",
         "distance",
+        "negated_affine_disparity",
     }
 
 

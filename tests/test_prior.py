@@ -246,14 +246,19 @@ def test_a_wrong_region_of_the_prior_does_no_harm(seed: int, scale_deg: float) -
         ({"energy": "paper"}, "affine_disparity"),
         ({"solver": "lbfgs"}, "affine_depth"),
         ({"loss": "squared", "blend": "poisson"}, "affine_disparity"),
+        ({"blend": "frustum"}, "negated_affine_disparity"),
     ],
 )
 def test_every_energy_solver_and_kind_runs(room: tuple, options: dict, kind: str) -> None:
     layout, tiles, depth, scene = room
     distance = _distance(scene, 32)
-    prior = distance if kind == "affine_depth" else 1.0 / distance
+    prior = {"affine_depth": distance, "negated_affine_disparity": -2.0 / distance + 5.0}.get(
+        kind, 1.0 / distance
+    )
     res = m360.stitch(tiles, layout, prior=prior, prior_kind=kind, return_details=True, **options)
     assert res.report["prior"] is not None
+    # The prior's sign understood: its fitted slope onto the result's disparity is positive.
+    assert res.report["prior"]["affine"][0] > 0
     assert m360.eval.depth_metrics(res.disparity, depth)["abs_rel"] < 0.05
 
 

@@ -17,7 +17,8 @@ An estimator declares one ``output_kind`` (docs/architecture.md, estimators):
 A *panoramic* estimator (ERP in, ERP out: :data:`ESTIMATOR_KINDS`) declares one of
 :data:`PANORAMIC_OUTPUT_KINDS`, all of them about the ERP pixel's ray: ``"affine_disparity"``
 (spherical disparity 1/|P| up to scale and shift), ``"disparity"`` (1/|P| in 1/metres),
-``"affine_depth"`` (|P| up to scale and shift) and ``"distance"`` (|P| in metres);
+``"affine_depth"`` (|P| up to scale and shift), ``"distance"`` (|P| in metres) and
+``"negated_affine_disparity"`` (an affine spherical disparity with the sign flipped);
 :func:`to_spherical_disparity` converts them. A z-depth (``"metric_depth"``) has no meaning for
 an ERP output (there is no optical axis) and is refused.
 
@@ -85,6 +86,7 @@ PANORAMIC_OUTPUT_KINDS: tuple[str, ...] = (
     "disparity",
     "affine_depth",
     "distance",
+    "negated_affine_disparity",
 )
 #: The panoramic kinds in metres (or 1/metres): their values must be > 0.
 PANORAMIC_METRIC_KINDS: tuple[str, ...] = ("disparity", "distance")
@@ -181,8 +183,9 @@ def to_spherical_disparity(values: np.ndarray, kind: str) -> np.ndarray:
         The ERP map at the network's own resolution; NaN = no estimate.
     kind : str
         One of :data:`PANORAMIC_OUTPUT_KINDS`: ``"affine_disparity"`` and ``"disparity"`` pass
-        through; ``"distance"`` is inverted; ``"affine_depth"`` is shifted as a tangent's is
-        (its robust minimum to :data:`AFFINE_DEPTH_FLOOR` of its robust range), then inverted.
+        through; ``"negated_affine_disparity"`` is negated; ``"distance"`` is inverted;
+        ``"affine_depth"`` is shifted as a tangent's is (its robust minimum to
+        :data:`AFFINE_DEPTH_FLOOR` of its robust range), then inverted.
 
     Returns
     -------
@@ -199,6 +202,8 @@ def to_spherical_disparity(values: np.ndarray, kind: str) -> np.ndarray:
     out[~np.isfinite(out)] = np.nan
     if kind == "affine_disparity":
         return out
+    if kind == "negated_affine_disparity":
+        return np.negative(out, out=out)
     if kind == "disparity":
         with np.errstate(invalid="ignore"):
             out[~(out > 0)] = np.nan

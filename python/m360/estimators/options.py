@@ -105,7 +105,7 @@ class ModelKeywords(TypedDict, total=False):
             "what the model outputs (default: the registry's, or affine_disparity); tangent "
             "models: affine_disparity, metric_depth (z), distance, affine_depth, "
             "negated_affine_disparity; panoramic models: affine_disparity, disparity "
-            "(1/metres), affine_depth, distance (radial metres)",
+            "(1/metres), affine_depth, distance (radial metres), negated_affine_disparity",
             check=check_any_output_kind,
             choices=ALL_OUTPUT_KINDS,
         ),

@@ -215,9 +215,10 @@ class PriorKeywords(TypedDict, total=False):
     prior_kind: Annotated[
         str | None,
         Option(
-            "what the prior holds: affine_disparity, disparity (1/metres), affine_depth or "
-            "distance (radial metres); a prior model's output kind (default: the registry's, "
-            "or affine_disparity); required for a map",
+            "what the prior holds: affine_disparity, disparity (1/metres), affine_depth, "
+            "distance (radial metres) or negated_affine_disparity (grows with depth); a prior "
+            "model's output kind (default: the registry's, or affine_disparity); required for "
+            "a map",
             check=lambda v, n: one_of(v, n, PRIOR_KINDS),
             choices=PRIOR_KINDS,
         ),

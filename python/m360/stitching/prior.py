@@ -22,7 +22,9 @@ Kinds (``prior_kind``), mirroring the estimators' output kinds (:mod:`m360.estim
 - ``"affine_depth"``: radial depth up to scale and shift; shifted so its robust minimum (1st
   percentile) sits at ``AFFINE_DEPTH_FLOOR`` of its robust range, then inverted (as the
   estimators do), then as ``"affine_disparity"``;
-- ``"distance"``: radial distance in metres; inverted, then as ``"disparity"``.
+- ``"distance"``: radial distance in metres; inverted, then as ``"disparity"``;
+- ``"negated_affine_disparity"``: an affine disparity with the sign flipped (a map that grows
+  with depth, e.g. a network's pre-sigmoid output); negated, then as ``"affine_disparity"``.
 """
 
 from __future__ import annotations
@@ -43,7 +45,9 @@ __all__ = [
 ]
 
 #: What a prior map holds.
-PriorKind = Literal["affine_disparity", "disparity", "affine_depth", "distance"]
+PriorKind = Literal[
+    "affine_disparity", "disparity", "affine_depth", "distance", "negated_affine_disparity"
+]
 PRIOR_KINDS: tuple[str, ...] = PANORAMIC_OUTPUT_KINDS
 #: The kinds whose units the result takes.
 _ABSOLUTE = ("disparity", "distance")
