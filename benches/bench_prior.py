@@ -32,7 +32,13 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    (MiDaS small's input, Depth Anything's), blurred by half the tile's shrink factor, on the
    default layout and on the 80 tangents of ``subdivisions=1``: the detail is the network's
    angular resolution (docs/method.md, "Where the detail comes from").
-3. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
+3. With ``--stress``, per size: the content- and affine-error tangents with no prior, the
+   bench's prior, the wrong one, those with a ±5 % and a ±10 % smooth error, and the bench's
+   prior broken as :data:`STRESS` says (a lower third 30 % too
+   far, a ramp to 15 % at the 0/360° seam, a ±20 % tilt between floor and ceiling), and the
+   share of prior samples the tangents' consensus outvoted (docs/method.md, "Outvoted by the
+   consensus").
+4. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
    of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
    each pair of neighbouring runs (less moved by a shared machine's slow drifts). At 8K the
    ratio also depends on how glibc reuses large blocks between calls (docs/method.md, "Global
@@ -107,6 +113,57 @@ PRIORS: dict[str, dict[str, Any]] = {
 def prior_of(scene: syn.Scene, seed: int, name: str = "good") -> np.ndarray:
     """The simulated prior ``name`` (:data:`PRIORS`) of room ``seed``."""
     return np.asarray(syn.panoramic_prior(scene, seed + 300, **PRIORS[name]))
+
+
+def _latitudes(prior: np.ndarray) -> np.ndarray:
+    """Row-centre latitudes of an (H, 2H) map in degrees, as a column."""
+    h = prior.shape[0]
+    return (90.0 - (np.arange(h) + 0.5) * 180.0 / h)[:, None]
+
+
+#: Priors broken in ways :data:`PRIORS` are not (``--stress``): the bench's prior times a
+#: factor per pixel. docs/method.md, "Outvoted by the consensus".
+STRESS: dict[str, Any] = {
+    "the lower third 30 % too far (lat < -30°)": lambda p: 1.0 - 0.3 * (_latitudes(p) < -30.0),
+    "a ramp around the sphere, 15 % at the seam": lambda p: (
+        1.0 + 0.15 * (np.arange(p.shape[1]) + 0.5)[None, :] / p.shape[1]
+    ),
+    "a tilt: ±20 % · sin(latitude)": lambda p: 1.0 + 0.2 * np.sin(np.radians(_latitudes(p))),
+}
+
+
+def stress(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
+    """AbsRel per size, tangent case and prior: no prior, the bench's, and :data:`STRESS`'s."""
+    rows = []
+    for width in sizes:
+        layout = m360.Layout.icosahedron(width)
+        errs: dict[tuple[str, str], list[float]] = {}
+        for seed in range(scenes):
+            scene = syn.room(seed)
+            depth = scene.distance(sph.erp_directions(width // 2, width))
+            tiles = tangents(scene, layout, width, seed)
+            good = prior_of(scene, seed)
+            priors = {"no prior": None, "the bench's prior": good}
+            for name in ("wrong", "±5 % smooth error", "±10 % smooth error"):
+                priors[f"the {name} prior"] = prior_of(scene, seed, name)
+            priors.update({name: (good * f(good)).astype(np.float32) for name, f in STRESS.items()})
+            for case in ("content", "affine"):
+                for name, prior in priors.items():
+                    kw = tuning if prior is not None else {}
+                    res = m360.stitch(tiles[case], layout, prior=prior, return_details=True, **kw)
+                    fit = res.report.get("prior") or {}
+                    errs.setdefault((case, name), []).append(
+                        m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
+                    )
+                    errs.setdefault((case, name + " outvoted"), []).append(
+                        fit.get("consensus_outvoted", float("nan"))
+                    )
+        for (case, name), values in errs.items():
+            if not name.endswith(" outvoted"):
+                voted = statistics.median(errs[(case, name + " outvoted")])
+                rows.append([width, f"{case} errors", name, statistics.median(values), voted])
+        print(f"  stressed {width}", flush=True)
+    return rows
 
 
 def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
@@ -283,6 +340,9 @@ def main() -> None:
     parser.add_argument("--prior-weight", type=float, default=None)
     parser.add_argument("--prior-scale-deg", type=float, default=None)
     parser.add_argument("--skip", nargs="*", default=[], choices=["accuracy", "detail", "time"])
+    parser.add_argument(
+        "--stress", action="store_true", help="also the priors broken otherwise (STRESS), per size"
+    )
     args = parser.parse_args()
     tuning = {
         k: v
@@ -311,6 +371,15 @@ def main() -> None:
             rows,
         )
         out["detail"] = rows
+    if args.stress:
+        rows = stress(args.sizes, args.scenes, tuning)
+        h.print_table(
+            f"AbsRel, median over {args.scenes} rooms, with priors broken otherwise; outvoted = "
+            "median share of prior samples the tangents' consensus outvoted",
+            ["ERP", "tangents", "prior", "AbsRel", "outvoted"],
+            rows,
+        )
+        out["stress"] = rows
     if "time" not in args.skip and args.time_sizes:
         rows = timing(args.time_sizes, args.repeats, tuning)
         h.print_table(

@@ -197,6 +197,36 @@ def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     assert report is not None and 0.1 < report["outvoted"] < 0.5, report
 
 
+def test_the_consensus_outvotes_a_wrong_region_before_the_prior_pulls() -> None:
+    """Under content errors (no fusion: the tangents disagree), a prior sample far outside the
+    tangents' consensus (3 of its standard errors and 6 % of the disparity, on its own and
+    low-passed) loses its pull before the prior joins: a cap 30 % wrong on 14 % of the sphere
+    has 10 % of the samples outvoted (at 1K; its border and the parts the consensus does not
+    contradict stay with the judgement), a prior without regional errors none, and the wrong
+    one does better than with the prior as given (``prior_fusion="off"``, which outvotes
+    nothing)."""
+    width, seed = 1024, 1
+    layout = m360.Layout.icosahedron(width)
+    scene = syn.room(seed)
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    tiles = syn.distort(syn.content_errors(exact, 201, blur=0.5), 101, field=0.1, noise=0.01)
+    depth = _distance(scene, width // 2)
+    good = np.asarray(syn.panoramic_prior(scene, 301, regions=(0, 0)))
+    report = m360.stitch(tiles, layout, prior=good, return_details=True).report["prior"]
+    assert report is not None and report["consensus_outvoted"] == 0.0, report
+    wrong, regions = syn.panoramic_prior(
+        scene, 301, regions=(1, 1), region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3),
+        return_regions=True,
+    )  # fmt: skip
+    res = m360.stitch(tiles, layout, prior=wrong, return_details=True)
+    report = res.report["prior"]
+    assert report is not None and 0.05 < report["consensus_outvoted"] < np.mean(regions != 0)
+    off = m360.stitch(tiles, layout, prior=wrong, prior_fusion="off", return_details=True)
+    assert off.report["prior"] is not None and off.report["prior"]["consensus_outvoted"] == 0.0
+    err = m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
+    assert err < m360.eval.depth_metrics(off.disparity, depth)["abs_rel"]
+
+
 @pytest.mark.parametrize("seed", [0, 1, 2])
 @pytest.mark.parametrize("scale_deg", [3.0, 10.0])
 def test_a_wrong_region_of_the_prior_does_no_harm(seed: int, scale_deg: float) -> None:

@@ -61,8 +61,10 @@ prior_weight, prior_scale_deg, prior_fusion
     tangents agree with each other to better than 1.2 % (in full at 0.4 %), and further where
     the prior strays from that consensus by more than the consensus's own uncertainty explains
     (a prior worse than the tangents; with the default layout's deep overlaps); the stitch
-    report's ``tangent_share`` says how far; ``"off"`` never does, for a prior known to be more
-    accurate than any tangent (a LiDAR scan).
+    report's ``tangent_share`` says how far. With those deep overlaps and tangents that spread
+    by at most 3 %, it also outvotes the prior samples far outside the consensus's uncertainty
+    (``consensus_outvoted``). ``"off"`` does neither, for a prior known to be more accurate
+    than any tangent (a LiDAR scan).
 
 When the tangents leave too few valid overlap samples for a level's grid (fewer than one per
 four grid nodes: a noisy or featureless panorama), the level is left out; when none is left, one

@@ -79,6 +79,11 @@ class PriorReport(TypedDict):
     #: prior before it joined: 1 where the tangents agree to 0.4 %, 0 from 1.2 % (real
     #: networks: 5-16 %). docs/method.md, "The tangents' own low frequencies".
     tangent_share: float
+    #: Share of the prior samples the tangents' consensus outvoted before the prior joined:
+    #: where the prior strays from it by more than three of its standard errors and 6 % of the
+    #: disparity (docs/method.md, "Outvoted by the consensus"); 0 with fewer than 5 views or
+    #: tangents that spread by more than 3 %.
+    consensus_outvoted: float
 
 
 def check_prior(

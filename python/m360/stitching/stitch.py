@@ -304,6 +304,7 @@ def stitch(
                     None if fit["tangent_spread"] is None else float(fit["tangent_spread"])
                 ),
                 tangent_share=float(fit["tangent_share"]),
+                consensus_outvoted=float(fit["consensus_outvoted"]),
             )
     return StitchResult(
         disparity=disparity,

@@ -1374,6 +1374,15 @@ impl Problem {
         }
     }
 
+    /// The prior samples' confidences replaced by `values` (as [`Self::set_prior_values`]).
+    fn set_prior_confidence(&mut self, values: &[f64]) {
+        if let Some(prior) = self.prior.as_mut() {
+            for (c, &i) in prior.confidence.iter_mut().zip(&prior.source) {
+                *c = values[i as usize];
+            }
+        }
+    }
+
     /// Residual of every prior sample at `x`, in sample order (empty without a prior).
     #[must_use]
     pub fn prior_residuals(&self, x: &[f64]) -> Vec<f64> {
@@ -3089,6 +3098,7 @@ fn fuse_as_prior_joins(
     )?;
     if let Some(fused) = &fusion.samples {
         problem.set_prior_values(&fused.value);
+        problem.set_prior_confidence(&fused.confidence);
     }
     Some(fusion)
 }
@@ -3197,6 +3207,7 @@ fn prior_fit(
             residual: level.residual,
             tangent_spread: fusion.map(|f| f.spread),
             tangent_share: fusion.map_or(0.0, |f| f.share),
+            consensus_outvoted: fusion.map_or(0.0, |f| f.outvoted),
         },
     )
 }

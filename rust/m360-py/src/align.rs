@@ -80,6 +80,7 @@ fn prior_dict<'py>(py: Python<'py>, fit: &PriorFit) -> PyResult<Bound<'py, PyDic
     d.set_item("residual", fit.residual)?;
     d.set_item("tangent_spread", fit.tangent_spread)?;
     d.set_item("tangent_share", fit.tangent_share)?;
+    d.set_item("consensus_outvoted", fit.consensus_outvoted)?;
     Ok(d)
 }
 

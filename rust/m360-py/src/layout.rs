@@ -278,8 +278,9 @@ impl Plan {
     /// `align` does and the prior's fit: a dict `affine` (a, b: the prior in the result's units
     /// is a·P + b), `samples`, `outvoted` (share of the prior's pull lost to its IRLS weights),
     /// `weight`, `residual` (median |residual|, standardised), `tangent_spread` (the tangents'
-    /// relative spread after the first level, or None) and `tangent_share` (how much of their
-    /// low-frequency disagreement moved the prior), or None when no level ran.
+    /// relative spread after the first level, or None), `tangent_share` (how much of their
+    /// low-frequency disagreement moved the prior) and `consensus_outvoted` (the share of prior
+    /// samples their consensus outvoted), or None when no level ran.
     #[pyo3(signature = (maps, align, prior, prior_confidence=None, absolute=false, in_place=false))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn align_with_prior<'py>(
