@@ -367,6 +367,31 @@ def test_one_and_two_threads_give_the_same_bits_with_a_prior(room: tuple) -> Non
         assert res.report["prior"] == runs[0].report["prior"]
 
 
+def test_the_consensus_outvotes_the_same_samples_with_1_and_2_threads() -> None:
+    """The consensus's outvote (the default layout's deep overlaps, content errors, a wrong
+    region) reads per-cell variances summed over samples: the same bits with 1 and 2 threads."""
+    layout = m360.Layout.icosahedron(WIDTH)
+    scene = syn.room(1)
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    tiles = syn.distort(syn.content_errors(exact, 201, blur=0.5), 101, field=0.1, noise=0.01)
+    wrong = syn.panoramic_prior(
+        scene, 301, regions=(1, 1), region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3)
+    )
+    before = m360.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2) * 3:
+            m360.set_num_threads(n)
+            runs.append(m360.stitch(tiles, layout, prior=wrong, return_details=True))
+    finally:
+        m360.set_num_threads(before)
+    report = runs[0].report["prior"]
+    assert report is not None and report["consensus_outvoted"] > 0.05, report  # the path ran
+    for res in runs[1:]:
+        assert np.array_equal(res.disparity, runs[0].disparity)
+        assert res.report["prior"] == report
+
+
 def test_a_partial_panorama_aligns_to_its_prior(room: tuple) -> None:
     """A panorama missing a cap (masked): the prior, known everywhere, still aligns the rest."""
     layout, tiles, depth, scene = room
