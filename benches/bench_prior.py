@@ -34,10 +34,9 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    angular resolution (docs/method.md, "Where the detail comes from").
 3. With ``--stress``, per size: the content- and affine-error tangents with no prior, the
    bench's prior, the wrong one, those with a ±5 % and a ±10 % smooth error, and the bench's
-   prior broken as :data:`STRESS` says (a lower third 30 % too
-   far, a ramp to 15 % at the 0/360° seam, a ±20 % tilt between floor and ceiling), and the
-   share of prior samples the tangents' consensus outvoted (docs/method.md, "Outvoted by the
-   consensus").
+   prior broken as :data:`STRESS` says (a lower third 30 % too far, a ramp to 15 % at the
+   0/360° seam, a ±20 % tilt between floor and ceiling), and the share of prior samples the
+   tangents' consensus outvoted (docs/method.md, "Outvoted by the consensus").
 4. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
    of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
    each pair of neighbouring runs (less moved by a shared machine's slow drifts). At 8K the
@@ -52,6 +51,7 @@ from __future__ import annotations
 
 import statistics
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -123,7 +123,7 @@ def _latitudes(prior: np.ndarray) -> np.ndarray:
 
 #: Priors broken in ways :data:`PRIORS` are not (``--stress``): the bench's prior times a
 #: factor per pixel. docs/method.md, "Outvoted by the consensus".
-STRESS: dict[str, Any] = {
+STRESS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
     "the lower third 30 % too far (lat < -30°)": lambda p: 1.0 - 0.3 * (_latitudes(p) < -30.0),
     "a ramp around the sphere, 15 % at the seam": lambda p: (
         1.0 + 0.15 * (np.arange(p.shape[1]) + 0.5)[None, :] / p.shape[1]
@@ -133,7 +133,7 @@ STRESS: dict[str, Any] = {
 
 
 def stress(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
-    """AbsRel per size, tangent case and prior: no prior, the bench's, and :data:`STRESS`'s."""
+    """AbsRel per size, tangent case and prior (none, four of :data:`PRIORS`, :data:`STRESS`)."""
     rows = []
     for width in sizes:
         layout = m360.Layout.icosahedron(width)
