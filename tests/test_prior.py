@@ -197,6 +197,34 @@ def test_a_prior_with_a_regional_error_is_outvoted(room: tuple) -> None:
     assert report is not None and 0.1 < report["outvoted"] < 0.5, report
 
 
+#: The regional error of the issue's wrong prior: 30 % on a fifth of the sphere.
+WRONG_REGION = {"regions": (1, 1), "region_share": (0.2, 0.2), "region_amplitude": (0.3, 0.3)}
+
+
+def _content_room(width: int) -> tuple[m360.Layout, np.ndarray, syn.Scene]:
+    """Room 1 on the default layout at ``width``, its tangents with content errors."""
+    layout = m360.Layout.icosahedron(width)
+    scene = syn.room(1)
+    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
+    tiles = syn.distort(syn.content_errors(exact, 201, blur=0.5), 101, field=0.1, noise=0.01)
+    return layout, tiles, scene
+
+
+def _stitch_with_1_and_2_threads(
+    tiles: np.ndarray, layout: m360.Layout, prior: np.ndarray, rounds: int
+) -> list[m360.StitchResult]:
+    """``rounds`` pairs of stitches with the prior, on 1 then 2 threads (restored after)."""
+    before = m360.get_num_threads()
+    runs = []
+    try:
+        for n in (1, 2) * rounds:
+            m360.set_num_threads(n)
+            runs.append(m360.stitch(tiles, layout, prior=prior, return_details=True))
+    finally:
+        m360.set_num_threads(before)
+    return runs
+
+
 def test_the_consensus_outvotes_a_wrong_region_before_the_prior_pulls() -> None:
     """Under content errors (no fusion: the tangents disagree), a prior sample far outside the
     tangents' consensus (3 of its standard errors and 6 % of the disparity, on its own and
@@ -205,19 +233,13 @@ def test_the_consensus_outvotes_a_wrong_region_before_the_prior_pulls() -> None:
     contradict stay with the judgement), a prior without regional errors none, and the wrong
     one does better than with the prior as given (``prior_fusion="off"``, which outvotes
     nothing)."""
-    width, seed = 1024, 1
-    layout = m360.Layout.icosahedron(width)
-    scene = syn.room(seed)
-    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
-    tiles = syn.distort(syn.content_errors(exact, 201, blur=0.5), 101, field=0.1, noise=0.01)
+    width = 1024
+    layout, tiles, scene = _content_room(width)
     depth = _distance(scene, width // 2)
     good = np.asarray(syn.panoramic_prior(scene, 301, regions=(0, 0)))
     report = m360.stitch(tiles, layout, prior=good, return_details=True).report["prior"]
     assert report is not None and report["consensus_outvoted"] == 0.0, report
-    wrong, regions = syn.panoramic_prior(
-        scene, 301, regions=(1, 1), region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3),
-        return_regions=True,
-    )  # fmt: skip
+    wrong, regions = syn.panoramic_prior(scene, 301, return_regions=True, **WRONG_REGION)
     res = m360.stitch(tiles, layout, prior=wrong, return_details=True)
     report = res.report["prior"]
     assert report is not None and 0.05 < report["consensus_outvoted"] < np.mean(regions != 0)
@@ -353,14 +375,7 @@ def test_one_and_two_threads_give_the_same_bits_with_a_prior(room: tuple) -> Non
     layout, tiles, _, scene = room
     prior = (1.0 / _distance(scene, 32)).astype(np.float32)
     prior[:3] = np.nan
-    before = m360.get_num_threads()
-    runs = []
-    try:
-        for n in (1, 2) * 5:
-            m360.set_num_threads(n)
-            runs.append(m360.stitch(tiles, layout, prior=prior, return_details=True))
-    finally:
-        m360.set_num_threads(before)
+    runs = _stitch_with_1_and_2_threads(tiles, layout, prior, rounds=5)
     for res in runs[1:]:
         assert np.array_equal(res.disparity, runs[0].disparity)
         assert np.array_equal(res.confidence, runs[0].confidence, equal_nan=True)
@@ -370,21 +385,9 @@ def test_one_and_two_threads_give_the_same_bits_with_a_prior(room: tuple) -> Non
 def test_the_consensus_outvotes_the_same_samples_with_1_and_2_threads() -> None:
     """The consensus's outvote (the default layout's deep overlaps, content errors, a wrong
     region) reads per-cell variances summed over samples: the same bits with 1 and 2 threads."""
-    layout = m360.Layout.icosahedron(WIDTH)
-    scene = syn.room(1)
-    exact = syn.tangent_perspective_disparity(scene, layout.cameras)
-    tiles = syn.distort(syn.content_errors(exact, 201, blur=0.5), 101, field=0.1, noise=0.01)
-    wrong = syn.panoramic_prior(
-        scene, 301, regions=(1, 1), region_share=(0.2, 0.2), region_amplitude=(0.3, 0.3)
-    )
-    before = m360.get_num_threads()
-    runs = []
-    try:
-        for n in (1, 2) * 3:
-            m360.set_num_threads(n)
-            runs.append(m360.stitch(tiles, layout, prior=wrong, return_details=True))
-    finally:
-        m360.set_num_threads(before)
+    layout, tiles, scene = _content_room(WIDTH)
+    wrong = np.asarray(syn.panoramic_prior(scene, 301, **WRONG_REGION))
+    runs = _stitch_with_1_and_2_threads(tiles, layout, wrong, rounds=3)
     report = runs[0].report["prior"]
     assert report is not None and report["consensus_outvoted"] > 0.05, report  # the path ran
     for res in runs[1:]:
