@@ -15,7 +15,9 @@ does little harm, and the wrong prior with the affine-error tangents that a regi
 not pass for a poor prior: the fusion weighs the prior's quality (docs/method.md, "The prior's
 own quality").
 
-Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
+Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)`` for seeds from
+``--first-room``, 0 by default; the defaults were tuned on rooms 0-3, so ``--first-room 4`` asks
+rooms they never saw):
 
 1. AbsRel per size and case: content errors without / with the prior, affine errors without /
    with it, content errors with the wrong prior; the goals of issue 24 beside them; the
@@ -43,7 +45,7 @@ Tables (medians over ``--scenes`` rooms, ``m360.synthetic.room(seed)``):
    ratio also depends on how glibc reuses large blocks between calls (docs/method.md, "Global
    prior": 1.18x by default, 1.09x with ``MALLOC_MMAP_THRESHOLD_=4294967296``).
 
-Run: ``.venv/bin/python benches/bench_prior.py [--sizes 2048 4096] [--scenes 4]``.
+Run: ``.venv/bin/python benches/bench_prior.py [--sizes 2048 4096] [--scenes 4] [--first-room 0]``.
 Options of the prior term can be tried with ``--prior-weight`` / ``--prior-scale-deg``.
 """
 
@@ -132,13 +134,13 @@ STRESS: dict[str, Callable[[np.ndarray], np.ndarray]] = {
 }
 
 
-def stress(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
+def stress(sizes: list[int], rooms: range, tuning: dict[str, Any]) -> list[list]:
     """AbsRel per size, tangent case and prior (none, four of :data:`PRIORS`, :data:`STRESS`)."""
     rows = []
     for width in sizes:
         layout = m360.Layout.icosahedron(width)
         errs: dict[tuple[str, str], list[float]] = {}
-        for seed in range(scenes):
+        for seed in rooms:
             scene = syn.room(seed)
             depth = scene.distance(sph.erp_directions(width // 2, width))
             tiles = tangents(scene, layout, width, seed)
@@ -166,14 +168,14 @@ def stress(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
     return rows
 
 
-def accuracy(sizes: list[int], scenes: int, tuning: dict[str, Any]) -> list[list]:
+def accuracy(sizes: list[int], rooms: range, tuning: dict[str, Any]) -> list[list]:
     rows = []
     for width in sizes:
         layout = m360.Layout.icosahedron(width)
         errs: dict[str, list[float]] = {}
         outvoted: dict[str, list[float]] = {}
         shares: dict[str, list[float]] = {}
-        for seed in range(scenes):
+        for seed in rooms:
             scene = syn.room(seed)
             depth = scene.distance(sph.erp_directions(width // 2, width))
             rgb = syn.render(scene, width)[0]  # for refine_edges
@@ -261,11 +263,11 @@ def network_tangents(
     return np.asarray(syn.distort(wrong, seed + 100, **AFFINE))
 
 
-def detail(width: int, scenes: int, tuning: dict[str, Any]) -> list[list]:
+def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
     layout = m360.Layout.icosahedron(width)
     stitched, sharpened, alone, seconds = [], [], [], []
     networks: dict[tuple[str, int], list[float]] = {}
-    for seed in range(scenes):
+    for seed in rooms:
         scene = syn.room(seed)
         rgb, depth = syn.render(scene, width)
         band = m360.eval.edge_band(depth)
@@ -335,6 +337,12 @@ def main() -> None:
     parser = h.bench_argparser(__doc__.splitlines()[0])
     parser.set_defaults(repeats=3, sizes=[2048])
     parser.add_argument("--scenes", type=int, default=4, help="rooms per size (4)")
+    parser.add_argument(
+        "--first-room",
+        type=int,
+        default=0,
+        help="seed of the first room (0; rooms the tuning never saw: 4)",
+    )
     parser.add_argument("--detail-size", type=int, default=4096, help="ERP width of table 2")
     parser.add_argument("--time-sizes", type=int, nargs="*", default=[2048, 8192])
     parser.add_argument("--prior-weight", type=float, default=None)
@@ -349,21 +357,22 @@ def main() -> None:
         for k, v in (("prior_weight", args.prior_weight), ("prior_scale_deg", args.prior_scale_deg))
         if v is not None
     }
+    rooms = range(args.first_room, args.first_room + args.scenes)
     meta = h.metadata()
     print(f"m360 {m360.__version__} @ {meta.get('git_commit')}, threads {m360.get_num_threads()}")
     out: dict[str, Any] = {"tuning": tuning}
     if "accuracy" not in args.skip:
-        rows = accuracy(args.sizes, args.scenes, tuning)
+        rows = accuracy(args.sizes, rooms, tuning)
         h.print_table(
-            f"AbsRel, median (and worst) over {args.scenes} rooms; outvoted = median share of "
-            "the prior's pull its robust weights removed; fused = median share of the tangents' "
-            "low-frequency disagreement that moved the prior (tangent_share)",
+            f"AbsRel, median (and worst) over rooms {rooms.start}-{rooms.stop - 1}; outvoted = "
+            "median share of the prior's pull its robust weights removed; fused = median share "
+            "of the tangents' low-frequency disagreement that moved the prior (tangent_share)",
             ["ERP", "case", "AbsRel", "worst", "outvoted", "fused", "goal"],
             rows,
         )
         out["accuracy"] = rows
     if "detail" not in args.skip:
-        rows = detail(args.detail_size, args.scenes, tuning)
+        rows = detail(args.detail_size, rooms, tuning)
         h.print_table(
             "AbsRel in a 4 px band around depth edges: stitch with the prior vs the prior alone "
             "(guided upsampling); refine s = median seconds of refine_edges",
@@ -372,10 +381,10 @@ def main() -> None:
         )
         out["detail"] = rows
     if args.stress:
-        rows = stress(args.sizes, args.scenes, tuning)
+        rows = stress(args.sizes, rooms, tuning)
         h.print_table(
-            f"AbsRel, median over {args.scenes} rooms, with priors broken otherwise; outvoted = "
-            "median share of prior samples the tangents' consensus outvoted",
+            f"AbsRel, median over rooms {rooms.start}-{rooms.stop - 1}, with priors broken "
+            "otherwise; outvoted = median share of prior samples the tangents' consensus outvoted",
             ["ERP", "tangents", "prior", "AbsRel", "outvoted"],
             rows,
         )
