@@ -63,8 +63,11 @@ prior_weight, prior_scale_deg, prior_fusion
     (a prior worse than the tangents; with the default layout's deep overlaps); the stitch
     report's ``tangent_share`` says how far. With those deep overlaps and tangents that spread
     by at most 3 %, it also outvotes the prior samples far outside the consensus's uncertainty
-    (``consensus_outvoted``). ``"off"`` does neither, for a prior known to be more accurate
-    than any tangent (a LiDAR scan).
+    (``consensus_outvoted``), and where the tangents spread too widely to move the prior sample
+    by sample, it corrects the prior's shape at the sphere's largest scales when it strays
+    from their consensus there by more than 0.8 % (``low_order_share``: a prior bent as a
+    whole). ``"off"`` does none of these, for a prior known to be more accurate than any
+    tangent (a LiDAR scan).
 
 When the tangents leave too few valid overlap samples for a level's grid (fewer than one per
 four grid nodes: a noisy or featureless panorama), the level is left out; when none is left, one

@@ -171,8 +171,9 @@ class StitchTuning(TypedDict, total=False):
         Option(
             "whether the prior's low frequencies move towards the tangents' own where they "
             "agree with each other (auto: by their measured spread and the prior's measured "
-            "disagreement with them, and prior samples far outside their consensus are "
-            "outvoted; off: neither, for a prior more accurate than any network; "
+            "disagreement with them; prior samples far outside their consensus are outvoted, "
+            "and a prior bent as a whole is straightened at the sphere's largest scales; off: "
+            "none of these, for a prior more accurate than any network; "
             f"default {_ALIGN['prior_fusion']})",
             choices=_CHOICES["prior_fusion"],
         ),

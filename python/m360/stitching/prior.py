@@ -84,6 +84,13 @@ class PriorReport(TypedDict):
     #: disparity (docs/method.md, "Outvoted by the consensus"); 0 with fewer than 5 views or
     #: tangents that spread by more than 3 %.
     consensus_outvoted: float
+    #: The prior's disagreement with the tangents' consensus at the sphere's largest scales
+    #: (relative RMS over spherical harmonics of degree ≤ 2: a prior bent as a whole); 0 when
+    #: not measured (where ``consensus_outvoted`` is not, or ``tangent_share`` > 0).
+    low_order_gap: float
+    #: Share (0-1) of that disagreement that moved the prior before it joined: 1 − (0.008 /
+    #: gap)², none up to 0.8 % (docs/method.md, "The sphere's largest scales").
+    low_order_share: float
 
 
 def check_prior(

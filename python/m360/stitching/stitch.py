@@ -305,6 +305,8 @@ def stitch(
                 ),
                 tangent_share=float(fit["tangent_share"]),
                 consensus_outvoted=float(fit["consensus_outvoted"]),
+                low_order_gap=float(fit["low_order_gap"]),
+                low_order_share=float(fit["low_order_share"]),
             )
     return StitchResult(
         disparity=disparity,

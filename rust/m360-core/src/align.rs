@@ -3208,6 +3208,8 @@ fn prior_fit(
             tangent_spread: fusion.map(|f| f.spread),
             tangent_share: fusion.map_or(0.0, |f| f.share),
             consensus_outvoted: fusion.map_or(0.0, |f| f.outvoted),
+            low_order_gap: fusion.map_or(0.0, |f| f.low_order_gap),
+            low_order_share: fusion.map_or(0.0, |f| f.low_order_share),
         },
     )
 }

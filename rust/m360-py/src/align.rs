@@ -81,6 +81,8 @@ fn prior_dict<'py>(py: Python<'py>, fit: &PriorFit) -> PyResult<Bound<'py, PyDic
     d.set_item("tangent_spread", fit.tangent_spread)?;
     d.set_item("tangent_share", fit.tangent_share)?;
     d.set_item("consensus_outvoted", fit.consensus_outvoted)?;
+    d.set_item("low_order_gap", fit.low_order_gap)?;
+    d.set_item("low_order_share", fit.low_order_share)?;
     Ok(d)
 }
 

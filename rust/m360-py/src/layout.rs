@@ -279,8 +279,10 @@ impl Plan {
     /// is a·P + b), `samples`, `outvoted` (share of the prior's pull lost to its IRLS weights),
     /// `weight`, `residual` (median |residual|, standardised), `tangent_spread` (the tangents'
     /// relative spread after the first level, or None), `tangent_share` (how much of their
-    /// low-frequency disagreement moved the prior) and `consensus_outvoted` (the share of prior
-    /// samples their consensus outvoted), or None when no level ran.
+    /// low-frequency disagreement moved the prior), `consensus_outvoted` (the share of prior
+    /// samples their consensus outvoted), `low_order_gap` and `low_order_share` (the prior's
+    /// disagreement with that consensus at the sphere's largest scales, and how much of it
+    /// moved the prior), or None when no level ran.
     #[pyo3(signature = (maps, align, prior, prior_confidence=None, absolute=false, in_place=false))]
     #[allow(clippy::type_complexity, clippy::too_many_arguments)]
     fn align_with_prior<'py>(

@@ -321,8 +321,28 @@ pub const UNTRUSTED_SPREAD: f64 = 0.012;
 /// the fusion to run (a masked or partial panorama, or a prior with holes, is left as it is).
 const FUSION_MIN_COVERAGE: f64 = 0.9;
 
+/// The tangents' relative spread (the median over the samples two or more tangents see; None
+/// without such samples) and whether their overlaps are deep: most samples are seen by
+/// [`EVIDENCE_MIN_VIEWS`] tangents or more. `consensus`: per sample (mean, relative spread,
+/// number of tangents), None where its own tangent has no value.
+fn spread_and_depth(consensus: &[Option<(f64, f64, usize)>]) -> Option<(f64, bool)> {
+    let spreads: Vec<f64> = consensus
+        .iter()
+        .flatten()
+        .filter(|c| c.2 >= 2)
+        .map(|c| c.1)
+        .collect();
+    if spreads.is_empty() {
+        return None;
+    }
+    let mut views: Vec<usize> = consensus.iter().flatten().map(|c| c.2).collect();
+    let mid = views.len() / 2;
+    let deep = *views.select_nth_unstable(mid).1 >= EVIDENCE_MIN_VIEWS;
+    Some((super::median_abs(&spreads), deep)) // spreads are ≥ 0
+}
+
 /// The prior moved towards the tangents' own consensus at low frequencies ([`PriorSamples::fused`]).
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, Default)]
 pub(super) struct Fusion {
     /// The prior samples with their fused values; None when the share is 0 (the prior as it is).
     pub(super) samples: Option<PriorSamples>,
@@ -332,6 +352,11 @@ pub(super) struct Fusion {
     pub(super) share: f64,
     /// The share of the prior samples the consensus outvoted (their confidence set to 0).
     pub(super) outvoted: f64,
+    /// The prior's disagreement with the consensus at the sphere's largest scales (RMS of the
+    /// relative gap's spherical harmonics of degree ≤ 2, [`low_order_gap`]; 0: not measured).
+    pub(super) low_order_gap: f64,
+    /// The share of that disagreement that moved the prior ([`low_order_share`]).
+    pub(super) low_order_share: f64,
 }
 
 /// The tangents' values at a prior sample's direction (its own tangent's, then its views'):
@@ -433,28 +458,14 @@ impl PriorSamples {
         if (finite as f64) < FUSION_MIN_COVERAGE * self.drawn as f64 {
             return None;
         }
-        let spreads: Vec<f64> = consensus
-            .iter()
-            .flatten()
-            .filter(|c| c.2 >= 2)
-            .map(|c| c.1)
-            .collect();
-        if spreads.is_empty() {
-            return None;
-        }
-        let spread = super::median_abs(&spreads); // spreads are ≥ 0
+        let (spread, deep) = spread_and_depth(&consensus)?;
         let share =
             ((UNTRUSTED_SPREAD - spread) / (UNTRUSTED_SPREAD - TRUSTED_SPREAD)).clamp(0.0, 1.0);
-        let mut views: Vec<usize> = consensus.iter().flatten().map(|c| c.2).collect();
-        let mid = views.len() / 2;
-        let deep = *views.select_nth_unstable(mid).1 >= EVIDENCE_MIN_VIEWS;
         let outvoting = deep && spread <= OUTVOTE_MAX_SPREAD;
         // The prior as it is: nothing to fuse, and no consensus to outvote by (below).
         let unmoved = Fusion {
-            samples: None,
             spread,
-            share: 0.0,
-            outvoted: 0.0,
+            ..Fusion::default()
         };
         if share <= 0.0 && !outvoting {
             return Some(unmoved);
@@ -516,21 +527,42 @@ impl PriorSamples {
         let voting = |j: usize| var_c(j).filter(|_| outvoting);
         let outvoted = consensus_outvotes(&gap, centre, &shift, voting, level);
         let count = outvoted.iter().filter(|&&o| o).count();
-        if share <= 0.0 && count == 0 {
-            return unmoved;
-        }
-        let mut samples = self.clone();
-        for ((&k, s), &out) in seen.iter().zip(&shift).zip(&outvoted) {
-            samples.value[k] += share * s / alpha;
-            if out {
-                samples.confidence[k] = 0.0;
+        // Where the fusion gives nothing (the tangents spread too widely to correct the prior's
+        // shape sample by sample), their consensus over the whole sphere can still correct its
+        // largest scales: a prior bent as a whole (docs/method.md, "The sphere's largest scales").
+        // Not beside a regional error large enough to be outvoted in bulk: its terms of degree 1
+        // and 2 look like a bend.
+        let regional = count as f64 > LOW_ORDER_MAX_OUTVOTED * seen.len() as f64;
+        let low = (outvoting && share <= 0.0 && !regional)
+            .then(|| {
+                let views = |j: usize| consensus[seen[j]].map_or(1, |c| c.2);
+                let weights = low_order_weights(&shared, &outvoted, &conf, &cells, views);
+                low_order_gap(&gap, &shift, level, &weights, &cells)
+            })
+            .flatten()
+            .unwrap_or_default();
+        // Nothing moved (the fusion's share 0, nothing outvoted, no bend): the prior as it is.
+        let moved = share > 0.0 || count > 0 || low.share > 0.0;
+        let samples = moved.then(|| {
+            let mut samples = self.clone();
+            for (j, (&k, s)) in seen.iter().zip(&shift).enumerate() {
+                // The fitted prior's disparity times exp(γ·field) at the largest scales.
+                let fitted = alpha * p[j] + beta + frame.1 / frame.0;
+                let bend = low.field.get(j).map_or(0.0, |f| (low.share * f).exp_m1());
+                samples.value[k] += (share * s + fitted * bend) / alpha;
+                if outvoted[j] {
+                    samples.confidence[k] = 0.0;
+                }
             }
-        }
+            samples
+        });
         Some(Fusion {
-            samples: Some(samples),
+            samples,
             spread,
             share,
             outvoted: count as f64 / seen.len() as f64,
+            low_order_gap: low.gap,
+            low_order_share: low.share,
         })
     }
 }
@@ -604,6 +636,173 @@ fn consensus_outvotes(
         })
         .collect()
 }
+
+/// The prior's disagreement with the tangents' consensus at the sphere's largest scales
+/// ([`low_order_gap`]).
+#[derive(Debug, Clone, Default)]
+struct LowOrder {
+    /// The fitted field at every sample (empty when not fitted).
+    field: Vec<f64>,
+    /// Its RMS over the fitted samples (0: not measured).
+    gap: f64,
+    /// The share of it that moves the prior ([`low_order_share`]).
+    share: f64,
+}
+
+/// The weights of the samples in [`low_order_gap`]'s fit: their confidence over the number of
+/// tangents that see them (`views(j)`: the samples' density grows with the overlaps), and 0 for
+/// a sample only one tangent sees (held by nothing but the prior), one the consensus outvoted,
+/// or one in a trust cell whose neighbourhood (the cell and the 8 around) has more than
+/// [`NEAR_OUTVOTED`] of its samples outvoted: a regional error's rest.
+fn low_order_weights(
+    shared: &[bool],
+    outvoted: &[bool],
+    conf: &[f64],
+    cells: &[u32],
+    views: impl Fn(usize) -> usize,
+) -> Vec<f64> {
+    let flags: Vec<f64> = outvoted.iter().map(|&o| f64::from(u8::from(o))).collect();
+    let near = super::CellMeans::weighted(cells, &flags, conf);
+    (0..conf.len())
+        .map(|j| {
+            let clear = near.around(cells[j] as usize).unwrap_or(0.0) <= NEAR_OUTVOTED;
+            if shared[j] && !outvoted[j] && clear {
+                conf[j] / views(j).max(1) as f64
+            } else {
+                0.0
+            }
+        })
+        .collect()
+}
+
+/// The prior's disagreement with the tangents' consensus at the sphere's largest scales: the
+/// relative gap `gap[j]/level(j)` fitted by weighted least squares with the real spherical
+/// harmonics of degree ≤ 2 at the directions of the samples' trust cells `cells`, over the
+/// samples with a `weight` whose low-passed relative gap `shift[j]/level(j)` and own relative
+/// gap both lie within [`EVIDENCE_INLIER`] robust scales of their medians. A regional error of
+/// the prior has large terms of degree 1 and 2 too, which the fit would take for a bend and
+/// spread over the sphere; what of it the outvote left stands out of those distributions, while
+/// a smooth bend spreads through them. The field is returned at every sample, its weighted mean
+/// over the fitted samples removed (the prior's units are not its business), with its RMS there
+/// and the share [`low_order_share`] gives it; None with fewer fitted samples than 10 per term
+/// or a singular fit.
+fn low_order_gap(
+    gap: &[f64],
+    shift: &[f64],
+    level: impl Fn(usize) -> f64,
+    weight: &[f64],
+    cells: &[u32],
+) -> Option<LowOrder> {
+    let candidates: Vec<usize> = (0..gap.len())
+        .filter(|&j| weight[j] > 0.0 && level(j) > 0.0)
+        .collect();
+    if candidates.is_empty() {
+        return None;
+    }
+    // Within EVIDENCE_INLIER robust scales of its median, both low-passed and the sample's own.
+    let inlier = |of: &dyn Fn(usize) -> f64| -> Vec<bool> {
+        let mut values: Vec<f64> = candidates.iter().map(|&j| of(j)).collect();
+        let mid = values.len() / 2;
+        let (_, &mut centre, _) = values.select_nth_unstable_by(mid, f64::total_cmp);
+        let centred: Vec<f64> = candidates.iter().map(|&j| of(j) - centre).collect();
+        let sigma = super::robust_scale(&centred);
+        centred
+            .iter()
+            .map(|c| c.abs() <= EVIDENCE_INLIER * sigma)
+            .collect()
+    };
+    let low = inlier(&|j| shift[j] / level(j));
+    let own = inlier(&|j| gap[j] / level(j));
+    let fitted: Vec<usize> = (0..candidates.len())
+        .filter(|&i| low[i] && own[i])
+        .map(|i| candidates[i])
+        .collect();
+    if fitted.len() < 10 * LOW_ORDER_TERMS {
+        return None;
+    }
+    let basis = |j: usize| low_order_basis(cell_direction(cells[j]));
+    let mut normal = nalgebra::SMatrix::<f64, LOW_ORDER_TERMS, LOW_ORDER_TERMS>::zeros();
+    let mut rhs = nalgebra::SVector::<f64, LOW_ORDER_TERMS>::zeros();
+    for &j in &fitted {
+        let b = nalgebra::SVector::<f64, LOW_ORDER_TERMS>::from(basis(j));
+        normal += weight[j] * b * b.transpose();
+        rhs += weight[j] * (gap[j] / level(j)) * b;
+    }
+    let coef = normal.cholesky()?.solve(&rhs);
+    let mut field: Vec<f64> = (0..gap.len())
+        .map(|j| coef.iter().zip(&basis(j)).map(|(c, b)| c * b).sum::<f64>())
+        .collect();
+    let total: f64 = fitted.iter().map(|&j| weight[j]).sum();
+    let mean = fitted.iter().map(|&j| weight[j] * field[j]).sum::<f64>() / total;
+    for f in &mut field {
+        *f -= mean;
+    }
+    let square = fitted.iter().map(|&j| weight[j] * field[j] * field[j]);
+    let gap = (square.sum::<f64>() / total).sqrt();
+    Some(LowOrder {
+        field,
+        gap,
+        share: low_order_share(gap),
+    })
+}
+
+/// The share of the prior's disagreement at the largest scales (RMS `gap`) that the consensus
+/// corrects: 1 − σ²/gap², σ = [`LOW_ORDER_CONSENSUS_ERROR`], the consensus's own error at those
+/// scales, so that a prior as good as the consensus there is left as it is.
+fn low_order_share(gap: f64) -> f64 {
+    if gap <= LOW_ORDER_CONSENSUS_ERROR {
+        return 0.0;
+    }
+    1.0 - (LOW_ORDER_CONSENSUS_ERROR / gap).powi(2)
+}
+
+/// The share of the prior samples the consensus outvoted above which the prior's largest scales
+/// are left as they are: a regional error that large (a cap 30 % wrong on a fifth of the sphere:
+/// 8–10 % outvoted; the lower quarter 30 % wrong: 16 %) has terms of degree 1 and 2 that the
+/// fit takes for a bend. The bench's prior, with regions of 1–5 % of the sphere: 0.2–0.3 %.
+const LOW_ORDER_MAX_OUTVOTED: f64 = 0.03;
+
+/// The share of outvoted samples in a trust cell and the 8 around above which the cell's samples
+/// are left out of [`low_order_gap`]'s fit.
+const NEAR_OUTVOTED: f64 = 0.1;
+
+/// Terms of the real spherical harmonics of degree ≤ 2.
+const LOW_ORDER_TERMS: usize = 9;
+
+/// The real spherical harmonics of degree ≤ 2 at unit direction `d` (unnormalised: 1; x, y, z;
+/// xy, yz, zx, x² − y², 3z² − 1), the sphere's largest scales.
+fn low_order_basis(d: [f64; 3]) -> [f64; LOW_ORDER_TERMS] {
+    let [x, y, z] = d;
+    [
+        1.0,
+        x,
+        y,
+        z,
+        x * y,
+        y * z,
+        z * x,
+        x * x - y * y,
+        3.0 * z * z - 1.0,
+    ]
+}
+
+/// The direction of a trust cell's centre ([`TRUST_ROWS`] × 2·[`TRUST_ROWS`] ERP grid).
+fn cell_direction(cell: u32) -> [f64; 3] {
+    let cols = 2 * TRUST_ROWS;
+    let (row, col) = (cell as usize / cols, cell as usize % cols);
+    let d = crate::sphere::lonlat_direction(
+        crate::sphere::column_longitude(col as f64, cols),
+        crate::sphere::row_latitude(row as f64, TRUST_ROWS),
+    );
+    [d.x, d.y, d.z]
+}
+
+/// The consensus's own error, relative, at the sphere's largest scales (spherical harmonics of
+/// degree ≤ 2), below which the prior's disagreement there is not corrected
+/// ([`low_order_share`]). Measured on 4 synthetic rooms at 2K under content errors
+/// (docs/method.md, "The sphere's largest scales"): the stitch without the prior differed from
+/// the truth there by 0.008–0.010 RMS, as much as the bench's prior (±3 % smooth error: 0.008).
+const LOW_ORDER_CONSENSUS_ERROR: f64 = 0.008;
 
 /// The share of the tangents' low-frequency disagreement with the prior that the data support:
 /// var_p/(var_p + var_c) = 1 − var_c/var_gap. var_gap is the robust variance ((1.4826·median
@@ -785,6 +984,11 @@ pub struct PriorFit {
     /// Share of the prior samples the tangents' consensus outvoted before the prior joined (far
     /// outside the consensus's uncertainty; their confidence set to 0).
     pub consensus_outvoted: f64,
+    /// The prior's disagreement with that consensus at the sphere's largest scales (relative
+    /// RMS over the spherical harmonics of degree ≤ 2; 0 when not measured).
+    pub low_order_gap: f64,
+    /// The share of that disagreement that moved the prior before it joined (0: none).
+    pub low_order_share: f64,
 }
 
 #[cfg(test)]
@@ -1435,6 +1639,97 @@ mod tests {
 
     /// The consensus outvotes a prior sample only beyond both bounds, on its own and low-passed,
     /// of one sign, and only where its variance was measured.
+    #[test]
+    fn the_prior_s_largest_scales_are_fitted_and_a_regional_error_left_out() {
+        // One sample at every trust cell's centre, with a disparity level that varies, so that
+        // the fit's relative gap (gap / level) is what it reads.
+        let cells: Vec<u32> = (0..(2 * TRUST_ROWS * TRUST_ROWS) as u32).collect();
+        let dirs: Vec<[f64; 3]> = cells.iter().map(|&c| cell_direction(c)).collect();
+        let level: Vec<f64> = (0..cells.len())
+            .map(|j| 1.0 + 0.5 * (j % 7) as f64)
+            .collect();
+        let bend =
+            |d: [f64; 3]| 0.02 * d[0] - 0.03 * d[1] * d[2] + 0.01 * (3.0 * d[2] * d[2] - 1.0);
+        let weight = vec![1.0; cells.len()];
+        let fit = |relative: &dyn Fn(usize) -> f64| {
+            let gap: Vec<f64> = (0..cells.len()).map(|j| relative(j) * level[j]).collect();
+            low_order_gap(&gap, &gap, |j| level[j], &weight, &cells).expect("a fit")
+        };
+        // A bend of degree ≤ 2 plus a constant (the prior's units): the field is the bend minus
+        // its mean over the cells, and its RMS theirs (the oracle: the bend evaluated directly).
+        let bent = fit(&|j| bend(dirs[j]) + 0.05);
+        let mean = dirs.iter().map(|&d| bend(d)).sum::<f64>() / dirs.len() as f64;
+        let mut square = 0.0;
+        for (f, &d) in bent.field.iter().zip(&dirs) {
+            assert!(
+                (f - (bend(d) - mean)).abs() < 1e-9,
+                "{f} vs {}",
+                bend(d) - mean
+            );
+            square += (bend(d) - mean).powi(2);
+        }
+        assert!((bent.gap - (square / dirs.len() as f64).sqrt()).abs() < 1e-9);
+        assert!(
+            bent.share > 0.5 && (bent.share - low_order_share(bent.gap)).abs() < 1e-15,
+            "{} {}",
+            bent.gap,
+            bent.share
+        );
+        // The same prior 30 % wrong on a cap around +x (a seventh of the cells): the cap stands
+        // out of the gap's distribution and is left out, so the fit is still the bend's.
+        let cap = |d: [f64; 3]| d[0] > 0.6;
+        let share = dirs.iter().filter(|&&d| cap(d)).count() as f64 / dirs.len() as f64;
+        assert!((0.1..0.3).contains(&share), "{share}");
+        let capped = fit(&|j| bend(dirs[j]) + if cap(dirs[j]) { 0.3 } else { 0.0 });
+        assert!(
+            (capped.gap - bent.gap).abs() < 0.1 * bent.gap,
+            "{} vs {}",
+            capped.gap,
+            bent.gap
+        );
+        let near = capped.field.iter().zip(&bent.field);
+        assert!(near.into_iter().all(|(a, b)| (a - b).abs() < 0.01));
+        // Without the bend the cap alone is no bend: nothing to correct.
+        let alone = fit(&|j| if cap(dirs[j]) { 0.3 } else { 0.0 });
+        assert!(alone.gap < 1e-9 && alone.share <= 0.0, "{}", alone.gap);
+        // A prior as good as the consensus there is left as it is; beyond, 1 − (σ/gap)².
+        assert!(low_order_share(LOW_ORDER_CONSENSUS_ERROR) <= 0.0);
+        assert!((low_order_share(2.0 * LOW_ORDER_CONSENSUS_ERROR) - 0.75).abs() < 1e-12);
+        // Too few samples to fit: none. A sample without weight is not fitted.
+        let few = &cells[..50];
+        assert!(low_order_gap(&[0.1; 50], &[0.1; 50], |_| 1.0, &[1.0; 50], few).is_none());
+        let mut unweighted = weight.clone();
+        unweighted
+            .iter_mut()
+            .zip(&dirs)
+            .for_each(|(w, &d)| *w = if cap(d) { 0.0 } else { 1.0 });
+        let gap: Vec<f64> = (0..cells.len())
+            .map(|j| if cap(dirs[j]) { 5.0 } else { 0.0 })
+            .collect();
+        let blind = low_order_gap(&gap, &gap, |_| 1.0, &unweighted, &cells).expect("a fit");
+        assert!(blind.gap < 1e-9, "{}", blind.gap);
+    }
+
+    #[test]
+    fn low_order_weights_leave_out_what_the_consensus_cannot_judge() {
+        // Cells 0..60 are the top row; 100 samples in cell 200 (row 3), 10 % of them outvoted.
+        let cells: Vec<u32> = [0, 1, 2].into_iter().chain([200; 100]).collect();
+        let n = cells.len();
+        let shared: Vec<bool> = (0..n).map(|j| j != 1).collect();
+        let outvoted: Vec<bool> = (0..n).map(|j| (3..13).contains(&j)).collect();
+        let conf = vec![0.5; n];
+        let views = |j: usize| if j == 2 { 4 } else { 2 };
+        let w = low_order_weights(&shared, &outvoted, &conf, &cells, views);
+        assert!((w[0] - 0.25).abs() < 1e-12); // confidence over its views
+        assert!(w[1] == 0.0); // one tangent alone sees it
+        assert!((w[2] - 0.125).abs() < 1e-12);
+        assert!(w[3] == 0.0); // outvoted
+        assert!((w[20] - 0.25).abs() < 1e-12); // 10 % outvoted around it: at the bound, kept
+        let more: Vec<bool> = (0..n).map(|j| (3..14).contains(&j)).collect();
+        let w = low_order_weights(&shared, &more, &conf, &cells, views);
+        assert!(w[20] == 0.0 && w[0] > 0.0); // 11 %: a regional error's rest
+    }
+
     #[test]
     fn the_consensus_outvotes_only_far_and_coherent_disagreement() {
         // Consensus standard error 0.01 everywhere, disparity level 1: the bound is
