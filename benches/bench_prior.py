@@ -38,7 +38,9 @@ rooms they never saw):
    bench's prior, the wrong one, those with a ±5 % and a ±10 % smooth error, and the bench's
    prior broken as :data:`STRESS` says (a lower third 30 % too far, a ramp to 15 % at the
    0/360° seam, a ±20 % tilt between floor and ceiling), and the share of prior samples the
-   tangents' consensus outvoted (docs/method.md, "Outvoted by the consensus").
+   tangents' consensus outvoted (docs/method.md, "Outvoted by the consensus") and the share of
+   the prior's gap at the sphere's largest scales that moved it ("The sphere's largest
+   scales").
 4. Stitch seconds with and without the prior per ``--time-sizes`` (default 2048 8192), median
    of ``--repeats`` interleaved runs on one room, their ratio, and the median of the ratios of
    each pair of neighbouring runs (less moved by a shared machine's slow drifts). At 8K the
@@ -157,13 +159,17 @@ def stress(sizes: list[int], rooms: range, tuning: dict[str, Any]) -> list[list]
                     errs.setdefault((case, name), []).append(
                         m360.eval.depth_metrics(res.disparity, depth)["abs_rel"]
                     )
-                    errs.setdefault((case, name + " outvoted"), []).append(
-                        fit.get("consensus_outvoted", float("nan"))
-                    )
+                    for key in ("consensus_outvoted", "low_order_share"):
+                        errs.setdefault((case, f"{name} {key}"), []).append(
+                            fit.get(key, float("nan"))
+                        )
         for (case, name), values in errs.items():
-            if not name.endswith(" outvoted"):
-                voted = statistics.median(errs[(case, name + " outvoted")])
-                rows.append([width, f"{case} errors", name, statistics.median(values), voted])
+            if not name.endswith(("consensus_outvoted", "low_order_share")):
+                voted, bent = (
+                    statistics.median(errs[(case, f"{name} {key}")])
+                    for key in ("consensus_outvoted", "low_order_share")
+                )
+                rows.append([width, f"{case} errors", name, statistics.median(values), voted, bent])
         print(f"  stressed {width}", flush=True)
     return rows
 
@@ -384,8 +390,10 @@ def main() -> None:
         rows = stress(args.sizes, rooms, tuning)
         h.print_table(
             f"AbsRel, median over rooms {rooms.start}-{rooms.stop - 1}, with priors broken "
-            "otherwise; outvoted = median share of prior samples the tangents' consensus outvoted",
-            ["ERP", "tangents", "prior", "AbsRel", "outvoted"],
+            "otherwise; outvoted = median share of prior samples the tangents' consensus "
+            "outvoted; bent = median share of the prior's gap at the sphere's largest scales "
+            "that moved it (low_order_share)",
+            ["ERP", "tangents", "prior", "AbsRel", "outvoted", "bent"],
             rows,
         )
         out["stress"] = rows
