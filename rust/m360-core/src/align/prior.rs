@@ -758,7 +758,7 @@ fn low_order_share(gap: f64) -> f64 {
 
 /// The share of the prior samples the consensus outvoted above which the prior's largest scales
 /// are left as they are: a regional error that large (a cap 30 % wrong on a fifth of the sphere:
-/// 8–10 % outvoted; the lower quarter 30 % wrong: 16 %) has terms of degree 1 and 2 that the
+/// 8–10 % outvoted; the lower third, a quarter of the sphere, 30 % wrong: 16 %) has terms of degree 1 and 2 that the
 /// fit takes for a bend. The bench's prior, with regions of 1–5 % of the sphere: 0.2–0.3 %.
 const LOW_ORDER_MAX_OUTVOTED: f64 = 0.03;
 
@@ -1637,8 +1637,8 @@ mod tests {
         );
     }
 
-    /// The consensus outvotes a prior sample only beyond both bounds, on its own and low-passed,
-    /// of one sign, and only where its variance was measured.
+    /// The largest scales' fit recovers a bend of degree ≤ 2 exactly, leaves out a regional error
+    /// that stands out of the gap's distribution and the samples without weight.
     #[test]
     fn the_prior_s_largest_scales_are_fitted_and_a_regional_error_left_out() {
         // One sample at every trust cell's centre, with a disparity level that varies, so that
@@ -1710,6 +1710,8 @@ mod tests {
         assert!(blind.gap < 1e-9, "{}", blind.gap);
     }
 
+    /// The fit's weights: confidence over views, 0 where one tangent alone sees the sample, where
+    /// it was outvoted and beside a neighbourhood more than 10 % outvoted.
     #[test]
     fn low_order_weights_leave_out_what_the_consensus_cannot_judge() {
         // Cells 0..60 are the top row; 100 samples in cell 200 (row 3), 10 % of them outvoted.
@@ -1730,6 +1732,8 @@ mod tests {
         assert!(w[20] == 0.0 && w[0] > 0.0); // 11 %: a regional error's rest
     }
 
+    /// The consensus outvotes a prior sample only beyond both bounds, on its own and low-passed,
+    /// of one sign, and only where its variance was measured.
     #[test]
     fn the_consensus_outvotes_only_far_and_coherent_disagreement() {
         // Consensus standard error 0.01 everywhere, disparity level 1: the bound is
