@@ -584,14 +584,12 @@ fn low_passed_gap(
     cells: &[u32],
     shared: &[bool],
 ) -> (f64, f64, Vec<f64>) {
-    let mut overlapped: Vec<f64> = (0..gap.len())
+    let overlapped: Vec<f64> = (0..gap.len())
         .filter(|&j| shared[j])
         .map(|j| gap[j])
         .collect();
-    let mid = overlapped.len() / 2;
-    let (_, &mut centre, _) = overlapped.select_nth_unstable_by(mid, f64::total_cmp);
-    let centred: Vec<f64> = overlapped.iter().map(|g| g - centre).collect();
-    let sigma = super::robust_scale(&centred).max(super::MIN_PRIOR_SCALE);
+    let (centre, sigma) = centre_and_scale(&overlapped);
+    let sigma = sigma.max(super::MIN_PRIOR_SCALE);
     let weights: Vec<f64> = (0..gap.len())
         .map(|j| {
             if shared[j] {
@@ -608,6 +606,15 @@ fn low_passed_gap(
         .collect();
     remove_line(p, &mut shift, &weights);
     (centre, sigma, shift)
+}
+
+/// The median of `values` (at least one) and the robust scale of their deviations from it.
+fn centre_and_scale(values: &[f64]) -> (f64, f64) {
+    let mut sorted = values.to_vec();
+    let mid = sorted.len() / 2;
+    let (_, &mut centre, _) = sorted.select_nth_unstable_by(mid, f64::total_cmp);
+    let centred: Vec<f64> = values.iter().map(|v| v - centre).collect();
+    (centre, super::robust_scale(&centred))
 }
 
 /// Which samples the tangents' consensus outvotes: those whose own `gap` (from its `centre`) and
@@ -701,15 +708,10 @@ fn low_order_gap(
     }
     // Within EVIDENCE_INLIER robust scales of its median, both low-passed and the sample's own.
     let inlier = |of: &dyn Fn(usize) -> f64| -> Vec<bool> {
-        let mut values: Vec<f64> = candidates.iter().map(|&j| of(j)).collect();
-        let mid = values.len() / 2;
-        let (_, &mut centre, _) = values.select_nth_unstable_by(mid, f64::total_cmp);
-        let centred: Vec<f64> = candidates.iter().map(|&j| of(j) - centre).collect();
-        let sigma = super::robust_scale(&centred);
-        centred
-            .iter()
-            .map(|c| c.abs() <= EVIDENCE_INLIER * sigma)
-            .collect()
+        let values: Vec<f64> = candidates.iter().map(|&j| of(j)).collect();
+        let (centre, sigma) = centre_and_scale(&values);
+        let bound = EVIDENCE_INLIER * sigma;
+        values.iter().map(|v| (v - centre).abs() <= bound).collect()
     };
     let low = inlier(&|j| shift[j] / level(j));
     let own = inlier(&|j| gap[j] / level(j));
