@@ -9,7 +9,9 @@ then brought back bilinearly), and ``m360.stitching.refine_edges`` (the defaults
 median over the photos of the log-disparity AbsRel (|exp(log d − log ref) − 1|) in a 4 px band
 (at 4096, in proportion) around the reference's jumps (``m360.eval.edge_band``: over 5 % in
 disparity between neighbours) and over the whole map, smeared and refined, and on how many
-photos the refined map is nearer the reference.
+photos the refined map is nearer the reference. With ``--radius-factor C ...`` each smear is
+also refined with the window's radius at C·k pixels instead of the default (10 at 4096, in
+proportion: 2-3 px at 1K), to ask whether a window as wide as the smear recovers it.
 
 The synthetic rooms of ``bench_edges.py`` and ``bench_prior.py`` (their colour edges are
 exactly their depth edges) say 3× better in the band; this is the check on real colour
@@ -17,7 +19,8 @@ statistics and a real network's depth (docs/method.md, "Sharp edges along the ph
 
 Needs the real data (tests/real_data.py: ``shared/real`` beside the checkout or
 ``M360_REAL_DATA``). Run: ``.venv/bin/python benches/bench_edges_real.py [--network pydnet]
-[--reference-size 512] [--smear 3 6]`` (about two minutes for the twelve 1K photos).
+[--reference-size 512] [--smear 3 6] [--radius-factor 1 2]`` (about two minutes for the twelve
+1K photos).
 """
 
 from __future__ import annotations
@@ -74,8 +77,11 @@ def abs_rel(log_map: np.ndarray, log_ref: np.ndarray, where: np.ndarray) -> floa
     return float(np.mean(np.abs(np.expm1(log_map[where] - log_ref[where]))))
 
 
-def one_photo(path: Path, network: str, size: int, smears: list[float]) -> list[list[float]]:
-    """Per smear: band and whole-map AbsRel of the smeared and the refined map."""
+def one_photo(
+    path: Path, network: str, size: int, smears: list[float], factors: list[float | None]
+) -> list[list[list[float]]]:
+    """Per smear and radius factor (None: the default radius): band and whole-map AbsRel of the
+    smeared and the refined map."""
     file, options = NETWORKS[network]
     estimator = load_estimator(real_data.MODELS / file, input_size=size, **options)
     rgb = load_rgb(path)
@@ -88,16 +94,20 @@ def one_photo(path: Path, network: str, size: int, smears: list[float]) -> list[
     out = []
     for k in smears:
         log_smeared = smear(log_ref, k)
-        refined = m360.stitching.refine_edges(np.exp(log_smeared), rgb)
-        log_refined = np.log(np.maximum(refined, np.finfo(np.float32).tiny))
-        out.append(
-            [
-                abs_rel(log_smeared, log_ref, band),
-                abs_rel(log_refined, log_ref, band),
-                abs_rel(log_smeared, log_ref, valid),
-                abs_rel(log_refined, log_ref, valid),
-            ]
-        )
+        per_factor = []
+        for factor in factors:
+            radius = None if factor is None else max(1, round(factor * k))
+            refined = m360.stitching.refine_edges(np.exp(log_smeared), rgb, radius=radius)
+            log_refined = np.log(np.maximum(refined, np.finfo(np.float32).tiny))
+            per_factor.append(
+                [
+                    abs_rel(log_smeared, log_ref, band),
+                    abs_rel(log_refined, log_ref, band),
+                    abs_rel(log_smeared, log_ref, valid),
+                    abs_rel(log_refined, log_ref, valid),
+                ]
+            )
+        out.append(per_factor)
     return out
 
 
@@ -106,6 +116,14 @@ def main() -> None:
     parser.add_argument("--network", choices=sorted(NETWORKS), default="pydnet")
     parser.add_argument("--reference-size", type=int, default=512, help="network input, px")
     parser.add_argument("--smear", type=float, nargs="+", default=[3.0, 6.0], metavar="K")
+    parser.add_argument(
+        "--radius-factor",
+        type=float,
+        nargs="*",
+        default=[],
+        metavar="C",
+        help="also refine with a window of radius C·k px",
+    )
     parser.add_argument("--photos", type=Path, nargs="*", help="default: the twelve 1K photos")
     parser.add_argument("--json", type=Path, default=None, metavar="PATH")
     args = parser.parse_args()
@@ -114,21 +132,28 @@ def main() -> None:
     photos = args.photos or sorted(real_data.PANOS.glob("*_1k.tonemapped.png"))
     meta = h.metadata()
     print(f"m360 {m360.__version__} @ {meta.get('git_commit')}, {args.network}")
+    factors: list[float | None] = [None, *args.radius_factor]
     per_photo = []
     for path in photos:
-        per_photo.append(one_photo(path, args.network, args.reference_size, args.smear))
+        per_photo.append(one_photo(path, args.network, args.reference_size, args.smear, factors))
         print(f"  done {path.name}", flush=True)
-    errors = np.array(per_photo)  # photo × smear × (band smeared, band refined, whole …)
+    # photo × smear × radius factor × (band smeared, band refined, whole smeared, whole refined)
+    errors = np.array(per_photo)
     rows = []
     for i, k in enumerate(args.smear):
-        med = np.median(errors[:, i], axis=0)
-        nearer = int(np.sum(errors[:, i, 1] < errors[:, i, 0]))
-        rows.append([k, *med.round(4), f"{med[1] / med[0]:.2f}x", f"{nearer}/{len(photos)}"])
+        for j, factor in enumerate(factors):
+            med = np.median(errors[:, i, j], axis=0)
+            nearer = int(np.sum(errors[:, i, j, 1] < errors[:, i, j, 0]))
+            radius = "default" if factor is None else f"{factor:g}·k = {max(1, round(factor * k))}"
+            rows.append(
+                [k, radius, *med.round(4), f"{med[1] / med[0]:.2f}x", f"{nearer}/{len(photos)}"]
+            )
     h.print_table(
         f"refine_edges on {len(photos)} real photos, {args.network} at "
         f"{args.reference_size} px as the reference: medians of the log-disparity AbsRel",
         [
             "smear k",
+            "radius px",
             "band smeared",
             "band refined",
             "whole smeared",
