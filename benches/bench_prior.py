@@ -30,10 +30,11 @@ rooms they never saw):
    (guided by the rendered photo), and for the stitch made sharp along the photo's edges by
    ``m360.stitching.refine_edges`` (``edges="photo"`` of ``m360.estimate``) with its time. All
    are scale/shift-fitted to the truth by ``depth_metrics``. Then the stitch with the prior of
-   the same content errors from a simulated network that sees each tile at 256 or 518 px
-   (MiDaS small's input, Depth Anything's), blurred by half the tile's shrink factor, on the
-   default layout and on the 80 tangents of ``subdivisions=1``: the detail is the network's
-   angular resolution (docs/method.md, "Where the detail comes from").
+   the same content errors unblurred (a network at least as fine as its tile), and from a
+   simulated network that sees each tile at 256 or 518 px (MiDaS small's input, Depth
+   Anything's), blurred by half the tile's shrink factor, on the default layout and on the 80
+   tangents of ``subdivisions=1``: the detail is the network's angular resolution
+   (docs/method.md, "Where the detail comes from").
 3. With ``--stress``, per size: the content- and affine-error tangents with no prior, the
    bench's prior, the wrong one, those with a ±5 % and a ±10 % smooth error, and the bench's
    prior broken as :data:`STRESS` says (a lower third 30 % too far, a ramp to 15 % at the
@@ -249,14 +250,15 @@ NETWORK_LAYOUTS = {"the default layout": 0, "subdivisions=1 (80 tangents)": 1}
 
 
 def network_tangents(
-    scene: syn.Scene, layout: m360.Layout, seed: int, network_input: int
+    scene: syn.Scene, layout: m360.Layout, seed: int, network_input: int | None
 ) -> np.ndarray:
     """The content-error tangents of a network that sees each tile at ``network_input`` px.
 
     The tile shrunk to the network's input and its output brought back smear an edge by a
     gaussian of about half the shrink factor (area down, bilinear up), so the blur is
     ``tile width / (2 network_input)`` tangent pixels: the same network is sharper in angle on
-    smaller tiles. Errors have the default layout's angular size and density on every layout.
+    smaller tiles. ``None``: no blur (a network at least as fine as the tile). Errors have the
+    default layout's angular size and density on every layout.
     """
     base = m360.Layout.icosahedron(layout.erp_shape[1])
     ratio = layout.cameras[0].fx / base.cameras[0].fx
@@ -264,14 +266,14 @@ def network_tangents(
         None if layout.key == base.key else base.tangent_shape[0] * base.tangent_shape[1] * ratio**2
     )
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
-    blur = layout.tangent_shape[1] / (2 * network_input)
+    blur = 0.0 if network_input is None else layout.tangent_shape[1] / (2 * network_input)
     wrong = syn.content_errors(exact, seed + 200, blur=blur, reference_area=reference)
     return np.asarray(syn.distort(wrong, seed + 100, **AFFINE))
 
 
 def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
     layout = m360.Layout.icosahedron(width)
-    stitched, sharpened, alone, seconds = [], [], [], []
+    stitched, sharpened, unblurred, alone, seconds = [], [], [], [], []
     networks: dict[tuple[str, int], list[float]] = {}
     for seed in rooms:
         scene = syn.room(seed)
@@ -284,7 +286,9 @@ def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
         seconds.append(timed.median)
         sharp = m360.stitching.refine_edges(res, rgb)
         up = m360.stitching.guided_upsample(prior, rgb)
-        for values, d in ((stitched, res), (sharpened, sharp), (alone, up)):
+        sharp_tiles = network_tangents(scene, layout, seed, None)
+        finest = m360.stitch(sharp_tiles, layout, prior=prior, **tuning)
+        for values, d in ((stitched, res), (sharpened, sharp), (unblurred, finest), (alone, up)):
             values.append(m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"])
         for name, subdivisions in NETWORK_LAYOUTS.items():
             lay = m360.Layout.icosahedron(width, subdivisions=subdivisions)
@@ -293,7 +297,7 @@ def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
                 networks.setdefault((name, n), []).append(
                     m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"]
                 )
-    s, e, a = (statistics.median(v) for v in (stitched, sharpened, alone))
+    s, e, u, a = (statistics.median(v) for v in (stitched, sharpened, unblurred, alone))
     rows = [
         [width, "stitch (edges as the tangents give them)", s, a, a / s, "", ">= 2x"],
         [
@@ -306,6 +310,17 @@ def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
             ">= 2x",
         ],
     ]
+    rows.append(
+        [
+            width,
+            "stitch, tangents not blurred (a network as fine as its tile)",
+            u,
+            a,
+            a / u,
+            "",
+            "(>= 2x)",
+        ]
+    )
     for (name, n), values in networks.items():
         m = statistics.median(values)
         rows.append([width, f"stitch, a {n} px network, {name}", m, a, a / m, "", "(>= 2x)"])
