@@ -792,9 +792,10 @@ const BENT_MINORITY: f64 = 0.1;
 const BENT_MAX_OUTVOTED: f64 = 0.35;
 
 /// The share of the prior samples the consensus outvoted above which the prior's largest scales
-/// are left as they are: a regional error that large (a cap 30 % wrong on a fifth of the sphere:
-/// 8–10 % outvoted; the lower third, a quarter of the sphere, 30 % wrong: 16 %) has terms of degree 1 and 2 that the
-/// fit takes for a bend. The bench's prior, with regions of 1–5 % of the sphere: 0.2–0.3 %.
+/// are left as they are, unless the outvote strays both ways ([`outvoted_in_bulk`]): a regional
+/// error that large (a cap 30 % wrong on a fifth of the sphere: 8–10 % outvoted; the lower
+/// third, a quarter of the sphere, 30 % wrong: 16 %) has terms of degree 1 and 2 that the fit
+/// takes for a bend. The bench's prior, with regions of 1–5 % of the sphere: 0.2–0.3 %.
 const LOW_ORDER_MAX_OUTVOTED: f64 = 0.03;
 
 /// The share of outvoted samples in a trust cell and the 8 around above which the cell's samples
