@@ -77,6 +77,11 @@ def abs_rel(log_map: np.ndarray, log_ref: np.ndarray, where: np.ndarray) -> floa
     return float(np.mean(np.abs(np.expm1(log_map[where] - log_ref[where]))))
 
 
+def window_radius(factor: float | None, k: float) -> int | None:
+    """The refinement's window radius for ``--radius-factor`` ``factor`` at smear ``k``."""
+    return None if factor is None else max(1, round(factor * k))
+
+
 def one_photo(
     path: Path, network: str, size: int, smears: list[float], factors: list[float | None]
 ) -> list[list[list[float]]]:
@@ -96,7 +101,7 @@ def one_photo(
         log_smeared = smear(log_ref, k)
         per_factor = []
         for factor in factors:
-            radius = None if factor is None else max(1, round(factor * k))
+            radius = window_radius(factor, k)
             refined = m360.stitching.refine_edges(np.exp(log_smeared), rgb, radius=radius)
             log_refined = np.log(np.maximum(refined, np.finfo(np.float32).tiny))
             per_factor.append(
@@ -144,7 +149,7 @@ def main() -> None:
         for j, factor in enumerate(factors):
             med = np.median(errors[:, i, j], axis=0)
             nearer = int(np.sum(errors[:, i, j, 1] < errors[:, i, j, 0]))
-            radius = "default" if factor is None else f"{factor:g}·k = {max(1, round(factor * k))}"
+            radius = "default" if factor is None else f"{factor:g}·k = {window_radius(factor, k)}"
             rows.append(
                 [k, radius, *med.round(4), f"{med[1] / med[0]:.2f}x", f"{nearer}/{len(photos)}"]
             )
