@@ -86,7 +86,8 @@ class PriorReport(TypedDict):
     consensus_outvoted: float
     #: The prior's disagreement with the tangents' consensus at the sphere's largest scales
     #: (relative RMS over spherical harmonics of degree ≤ 2: a prior bent as a whole); 0 when
-    #: not measured (where ``consensus_outvoted`` is not, or ``tangent_share`` > 0).
+    #: not measured (where ``consensus_outvoted`` is not, where ``tangent_share`` > 0, or beside
+    #: a regional error outvoted in bulk: over 3 % of the samples, all or nearly all one way).
     low_order_gap: float
     #: Share (0-1) of that disagreement that moved the prior before it joined: 1 − (0.008 /
     #: gap)², none up to 0.8 % (docs/method.md, "The sphere's largest scales").

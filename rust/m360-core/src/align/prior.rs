@@ -532,8 +532,7 @@ impl PriorSamples {
         // largest scales: a prior bent as a whole (docs/method.md, "The sphere's largest scales").
         // Not beside a regional error large enough to be outvoted in bulk: its terms of degree 1
         // and 2 look like a bend.
-        let regional = outvoted_in_bulk(&gap, centre, &outvoted);
-        let low = (outvoting && share <= 0.0 && !regional)
+        let low = (outvoting && share <= 0.0 && !outvoted_in_bulk(&gap, centre, &outvoted))
             .then(|| {
                 let views = |j: usize| consensus[seen[j]].map_or(1, |c| c.2);
                 let weights = low_order_weights(&shared, &outvoted, &conf, &cells, views);
