@@ -28,7 +28,9 @@ rooms they never saw):
    truth (a jump of more than 5 % between neighbours, dilated by 4 px), for the stitch with the
    prior and for the prior alone brought to that size by ``m360.stitching.guided_upsample``
    (guided by the rendered photo), and for the stitch made sharp along the photo's edges by
-   ``m360.stitching.refine_edges`` (``edges="photo"`` of ``m360.estimate``) with its time. All
+   ``m360.stitching.refine_edges`` with its time: what ``m360.estimate`` does by default
+   (``edges="auto"``) for a network that sees its tile 4 or more times smaller, as the bench's
+   tangents model at 4K (a network at about 200 px on the 800 px tiles). All
    are scale/shift-fitted to the truth by ``depth_metrics``. Then the stitch with the prior of
    the same content errors unblurred (a network at least as fine as its tile), and from a
    simulated network that sees each tile at 256 or 518 px (MiDaS small's input, Depth
@@ -67,6 +69,7 @@ import _harness as h
 import m360
 import m360.synthetic as syn
 from m360.geometry import sphere as sph
+from m360.stitching.edges import edges_for
 
 #: The goals of issue 24 per case (None: no goal, a reference).
 GOALS = {
@@ -298,11 +301,16 @@ def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
                     m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"]
                 )
     s, e, u, a = (statistics.median(v) for v in (stitched, sharpened, unblurred, alone))
+    # The network the tangents model (blur = tile / (2 input) = width / 2048) and what
+    # m360.estimate's default edges="auto" does for it.
+    tile = layout.tangent_shape[1]
+    modelled = round(tile * 2048 / (2 * width))
+    default = edges_for("auto", tile, modelled)
     rows = [
-        [width, "stitch (edges as the tangents give them)", s, a, a / s, "", ">= 2x"],
+        [width, "stitch alone (m360.stitch: no photo)", s, a, a / s, "", "(>= 2x)"],
         [
             width,
-            "stitch + refine_edges (edges='photo')",
+            f"stitch + refine_edges (edges='auto' gives {default!r}: a {modelled} px network)",
             e,
             a,
             a / e,

@@ -610,6 +610,34 @@ def test_padding_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -
     assert main([*args, "--padding", "5"]) == 2  # beyond the core's limit: a usage error
 
 
+def test_edges_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
+    """--edges auto is the default and in the fingerprint: an image an older m360 wrote under its
+    default (network edges, no edges in the fingerprint) is redone, one written under auto kept.
+    A network that sees its tile 4 or more times smaller gets its edges refined along the photo,
+    as m360.estimate does."""
+    path, out, args = _one_image_run(model, tmp_path, base_rgb)
+    assert main(args) == 0
+    sidecar = out / f"{path.stem}.json"
+    meta = json.loads(sidecar.read_text())
+    assert meta["batch"]["fingerprint"]["edges"] == "auto"
+    kwargs: dict[str, Any] = {"align": "none", "blend": "mean", "input_size": (32, 48)}
+    again = {"model": str(model), "formats": ("npy",), "progress": False, **kwargs}
+    assert len(m360.batch.run(path, out, **again).skipped) == 1
+    del meta["batch"]["fingerprint"]["edges"]  # as an older m360 wrote it
+    sidecar.write_text(json.dumps(meta))
+    assert len(m360.batch.run(path, out, **again).done) == 1
+    assert "edges" not in m360.load(out / path.stem).metadata["options"]  # 48 px on 100: kept
+    coarse = [*args[:-2], "16", "24", "--overwrite"]  # 24 px on the 100 px tiles
+    assert main(coarse) == 0
+    saved = m360.load(out / path.stem)
+    assert saved.metadata["options"]["edges"] == "photo"
+    rgb = cv2.cvtColor(cv2.imread(str(path)), cv2.COLOR_BGR2RGB)
+    small = {**kwargs, "input_size": (16, 24)}
+    np.testing.assert_array_equal(
+        saved.disparity, m360.estimate(rgb, str(model), edges="photo", **small).disparity
+    )
+
+
 def test_subdivisions_in_batches(model: Path, tmp_path: Path, base_rgb: np.ndarray) -> None:
     """--subdivisions 1 gives every image the 80-tangent layout (padding 0.3 unless given) that
     m360.estimate(subdivisions=1) and Layout.icosahedron(W, subdivisions=1) make; it is another

@@ -8,8 +8,9 @@ import cv2
 import m360
 import m360.synthetic as syn
 import numpy as np
+import onnx_graphs as g
 import pytest
-from m360.stitching.edges import default_edge_radius, refine_edges
+from m360.stitching.edges import AUTO_PHOTO_SHRINK, default_edge_radius, edges_for, refine_edges
 
 BINS = 24  # rust/m360-core/src/edges.rs
 FULL_TAPS = 3
@@ -173,3 +174,25 @@ def test_estimate_with_photo_edges_is_the_refinement_of_its_result():
     assert (sharp.disparity != plain.disparity).any()
     with pytest.raises(m360.InputError, match="edges"):
         m360.estimate(rgb, model=model, layout=layout, edges="crisp")
+
+
+def test_auto_edges_refine_along_the_photo_only_for_a_coarse_network(tmp_path):
+    """``edges="auto"`` (the default) is ``"photo"`` for a network that sees its tile 4 or more
+    times smaller, ``"network"`` otherwise and for a network of unknown size."""
+    width = 512
+    scene = syn.room(2)
+    rgb, _ = syn.render(scene, width)
+    model = g.channel(tmp_path / "green.onnx", 1)
+    tile = m360.geometry.default_layout(width).tangent_shape[1]
+    opts = {"normalize": "unit", "output_kind": "affine_disparity", "multiple_of": 4}
+    for size, mode in ((4 * (tile // 20), "photo"), (4 * (tile // 12), "network")):
+        assert (tile >= AUTO_PHOTO_SHRINK * size) == (mode == "photo")
+        auto = m360.estimate(rgb, model, input_size=(size, size), **opts)
+        chosen = m360.estimate(rgb, model, input_size=(size, size), edges=mode, **opts)
+        assert np.array_equal(auto.disparity, chosen.disparity)
+        assert auto.options.get("edges", "network") == mode
+        other = "network" if mode == "photo" else "photo"
+        unchosen = m360.estimate(rgb, model, input_size=(size, size), edges=other, **opts)
+        assert not np.array_equal(auto.disparity, unchosen.disparity)
+    assert edges_for("auto", tile, None) == "network"  # a simulated network: no input size
+    assert edges_for("network", 800, 100) == "network" and edges_for("photo", 100, 100) == "photo"

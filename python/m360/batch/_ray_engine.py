@@ -100,10 +100,11 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
 
     meta is a failed ImageOutcome or (read, ERP shape, working width, timings); ``read.rgb`` is
     kept only when the 3D formats need its colours, a working width smaller than the image's
-    needs it as the upsampling guide (or a panoramic model's output does), or ``edges="photo"``
-    as the edges' guide: otherwise only the payload travels on. The payload is (tangents,
-    image): the image is what a model actor runs a panoramic network on (the photo for a
-    panoramic model, the working-resolution photo for a prior model; None otherwise). The
+    needs it as the upsampling guide (or a panoramic model's output does), or ``edges`` other
+    than ``"network"`` as the edges' guide: otherwise only the payload travels on. The payload
+    is (tangents, image): the image is what a model actor runs a panoramic network on (the
+    photo for a panoramic model, the working-resolution photo for a prior model; None
+    otherwise). The
     working width is chosen as :func:`m360.estimate` chooses it, so both engines make the same
     bytes.
     """
@@ -136,7 +137,8 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     except Exception as exc:
         return _image.error_outcome(job, exc), None
     timings = {"read": t_read - t0, "project": t_project - t_read}
-    keep = _image._needs_rgb(settings) or work_width != width or settings.job["edges"] == "photo"
+    # "auto" may refine along the photo: whether it does is known where the network ran.
+    keep = _image._needs_rgb(settings) or work_width != width or settings.job["edges"] != "network"
     read.rgb = rgb if keep else None
     image = working if is_model(settings.prior) else None
     return (read, (height, width), work_width, timings), (tangents, image)

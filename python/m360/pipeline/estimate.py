@@ -31,7 +31,7 @@ from ..estimators import kinds as _kinds
 from ..estimators import registry as _models
 from ..estimators.options import ModelKeywords, ModelOptions
 from ..geometry.layout import Layout, erp_to_tangents, pixel_degrees
-from ..stitching.edges import refine_edges
+from ..stitching.edges import edges_for, refine_edges
 from ..stitching.options import StitchKeywords, StitchOptions, build
 from ..stitching.stitch import StitchResult
 from ..stitching.upsample import guided_upsample
@@ -223,8 +223,10 @@ def estimate(
           network calls (docs/method.md, "Where the detail comes from");
         - ``edges``: ``"photo"`` makes the depth edges the network smeared sharp along the
           photo's, at the output's resolution (:func:`m360.stitching.refine_edges`; measured
-          on simulated rooms in docs/method.md); default ``"network"``, as the network gave
-          them;
+          on simulated rooms and real photos in docs/method.md); ``"network"`` keeps them as
+          the network gave them; default ``"auto"``: ``"photo"`` for a tangent network that
+          sees its tile 4 or more times smaller (``result.model["network_size"]``),
+          ``"network"`` otherwise and for simulated and panoramic models;
         - ``sky``: ``"nan"`` makes pixels whose disparity is at or below
           ``m360.masks.SKY_THRESHOLD`` times its 90th percentile (the sky, or beyond) NaN
           instead of a huge fake distance; default ``"keep"``;
@@ -784,7 +786,50 @@ def _predict(estimator: Any, tangents: np.ndarray, layout: Layout, frames: int =
     except Exception as exc:  # a user estimator may raise anything; a batch loop needs M360Error
         name = getattr(estimator, "name", type(estimator).__name__)
         raise ModelError(f"estimator {name} failed: {type(exc).__name__}: {exc}") from exc
-    return _checked_output(estimator, raw, layout, frames)
+    out = _checked_output(estimator, raw, layout, frames)
+    _check_follows_input(estimator, tangents, out)
+    return out
+
+
+#: Outputs this close (max |difference| relative to the largest |value|) count as one map.
+_SAME_MAP = 1e-5
+
+
+def _check_follows_input(estimator: Any, tangents: np.ndarray, out: np.ndarray) -> None:
+    """Refuse (ModelError) one and the same map for tangents whose pixels differ.
+
+    A network fed values far outside what it was trained on (raw 0-255 pixels into a network
+    trained on [0, 1], found on the shared FastDepth) saturates and returns its own bias, the
+    same map for every tile: a panorama of garbage that passes every later check.
+    """
+    if out.shape[0] < 2:
+        return
+    first = out[0]
+    scale = float(np.nanmax(np.abs(first), initial=0.0))
+    if not np.isfinite(scale) or scale == 0.0:
+        return  # a blank output is sanitise's business, per tangent
+    for k in range(1, out.shape[0]):
+        with np.errstate(invalid="ignore"):
+            difference = np.abs(out[k] - first)
+        compared = difference[np.isfinite(difference)]
+        if compared.size == 0 or compared.max() > _SAME_MAP * scale:
+            return  # not the same map (or nothing to compare: sanitise's business)
+    if all(np.array_equal(tangents[k], tangents[0]) for k in range(1, tangents.shape[0])):
+        return  # one photo in every tile (a blank panorama): one map is the right answer
+    name = getattr(estimator, "name", type(estimator).__name__)
+    normalization = getattr(estimator, "normalization", None)
+    fed = ""
+    if normalization is not None:
+        mean, std = (", ".join(f"{v:.4g}" for v in t) for t in normalization.feed())
+        fed = f" ((RGB in [0, 1] - ({mean})) / ({std}))"
+    raise ModelError(
+        f"estimator {name} returned the same map for all {out.shape[0]} tangents although "
+        f"their pixels differ: the network ignores its input, most likely because its input "
+        f"normalisation{fed} is not the one it was trained with and saturates it. A network "
+        "trained on RGB in [0, 1] needs normalize='unit' (--normalize unit), one trained with "
+        "the ImageNet statistics 'imagenet'; `m360 models check MODEL` measures which one the "
+        "network follows"
+    )
 
 
 def _checked_output(estimator: Any, raw: Any, layout: Layout, frames: int = 1) -> np.ndarray:
@@ -816,7 +861,7 @@ def _from_network(
     scale: Any = None,
     guide: np.ndarray | None = None,
     upsample: str = "guided",
-    edges: str = "network",
+    edges: str = "auto",
     prior: PriorMap | None = None,
 ) -> EstimateResult:
     """Do the rest of :func:`estimate` after the network (stitch, upsample, masks, scale).
@@ -827,13 +872,17 @@ def _from_network(
     ``erp_shape`` is the output's shape; when the layout's is smaller (a working width),
     ``guide`` is the full-resolution RGB photo that guides the upsampling, and with
     ``edges="photo"`` the edge refinement (:func:`m360.stitching.refine_edges`, at the output's
-    resolution, after the upsampling; then needed at any width). ``mask`` is the
+    resolution, after the upsampling; then needed at any width); ``"auto"`` is ``"photo"`` when
+    ``model_info``'s network input is at most a quarter of the tile's width
+    (:func:`m360.stitching.edges.edges_for`). ``mask`` is the
     tangent mask and ``erp_valid`` the output-sized ERP mask (see :func:`_split_mask`).
     ``prior`` is the image's prior map (:func:`_prior_map`): fitted to the job (2:1, masked
     with ``erp_valid``, no larger than the layout's ERP) and given to every stitch; a prior in
     metres is kept as the result's scale (no anchoring on the tangents).
     """
     t_network = time.perf_counter()
+    network_size = model_info.get("network_size")
+    edges = edges_for(edges, layout.tangent_shape[1], network_size[1] if network_size else None)
     prior_args: dict[str, Any] = {}
     prior_record = None
     if prior is not None:

@@ -104,10 +104,11 @@ class JobKeywords(TypedDict, total=False):
         Option(
             "photo: depth edges smeared by the network are made sharp along the photo's "
             "(m360.stitching.refine_edges, at the output's resolution); network: as the "
-            "network gave them",
+            "network gave them; auto: photo for a tangent network that sees its tile 4 or "
+            "more times smaller, network otherwise",
             check=lambda v, n: one_of(v, n, EDGE_MODES),
             choices=EDGE_MODES,
-            default="network",
+            default="auto",
         ),
     ]
     padding: Annotated[
@@ -185,13 +186,14 @@ def job_layout(erp_width: int, job: dict[str, Any]) -> Layout:
 def job_fingerprint(job: dict[str, Any]) -> dict[str, Any]:
     """Describe the job for a resume fingerprint: the options that differ from their defaults.
 
-    And always the padding the layout takes: the default padding changed (0.3 → 0.7), so an
-    image written before under the default (no key) is redone, and one written with padding
-    0.7 is kept.
+    And always the padding the layout takes and the edges mode: their defaults changed (padding
+    0.3 → 0.7, edges "network" → "auto"), so an image written before under a default (no key)
+    is redone, and one written with the new value given is kept.
     """
     defaults = {name: o.default for name, o in definition(JobKeywords).items()}
     described = {k: v for k, v in job.items() if v != defaults[k]}
     described["padding"] = job_layout(2048, job).padding
+    described["edges"] = job["edges"]
     return described
 
 

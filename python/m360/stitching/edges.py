@@ -24,11 +24,36 @@ from .._validate import as_array
 from ..errors import InputError
 from .upsample import rgb_u8
 
-__all__ = ["EDGE_MODES", "default_edge_radius", "refine_edges"]
+__all__ = ["AUTO_PHOTO_SHRINK", "EDGE_MODES", "default_edge_radius", "edges_for", "refine_edges"]
 
-#: ``edges=`` choices of :func:`m360.estimate`: the edges as the network gave them (default),
-#: or made sharp along the photo's by :func:`refine_edges`.
-EDGE_MODES = ("network", "photo")
+#: ``edges=`` choices of :func:`m360.estimate`: ``auto`` (default) is ``photo`` for a tangent
+#: network that sees its tile :data:`AUTO_PHOTO_SHRINK` or more times smaller, else
+#: ``network``; ``network`` keeps the edges as the network gave them; ``photo`` makes them sharp
+#: along the photo's by :func:`refine_edges`.
+EDGE_MODES = ("auto", "network", "photo")
+
+#: The tile's width over the network input's from which ``edges="auto"`` refines along the
+#: photo. The shared real networks, fed right, on the twelve 1K photos against the same network
+#: at 512 px (benches/bench_edges_real.py, --jump 0.01): a network smear of 2 px made the band
+#: around its edges 1.03-1.11x worse, 3 px 1.00-1.01x (5 of 12 photos nearer), 4 px 0.99x (6
+#: and 8 of 12), 6 px 0.98-0.99x (10 and 12 of 12). On the synthetic rooms the same refinement
+#: took the band at 4K from 0.189 to 0.064 (docs/method.md, "Sharp edges along the photo").
+AUTO_PHOTO_SHRINK = 4.0
+
+
+def edges_for(mode: str, tile_width: int | None, network_width: int | None) -> str:
+    """Resolve an ``edges`` mode to ``"network"`` or ``"photo"``.
+
+    ``auto`` is ``photo`` when a tangent network's input (``network_width``) is at most
+    1/:data:`AUTO_PHOTO_SHRINK` of its tile (``tile_width``): its edges are smeared over four
+    tile pixels or more. Unknown sizes (a simulated or panoramic network) give ``network``.
+    """
+    if mode != "auto":
+        return mode
+    if not tile_width or not network_width:
+        return "network"
+    return "photo" if tile_width >= AUTO_PHOTO_SHRINK * network_width else "network"
+
 
 #: The default window radius in pixels per pixel of ERP width: 10 px at 4096 (0.9°), a little
 #: more than twice the smear of a network seeing each tangent at the 2K layout's size.
