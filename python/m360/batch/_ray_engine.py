@@ -104,9 +104,8 @@ def _read_project(job: Job, settings: _Settings, threads: int) -> tuple[Any, Any
     than ``"network"`` as the edges' guide: otherwise only the payload travels on. The payload
     is (tangents, image): the image is what a model actor runs a panoramic network on (the
     photo for a panoramic model, the working-resolution photo for a prior model; None
-    otherwise). The
-    working width is chosen as :func:`m360.estimate` chooses it, so both engines make the same
-    bytes.
+    otherwise). The working width is chosen as :func:`m360.estimate` chooses it, so both
+    engines make the same bytes.
     """
     import cv2
 
