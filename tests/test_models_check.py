@@ -59,6 +59,12 @@ def test_static_normalising_registered_model(
     degrees = m360.Layout.icosahedron(WIDTH).network_pixel_degrees(8)
     where = "at a tile's centre, whatever the ERP width"
     assert field(out, "detail") == f"{degrees:.2f}° per network pixel {where}"
+    # 8 px on the 400 px tangents of a 2K ERP: edges="auto" refines along the photo.
+    tile = m360.Layout.icosahedron(WIDTH).tangent_shape[1]
+    assert field(out, "edges") == (
+        f"refined along the photo by default (the {tile}-px tangents are {tile / 8:.1f}x the "
+        "network's 8-px input; --edges auto refines from 4x)"
+    )
     norm = field(out, "normalisation")
     assert norm.startswith("graph (m360 feeds RGB in [0, 1]): mean (0.485, 0.456, 0.406)")
     assert "std (0.229, 0.224, 0.225)" in norm
@@ -86,6 +92,11 @@ def test_dynamic_model_without_normalisation(
     assert field(out, "output kind").startswith("unknown: pass --output-kind")
     assert field(out, "output") == f"{nh}x{nw} for a {nh}x{nw} input (the input's size)"
     assert field(out, "sizes") == f"runs at any size (probed near {nh}x{nw})"
+    # As fine as its tangents: edges="auto" keeps the network's edges.
+    assert field(out, "edges").startswith(
+        f"as the network gives them by default (the {tangent[1]}-px tangents are "
+        f"{tangent[1] / nw:.1f}x the network's {nw}-px input"
+    )
 
 
 def test_nhwc_graph_wanting_0_255(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:

@@ -50,6 +50,7 @@ from .pipeline import scale as m360_scale
 from .pipeline.estimate import estimate
 from .pipeline.options import JobKeywords, PriorKeywords
 from .pipeline.prior import PRIOR_MODEL_OPTIONS
+from .stitching.edges import AUTO_PHOTO_SHRINK, edges_for
 from .stitching.options import StitchKeywords, StitchOptions
 
 #: Where ``m360 run`` can run images; the first is the default.
@@ -540,6 +541,17 @@ def _flag_text(flags: dict[str, object], *, prior: bool = False) -> str:
     return " ".join(parts)
 
 
+def _auto_edges(tile_width: int, network_width: int) -> str:
+    """Say what the default ``edges="auto"`` does for a network this wide on tiles this wide."""
+    shrink = (
+        f"the {tile_width}-px tangents are {tile_width / network_width:.1f}x the network's "
+        f"{network_width}-px input; --edges auto refines from {AUTO_PHOTO_SHRINK:g}x"
+    )
+    if edges_for("auto", tile_width, network_width) == "photo":
+        return f"refined along the photo by default ({shrink})"
+    return f"as the network gives them by default ({shrink})"
+
+
 def _check_report(info: dict[str, Any]) -> list[str]:
     """Write the lines `m360 models check` prints for :func:`m360.models.check`'s findings."""
     inp, norm = info["input"], info["normalization"]
@@ -564,6 +576,8 @@ def _check_report(info: dict[str, Any]) -> list[str]:
     if runs is None:  # what the stitch can resolve (docs/your-own-model.md)
         where = "on the equator" if panoramic else "at a tile's centre, whatever the ERP width"
         lines.append(f"detail:        {info['degrees_per_pixel']:.2f}° per network pixel {where}")
+        if not panoramic:
+            lines.append(f"edges:         {_auto_edges(info['tangent_shape'][1], nw)}")
     target = "the photo (upsampled along its edges)" if panoramic else "the tangent"
     rule = info["size_rule"]
     if inp["static"]:
