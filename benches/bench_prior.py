@@ -98,9 +98,13 @@ GOALS[SHARP] = "(<= 0.012)"
 AFFINE: dict[str, Any] = {"scale": (0.5, 2.0), "shift": 0.3, "field": 0.1, "noise": 0.01}
 
 
+#: The content-error tangents' blur in tangent pixels per pixel of ERP width (1 px at 2K).
+BLUR_PER_WIDTH = 1 / 2048
+
+
 def tangents(scene: syn.Scene, layout: m360.Layout, width: int, seed: int) -> dict[str, Any]:
     exact = syn.tangent_perspective_disparity(scene, layout.cameras)
-    wrong = syn.content_errors(exact, seed + 200, blur=width / 2048)
+    wrong = syn.content_errors(exact, seed + 200, blur=width * BLUR_PER_WIDTH)
     return {
         "affine": syn.distort(exact, seed + 100, **AFFINE),
         "content": syn.distort(wrong, seed + 100, **AFFINE),
@@ -301,10 +305,10 @@ def detail(width: int, rooms: range, tuning: dict[str, Any]) -> list[list]:
                     m360.eval.depth_metrics(d, depth, valid=band)["abs_rel"]
                 )
     s, e, u, a = (statistics.median(v) for v in (stitched, sharpened, unblurred, alone))
-    # The network the tangents model (blur = tile / (2 input) = width / 2048) and what
-    # m360.estimate's default edges="auto" does for it.
+    # The network the tangents model (network_tangents' blur, tile / (2 input), equal to
+    # tangents' width · BLUR_PER_WIDTH) and what m360.estimate's default edges="auto" does for it.
     tile = layout.tangent_shape[1]
-    modelled = round(tile * 2048 / (2 * width))
+    modelled = round(tile / (2 * width * BLUR_PER_WIDTH))
     default = edges_for("auto", tile, modelled)
     rows = [
         [width, "stitch alone (m360.stitch: no photo)", s, a, a / s, "", "(>= 2x)"],

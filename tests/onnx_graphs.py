@@ -233,3 +233,28 @@ def constant_output(path: Path, value: np.ndarray, name: str) -> Path:
         initializer=inits,
     )
     return _save(graph, path)
+
+
+def saturating(path: Path, size: int = 32) -> Path:
+    """A fixed-size network that saturates above 1: output = min(channel 0, 1) + a fixed ramp.
+
+    Fed RGB in [0, 1] its output follows the photo; fed raw 0-255 values every lit pixel reads
+    1, and every tile gets the ramp (its bias), the same map.
+    """
+    ramp = np.linspace(1.0, 2.0, size * size, dtype=np.float32).reshape(1, size, size)
+    graph = helper.make_graph(
+        [
+            helper.make_node("Gather", ["x", "idx"], ["c"], axis=1),
+            helper.make_node("Min", ["c", "one"], ["clipped"]),
+            helper.make_node("Add", ["clipped", "ramp"], ["y"]),
+        ],
+        "saturating",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, size, size])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, size, size])],
+        initializer=[
+            numpy_helper.from_array(np.array(0, dtype=np.int64), "idx"),
+            numpy_helper.from_array(np.array(1.0, dtype=np.float32), "one"),
+            numpy_helper.from_array(ramp, "ramp"),
+        ],
+    )
+    return _save(graph, path)

@@ -372,39 +372,12 @@ def test_a_dropped_tangent_is_left_out_of_the_stitch_and_recorded(
     assert sidecar["checks"]["tangents"]["dropped"][0]["tangent"] == 7
 
 
-def _saturating(path: Path, size: int = 32) -> Path:
-    """A network that saturates above 1: output = min(channel 0, 1) + a fixed ramp (its bias).
-
-    Fed RGB in [0, 1] its output follows the photo; fed raw 0-255 values every lit pixel reads
-    1, and every tile gets the ramp, the same map.
-    """
-    from onnx import TensorProto, helper, numpy_helper
-
-    ramp = np.linspace(1.0, 2.0, size * size, dtype=np.float32).reshape(1, size, size)
-    graph = helper.make_graph(
-        [
-            helper.make_node("Gather", ["x", "idx"], ["c"], axis=1),
-            helper.make_node("Min", ["c", "one"], ["clipped"]),
-            helper.make_node("Add", ["clipped", "ramp"], ["y"]),
-        ],
-        "saturating",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1, 3, size, size])],
-        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1, size, size])],
-        initializer=[
-            numpy_helper.from_array(np.array(0, dtype=np.int64), "idx"),
-            numpy_helper.from_array(np.array(1.0, dtype=np.float32), "one"),
-            numpy_helper.from_array(ramp, "ramp"),
-        ],
-    )
-    return g._save(graph, path)
-
-
 def test_a_network_that_ignores_its_input_is_refused_naming_the_normalisation(
     tmp_path: Path,
 ) -> None:
     """Raw 0-255 values into a network trained on [0, 1] saturate it: one map for every tile.
     That is refused with the normalisation that fits; fed right, the same network runs."""
-    model = _saturating(tmp_path / "saturating.onnx")
+    model = g.saturating(tmp_path / "saturating.onnx")
     rgb, _ = syn.render(scene(0), 256)
     options = {"output_kind": "affine_disparity", "multiple_of": 32}
     with pytest.raises(ModelError, match=r"same map for all 20 tangents.*normalize='unit'"):

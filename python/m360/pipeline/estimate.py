@@ -679,9 +679,11 @@ def _from_panoramic(
     ERP grid (h, 2h) if the network's output is not one, then upsampled to ``erp_shape`` with
     the photo ``guide`` (``upsample``: guided or bilinear; shrunk by area when the network's
     map is larger than the photo); ``edges="photo"`` then makes its edges sharp along the
-    photo's (:func:`m360.stitching.refine_edges`).
+    photo's (:func:`m360.stitching.refine_edges`); ``"auto"`` keeps them (the map is already
+    upsampled along the photo).
     """
     t0 = time.perf_counter()
+    edges = edges_for(edges, None, None)
     network_shape = list(raw.shape)
     disparity = _estimators.to_spherical_disparity(raw, kind)
     valid_before = float(np.isfinite(disparity).mean())
